@@ -1,0 +1,212 @@
+"""Solver datasets: generation in atomic, resumable shards, and loading.
+
+Layout of a dataset directory::
+
+    metadata.json          format version, seed, ranges, solver settings, counts (written last)
+    split.npz              train / test design indices (80 / 20, seeded)
+    shards/shard-00000.npz one file per ``shard_size`` designs, written atomically
+
+Each shard holds, for its ``b`` designs (float64, SI units):
+
+    index      (b,)             global design indices
+    features   (b, 3 + 3 N_t)   [E, r, L, offsets, pitches, tensions]
+    s          (b, n)           arclengths, m
+    tendons    (b, n, N_t, 3)   tendon positions, m
+    backbone   (b, n, 3)        backbone positions, m
+    rotation   (b, n, 3, 3)     frames, body axes as columns
+    converged  (b,)             solver flag
+    residual   (b,)             wrench residual, N
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from training import design_space
+from training.designs import DesignBatch
+from training.physics import SolverOptions, solve
+
+FORMAT_VERSION = 1
+_ARRAYS = ("index", "features", "s", "tendons", "backbone", "rotation", "converged", "residual")
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """What to generate: ``n`` Table I designs from ``seed``, at ``points`` equispaced arclengths."""
+
+    n: int
+    seed: int = 0
+    points: int = 42
+    shard_size: int = 1000
+    test_fraction: float = 0.2
+
+    @property
+    def n_shards(self) -> int:
+        return -(-self.n // self.shard_size)
+
+
+class DatasetMismatch(ValueError):
+    """An existing output directory was made with other settings."""
+
+
+def solve_shard(features: np.ndarray, index: np.ndarray, points: int) -> dict[str, np.ndarray]:
+    """Solve one shard of designs ``(b, 3 + 3 N_t)``; returns the shard's arrays (see module doc)."""
+    designs = DesignBatch.from_features(features)
+    sol = solve(designs, np.linspace(0.0, 1.0, points))
+    return {
+        "index": index, "features": features, "s": sol.s, "tendons": sol.tendons,
+        "backbone": sol.backbone, "rotation": sol.rotation, "converged": sol.converged,
+        "residual": sol.residual,
+    }
+
+
+def shard_path(out: Path, k: int) -> Path:
+    return out / "shards" / f"shard-{k:05d}.npz"
+
+
+def _write_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _write_json_atomic(path: Path, obj: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2))
+    os.replace(tmp, path)
+
+
+def _plan(out: Path, cfg: GenerateConfig) -> None:
+    """Create the directory and its plan file, or check that an existing one matches ``cfg``."""
+    (out / "shards").mkdir(parents=True, exist_ok=True)
+    plan_file = out / "plan.json"
+    plan = {"format_version": FORMAT_VERSION, **asdict(cfg)}
+    if plan_file.exists():
+        old = json.loads(plan_file.read_text())
+        if old != plan:
+            raise DatasetMismatch(f"{out} holds a dataset made with other settings: {old}")
+    else:
+        _write_json_atomic(plan_file, plan)
+
+
+def generate(
+    out: str | Path,
+    cfg: GenerateConfig,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> dict:
+    """Generate (or resume) a dataset in ``out``; returns its metadata.
+
+    Shards already on disk are kept; the others are solved on ``workers`` local processes
+    (default: all cores) or, with ``scheduler``, on a Dask distributed cluster at that address.
+    """
+    out = Path(out)
+    _plan(out, cfg)
+    features = design_space.sample_designs(cfg.n, seed=cfg.seed).features()
+    todo = [k for k in range(cfg.n_shards) if not shard_path(out, k).exists()]
+    done_designs = cfg.n - sum(len(_shard_range(cfg, k)) for k in todo)
+    bar = _progress_bar(cfg.n, done_designs, progress)
+    started = time.perf_counter()
+    jobs = [(k, features[_shard_range(cfg, k)], np.arange(cfg.n)[_shard_range(cfg, k)]) for k in todo]
+    for k, arrays in _run_jobs(jobs, cfg.points, workers=workers, scheduler=scheduler):
+        _write_atomic(shard_path(out, k), arrays)
+        if bar is not None:
+            bar.update(len(arrays["index"]))
+    if bar is not None:
+        bar.close()
+    elapsed = time.perf_counter() - started
+    meta = _finish(out, cfg, solved=cfg.n - done_designs, elapsed=elapsed)
+    return meta
+
+
+def _shard_range(cfg: GenerateConfig, k: int) -> slice:
+    return slice(k * cfg.shard_size, min(cfg.n, (k + 1) * cfg.shard_size))
+
+
+def _progress_bar(total: int, initial: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, unit="design", desc="solving", smoothing=0.1)
+
+
+def _run_jobs(jobs, points: int, *, workers: int | None, scheduler: str | None):
+    """Yield ``(shard index, arrays)`` as shards finish, in any order."""
+    if not jobs:
+        return
+    if scheduler is not None:
+        from distributed import Client, as_completed as dask_completed
+
+        with Client(scheduler) as client:
+            futures = {client.submit(solve_shard, f, i, points, pure=False): k for k, f, i in jobs}
+            for fut in dask_completed(futures):
+                yield futures[fut], fut.result()
+        return
+    workers = workers or os.cpu_count() or 1
+    if workers == 1:
+        for k, f, i in jobs:
+            yield k, solve_shard(f, i, points)
+        return
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(solve_shard, f, i, points): k for k, f, i in jobs}
+        for fut in as_completed(futures):
+            yield futures[fut], fut.result()
+
+
+def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> dict:
+    converged = 0
+    for k in range(cfg.n_shards):
+        with np.load(shard_path(out, k)) as z:
+            converged += int(z["converged"].sum())
+    perm = np.random.default_rng(cfg.seed + 1).permutation(cfg.n)
+    n_test = int(round(cfg.test_fraction * cfg.n))
+    np.savez(out / "split.npz", train=np.sort(perm[n_test:]), test=np.sort(perm[:n_test]))
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "generator": "tdcr generate",
+        **asdict(cfg),
+        "n_tendons": design_space.N_TENDONS,
+        "feature_names": design_space.feature_names(),
+        "ranges": {k: asdict(v) for k, v in design_space.TABLE_I.items()},
+        "s_fraction": np.linspace(0.0, 1.0, cfg.points).tolist(),
+        "solver": asdict(SolverOptions()),
+        "converged": converged,
+        "not_converged": cfg.n - converged,
+        "n_train": cfg.n - n_test,
+        "n_test": n_test,
+        "last_run": {"designs_solved": solved, "seconds": round(elapsed, 3)},
+    }
+    _write_json_atomic(out / "metadata.json", meta)
+    return meta
+
+
+def load(path: str | Path, split: str = "all", *, converged_only: bool = True) -> dict[str, np.ndarray]:
+    """Load a dataset (``split`` = 'train', 'test' or 'all'); arrays as in the module docstring."""
+    path = Path(path)
+    meta = json.loads((path / "metadata.json").read_text())
+    parts = []
+    for k in range(-(-meta["n"] // meta["shard_size"])):
+        with np.load(shard_path(path, k)) as z:
+            parts.append({name: z[name] for name in _ARRAYS})
+    data = {name: np.concatenate([p[name] for p in parts]) for name in _ARRAYS}
+    if split != "all":
+        with np.load(path / "split.npz") as z:
+            keep = np.isin(data["index"], z[split])
+        data = {k: v[keep] for k, v in data.items()}
+    if converged_only:
+        ok = data["converged"]
+        data = {k: v[ok] for k, v in data.items()}
+    return data

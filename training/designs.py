@@ -1,0 +1,120 @@
+"""Batches of TDCR designs as float64 arrays (no torch, no pydantic).
+
+A design is (E, r, L) plus, for each of ``N_t`` tendons, an offset, a helical
+pitch and a tension.  Tendon ``i`` runs in the body frame at
+``offset_i * [cos(2 pi i / N_t + pitch_i s), sin(2 pi i / N_t + pitch_i s), 0]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DesignBatch:
+    """A batch of ``B`` designs with ``N_t`` tendons each (SI units).
+
+    Attributes:
+        E: Young's modulus, Pa, ``(B,)``.
+        r: backbone radius, m, ``(B,)``.
+        L: backbone length, m, ``(B,)``.
+        offset: tendon offsets from the backbone axis, m, ``(B, N_t)``.
+        pitch: helical pitch of each tendon, rad/m, ``(B, N_t)``.
+        tension: tendon tensions, N, ``(B, N_t)``.
+    """
+
+    E: np.ndarray
+    r: np.ndarray
+    L: np.ndarray
+    offset: np.ndarray
+    pitch: np.ndarray
+    tension: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("E", "r", "L", "offset", "pitch", "tension"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
+        b = self.E.shape[0]
+        if self.E.ndim != 1 or self.r.shape != (b,) or self.L.shape != (b,):
+            raise ValueError("E, r and L must all have shape (B,)")
+        if self.offset.ndim != 2 or self.offset.shape[0] != b:
+            raise ValueError("offset must have shape (B, N_t)")
+        if self.pitch.shape != self.offset.shape or self.tension.shape != self.offset.shape:
+            raise ValueError("offset, pitch and tension must share the shape (B, N_t)")
+
+    @property
+    def n_designs(self) -> int:
+        return int(self.E.shape[0])
+
+    @property
+    def n_tendons(self) -> int:
+        return int(self.offset.shape[1])
+
+    def __len__(self) -> int:
+        return self.n_designs
+
+    def take(self, index) -> "DesignBatch":
+        """Sub-batch selected by an integer index array or slice."""
+        return DesignBatch(
+            E=self.E[index], r=self.r[index], L=self.L[index],
+            offset=self.offset[index], pitch=self.pitch[index], tension=self.tension[index],
+        )
+
+    def features(self) -> np.ndarray:
+        """Raw SI feature matrix ``(B, 3 + 3 N_t)``: [E, r, L, offsets, pitches, tensions]."""
+        return np.concatenate(
+            [self.E[:, None], self.r[:, None], self.L[:, None], self.offset, self.pitch, self.tension],
+            axis=1,
+        )
+
+    @classmethod
+    def from_features(cls, features: np.ndarray) -> "DesignBatch":
+        """Inverse of :meth:`features` for ``(B, 3 + 3 N_t)`` arrays."""
+        features = np.asarray(features, dtype=np.float64)
+        n_t = (features.shape[1] - 3) // 3
+        if features.ndim != 2 or features.shape[1] != 3 + 3 * n_t or n_t < 1:
+            raise ValueError("features must have shape (B, 3 + 3 N_t) with N_t >= 1")
+        return cls(
+            E=features[:, 0], r=features[:, 1], L=features[:, 2],
+            offset=features[:, 3:3 + n_t], pitch=features[:, 3 + n_t:3 + 2 * n_t],
+            tension=features[:, 3 + 2 * n_t:],
+        )
+
+    @classmethod
+    def concatenate(cls, batches: list["DesignBatch"]) -> "DesignBatch":
+        return cls.from_features(np.concatenate([b.features() for b in batches], axis=0))
+
+
+@dataclass(frozen=True)
+class ExternalLoads:
+    """Optional external loads, per design; each ``None`` means zero.
+
+    Attributes:
+        gravity: gravitational acceleration in the base frame, m/s^2, ``(B, 3)``.
+        density: backbone density, kg/m^3, ``(B,)`` (needed with ``gravity``).
+        tip_force: force applied at the tip, base frame, N, ``(B, 3)``.
+        tip_moment: moment applied at the tip, base frame, N m, ``(B, 3)``.
+    """
+
+    gravity: np.ndarray | None = None
+    density: np.ndarray | None = None
+    tip_force: np.ndarray | None = None
+    tip_moment: np.ndarray | None = None
+
+    def resolved(self, n_designs: int, area: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(f_g, F, M)``: weight per unit length (N/m), tip force (N), tip moment (N m), each ``(B, 3)``."""
+        zeros = np.zeros((n_designs, 3))
+        f_g = zeros
+        if self.gravity is not None:
+            if self.density is None:
+                raise ValueError("gravity needs a density")
+            f_g = np.asarray(self.density, float)[:, None] * area[:, None] * np.asarray(self.gravity, float)
+        F = zeros if self.tip_force is None else np.asarray(self.tip_force, float).reshape(n_designs, 3)
+        M = zeros if self.tip_moment is None else np.asarray(self.tip_moment, float).reshape(n_designs, 3)
+        return f_g, F, M
+
+    def is_zero(self) -> bool:
+        def zero(a):
+            return a is None or not np.any(np.asarray(a))
+        return (zero(self.gravity) or zero(self.density)) and zero(self.tip_force) and zero(self.tip_moment)

@@ -1,0 +1,576 @@
+"""Batched static Cosserat-rod solver for single-segment TDCRs (Rucker & Webster 2011).
+
+Conventions (identical to ``shared/reference/cosserat_cases.json``): base at the
+origin with R(0) = I and the undeformed backbone along +z; tendon i at body-frame
+angle 2 pi i / N_t + pitch_i s with its own offset; tendons terminate at the tip;
+G = E / (2 (1 + 0.3)), A = pi r^2, I = pi r^4 / 4, J = 2 I,
+K_se = diag(G A, G A, E A), K_bt = diag(E I, E I, G J), undeformed strains
+nu* = e3, kappa* = 0.
+
+Method.  Cut the rod *and* its tendons at s.  The tendons pull the part [s, L]
+with -tau_i t_i(s) at p_i(s), so the balance of [s, L] gives, in the body frame,
+
+    K_se (nu - e3) + sum_i tau_i t_i = R^T N(s)                      (eq. W1)
+    K_bt kappa + sum_i tau_i rho_i x t_i = R^T M(s)                  (eq. W2)
+
+with t_i = g_i / |g_i|, g_i = nu + kappa x rho_i + rho_i'  (Rucker & Webster eq. 8),
+N(s) = F_tip + f_g (L - s) and M(s) the total moment of tip and distributed loads
+about p(s).  Without external loads N = M = 0 and (W1, W2) is a 6-unknown algebraic
+equation at each s: it is the gradient of the strictly convex potential
+
+    Phi(nu, kappa) = 1/2 (nu-e3)^T K_se (nu-e3) + 1/2 kappa^T K_bt kappa + sum_i tau_i |g_i|   (eq. PHI)
+
+(elastic energy plus the work of the tendons), so its root is unique and Newton
+with an Armijo line search on Phi finds it from the undeformed strains.  The
+strains at the ends and middle of each step feed a fourth-order Magnus integrator on SE(3)
+(eq. MAG), which keeps R(s) in SO(3) to round-off.
+
+With external loads, M(s) depends on the unknown shape: the solver shoots on
+M(0) (3 unknowns) with RK4 on (p, R, M), M' = -p' x N (eq. MT), the local
+strains again from (W1, W2), a finite-difference Newton iteration, and load
+continuation from the tendon-only solution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from training.designs import DesignBatch, ExternalLoads
+from training.physics._lie import hat, se3_bracket, se3_exp
+
+POISSON_RATIO = 0.3
+_E3 = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Numerical settings of :func:`solve`.
+
+    Attributes:
+        max_step: largest Magnus step as a fraction of L (tendon-only loads).
+        max_step_loads: largest RK4 step as a fraction of L (with external loads).
+        newton_tol: Newton stops after a full step whose scaled size |d nu| + r |d kappa| is
+            below sqrt(newton_tol), which leaves an error of order newton_tol.
+        max_newton: Newton iterations per collocation node.
+        shooting_tol: tip-moment tolerance of the shooting method, as a fraction of a
+            reference moment (sum of tension x offset + |M_tip| + |F_tip| L + |f_g| L^2).
+        max_shooting: shooting iterations per load step.
+        load_steps: load-continuation steps for external loads.
+        residual_tol: a design whose wrench residual (N) exceeds this times its load
+            scale is reported as not converged.
+    """
+
+    max_step: float = 1.0 / 41.0
+    max_step_loads: float = 1.0 / 100.0
+    newton_tol: float = 1e-13
+    max_newton: int = 60
+    shooting_tol: float = 1e-11
+    max_shooting: int = 20
+    load_steps: int = 4
+    residual_tol: float = 1e-8
+
+
+@dataclass(frozen=True)
+class RodSolution:
+    """Equilibria of a batch of ``B`` designs at ``n`` arclengths.
+
+    Attributes:
+        s: arclengths, m, ``(B, n)``.
+        backbone: backbone positions p(s), m, ``(B, n, 3)``.
+        rotation: frames R(s), body axes as columns, ``(B, n, 3, 3)``.
+        tendons: tendon positions p + R rho_i, m, ``(B, n, N_t, 3)``.
+        force: internal force n(s) of the rod, base frame, N, ``(B, n, 3)``.
+        moment: internal moment m(s) of the rod, base frame, N m, ``(B, n, 3)``.
+        converged: per-design success flag, ``(B,)``.
+        residual: per-design wrench-balance residual, N (moments divided by L), ``(B,)``.
+        iterations: per-design Newton (tendon-only) or shooting iterations, ``(B,)``.
+    """
+
+    s: np.ndarray
+    backbone: np.ndarray
+    rotation: np.ndarray
+    tendons: np.ndarray
+    force: np.ndarray
+    moment: np.ndarray
+    converged: np.ndarray
+    residual: np.ndarray
+    iterations: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Material:
+    kse: np.ndarray  # (B, 3) N
+    kbt: np.ndarray  # (B, 3) N m^2
+    area: np.ndarray  # (B,) m^2
+
+
+def material(designs: DesignBatch) -> _Material:
+    """Stiffnesses K_se (N) and K_bt (N m^2) as diagonals, ``(B, 3)`` each."""
+    g = designs.E / (2.0 * (1.0 + POISSON_RATIO))
+    area = np.pi * designs.r**2
+    inertia = np.pi * designs.r**4 / 4.0
+    kse = np.stack([g * area, g * area, designs.E * area], axis=-1)
+    kbt = np.stack([designs.E * inertia, designs.E * inertia, g * 2.0 * inertia], axis=-1)
+    return _Material(kse=kse, kbt=kbt, area=area)
+
+
+def tendon_routing(designs: DesignBatch, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Body-frame tendon offsets rho_i(s) and their arclength derivatives.
+
+    rho_i(s) = offset_i [cos(2 pi i / N_t + pitch_i s), sin(...), 0].
+
+    Args:
+        designs: ``B`` designs with ``N_t`` tendons.
+        sigma: arclength fractions s / L, ``(M,)``.
+
+    Returns:
+        ``(rho, drho)``, m and m/m, each ``(B, M, N_t, 3)``.
+    """
+    n_t = designs.n_tendons
+    base_angle = 2.0 * np.pi * np.arange(n_t) / n_t  # (N_t,)
+    s = designs.L[:, None] * sigma[None, :]  # (B, M)
+    phi = base_angle[None, None, :] + designs.pitch[:, None, :] * s[:, :, None]  # (B, M, N_t)
+    off = designs.offset[:, None, :]
+    cos, sin = np.cos(phi), np.sin(phi)
+    zeros = np.zeros_like(phi)
+    rho = off[..., None] * np.stack([cos, sin, zeros], axis=-1)
+    drho = (off * designs.pitch[:, None, :])[..., None] * np.stack([-sin, cos, zeros], axis=-1)
+    return rho, drho
+
+
+# --------------------------------------------------------------------------- local equation
+
+
+@dataclass
+class _Nodes:
+    """Flattened collocation data for P = B * M nodes."""
+
+    rho: np.ndarray  # (P, N_t, 3)
+    drho: np.ndarray  # (P, N_t, 3)
+    tau: np.ndarray  # (P, N_t)
+    kse: np.ndarray  # (P, 3)
+    kbt: np.ndarray  # (P, 3)
+    radius: np.ndarray  # (P,)
+    target: np.ndarray | None  # (P, 6) body-frame (R^T N, R^T M) or None for zero
+
+    def take(self, idx: np.ndarray) -> "_Nodes":
+        return _Nodes(
+            self.rho[idx], self.drho[idx], self.tau[idx], self.kse[idx], self.kbt[idx],
+            self.radius[idx], None if self.target is None else self.target[idx],
+        )
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (faster than np.cross for small trailing axes)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _tendon_directions(x: np.ndarray, nodes: _Nodes) -> tuple[np.ndarray, np.ndarray]:
+    """Unit tendon tangents t_i (body frame) and |g_i|, ``(P, N_t, 3)`` and ``(P, N_t)``."""
+    g = x[:, None, :3] + _cross(x[:, None, 3:], nodes.rho) + nodes.drho
+    gn = np.sqrt(np.einsum("pij,pij->pi", g, g))
+    return g / gn[..., None], gn
+
+
+def _potential(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
+    """Phi of eq. (PHI) minus target . x, ``(P,)``."""
+    _, gn = _tendon_directions(x, nodes)
+    d_nu = x[:, :3] - _E3
+    phi = 0.5 * np.einsum("pi,pi->p", nodes.kse * d_nu, d_nu)
+    phi += 0.5 * np.einsum("pi,pi->p", nodes.kbt * x[:, 3:], x[:, 3:])
+    phi += np.einsum("pi,pi->p", nodes.tau, gn)
+    if nodes.target is not None:
+        phi -= np.einsum("pi,pi->p", nodes.target, x)
+    return phi
+
+
+def _residual_parts(x: np.ndarray, nodes: _Nodes):
+    t, gn = _tendon_directions(x, nodes)
+    tau_t = nodes.tau[..., None] * t
+    c = _cross(nodes.rho, t)  # rho_i x t_i, (P, N_t, 3)
+    f1 = nodes.kse * (x[:, :3] - _E3) + tau_t.sum(axis=1)
+    f2 = nodes.kbt * x[:, 3:] + (nodes.tau[..., None] * c).sum(axis=1)
+    res = np.concatenate([f1, f2], axis=1)
+    if nodes.target is not None:
+        res = res - nodes.target
+    return res, t, gn, c
+
+
+def _residual(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
+    """Left-hand side minus right-hand side of (W1, W2), N and N m, ``(P, 6)``."""
+    return _residual_parts(x, nodes)[0]
+
+
+def _residual_and_jacobian(x: np.ndarray, nodes: _Nodes) -> tuple[np.ndarray, np.ndarray]:
+    """Residual of (W1, W2) ``(P, 6)`` and its Jacobian, the Hessian of Phi ``(P, 6, 6)``.
+
+    With w_i = tau_i / |g_i|, A_i = [I, -hat(rho_i)] and a_i = A_i^T t_i = (t_i, rho_i x t_i):
+    J = diag(K_se, K_bt) + sum_i w_i (A_i^T A_i - a_i a_i^T), symmetric positive definite
+    because A_i^T (I - t_i t_i^T) A_i is positive semi-definite.
+    """
+    res, t, gn, c = _residual_parts(x, nodes)
+    w = nodes.tau / gn  # (P, N_t)
+    a = np.concatenate([t, c], axis=-1)  # (P, N_t, 6)
+    jac = -np.matmul(np.swapaxes(w[..., None] * a, 1, 2), a)
+    sw = w.sum(axis=1)  # (P,)
+    wr = np.einsum("pi,pij->pj", w, nodes.rho)  # sum_i w_i rho_i
+    wrr = np.matmul(np.swapaxes(w[..., None] * nodes.rho, 1, 2), nodes.rho)  # sum_i w_i rho_i rho_i^T
+    wr2 = np.einsum("pi,pij,pij->p", w, nodes.rho, nodes.rho)  # sum_i w_i |rho_i|^2
+    diag = np.arange(3)
+    jac[:, diag, diag] += (sw[:, None] + nodes.kse)
+    hw = hat(wr)
+    jac[:, :3, 3:] -= hw
+    jac[:, 3:, :3] += hw
+    jac[:, 3:, 3:] -= wrr
+    jac[:, diag + 3, diag + 3] += wr2[:, None] + nodes.kbt
+    return res, jac
+
+
+def _solve_spd(jac: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``jac @ x = rhs`` for SPD ``(P, 6, 6)`` systems after symmetric Jacobi scaling."""
+    d = 1.0 / np.sqrt(np.einsum("pii->pi", jac))
+    scaled = jac * d[:, :, None] * d[:, None, :]
+    return d * np.linalg.solve(scaled, (d * rhs)[..., None])[..., 0]
+
+
+def _newton(x: np.ndarray, nodes: _Nodes, opts: SolverOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Damped Newton on (W1, W2) for every node, in place on ``x`` ``(P, 6)``.
+
+    Returns ``(x, converged (P,), iterations (P,))``.
+    """
+    n = x.shape[0]
+    iterations = np.zeros(n, dtype=np.int64)
+    converged = np.zeros(n, dtype=bool)
+    active = np.arange(n)
+    sub = nodes
+    for _ in range(opts.max_newton):
+        xa = x[active]
+        res, jac = _residual_and_jacobian(xa, sub)
+        step = -_solve_spd(jac, res)
+        alpha = np.ones(xa.shape[0])
+        big = np.linalg.norm(step[:, :3], axis=1) + sub.radius * np.linalg.norm(step[:, 3:], axis=1) > 1e-3
+        if big.any():  # globalise only far from the root; small steps are in Newton's quadratic basin
+            alpha[big] = _line_search(xa[big], step[big], res[big], sub.take(big))
+        x[active] = xa + alpha[:, None] * step
+        iterations[active] += 1
+        size = np.linalg.norm(step[:, :3], axis=1) + sub.radius * np.linalg.norm(step[:, 3:], axis=1)
+        # a full Newton step of size e leaves an error of order e^2 (quadratic convergence)
+        done = (alpha == 1.0) & (size < np.sqrt(opts.newton_tol)) | ~np.isfinite(size)
+        converged[active[done]] = np.isfinite(size[done])
+        keep = ~done
+        if not keep.any():
+            break
+        active = active[keep]
+        sub = sub.take(keep)
+    return x, converged, iterations
+
+
+def _line_search(x: np.ndarray, step: np.ndarray, grad: np.ndarray, nodes: _Nodes) -> np.ndarray:
+    """Backtracking (Armijo) step lengths on Phi, ``(P,)``; 1 where the full step is accepted."""
+    alpha = np.ones(x.shape[0])
+    phi0 = _potential(x, nodes)
+    slope = np.einsum("pi,pi->p", grad, step)  # < 0: Newton direction of an SPD Hessian
+    slack = 1e-13 * (np.abs(phi0) + 1.0)  # round-off allowance near the minimum
+    pending = np.arange(x.shape[0])
+    for _ in range(40):
+        trial = x[pending] + alpha[pending, None] * step[pending]
+        phi = _potential(trial, nodes.take(pending))
+        ok = phi <= phi0[pending] + 1e-4 * alpha[pending] * slope[pending] + slack[pending]
+        pending = pending[~ok]
+        if pending.size == 0:
+            break
+        alpha[pending] *= 0.5
+    return alpha
+
+
+# --------------------------------------------------------------------------- grids
+
+
+def _step_grid(sigma_out: np.ndarray, max_step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integration steps aligned with the output points.
+
+    Returns ``(starts (K,), widths (K,), out_step (n,))`` in fractions of L, where
+    ``out_step[j]`` is the number of steps taken before output point j.
+    """
+    breaks = np.unique(np.concatenate([[0.0], sigma_out]))
+    starts, widths, ends = [], [], []
+    for a, b in zip(breaks[:-1], breaks[1:]):
+        k = max(1, int(np.ceil((b - a) / max_step - 1e-9)))
+        edges = np.linspace(a, b, k + 1)
+        starts.extend(edges[:-1])
+        widths.extend(np.diff(edges))
+        ends.extend(edges[1:])
+    ends = np.asarray(ends)
+    out_step = np.searchsorted(np.concatenate([[0.0], ends]), sigma_out)
+    return np.asarray(starts), np.asarray(widths), out_step
+
+
+def _make_nodes(designs: DesignBatch, mat: _Material, sigma: np.ndarray) -> _Nodes:
+    rho, drho = tendon_routing(designs, sigma)
+    b, m = designs.n_designs, sigma.shape[0]
+    rep = lambda a: np.repeat(a, m, axis=0)  # noqa: E731  (B, ...) -> (B*M, ...)
+    return _Nodes(
+        rho=rho.reshape(b * m, -1, 3), drho=drho.reshape(b * m, -1, 3),
+        tau=rep(designs.tension), kse=rep(mat.kse), kbt=rep(mat.kbt), radius=rep(designs.r), target=None,
+    )
+
+
+def _undeformed(p: int) -> np.ndarray:
+    x = np.zeros((p, 6))
+    x[:, 2] = 1.0
+    return x
+
+
+# --------------------------------------------------------------------------- public entry
+
+
+def solve(
+    designs: DesignBatch,
+    s_fraction: np.ndarray,
+    *,
+    loads: ExternalLoads | None = None,
+    options: SolverOptions | None = None,
+) -> RodSolution:
+    """Equilibrium shapes of a batch of designs.
+
+    Args:
+        designs: ``B`` designs with ``N_t >= 1`` tendons each.
+        s_fraction: requested arclengths as fractions of L in [0, 1], ``(n,)``, any order.
+        loads: optional gravity and tip loads; ``None`` means tendon loads only.
+        options: numerical settings.
+
+    Returns:
+        A :class:`RodSolution`.  A design that fails is flagged in ``converged``;
+        it never fails the batch.
+    """
+    opts = options or SolverOptions()
+    sigma_out = np.asarray(s_fraction, dtype=np.float64).reshape(-1)
+    if sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -1e-9 or sigma_out.max() > 1 + 1e-9:
+        raise ValueError("s_fraction must be a non-empty array of fractions in [0, 1]")
+    sigma_out = np.clip(sigma_out, 0.0, 1.0)
+    base = _solve_tendon_only(designs, sigma_out, opts)
+    if loads is None or loads.is_zero():
+        return base
+    return _solve_with_loads(designs, sigma_out, loads, opts, base)
+
+
+def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions) -> RodSolution:
+    b, n = designs.n_designs, sigma_out.shape[0]
+    mat = material(designs)
+    starts, widths, out_step = _step_grid(sigma_out, opts.max_step)
+    k = starts.shape[0]
+    edges = np.concatenate([starts, [starts[-1] + widths[-1]]])  # (K+1,), the outputs among them
+    sigma_nodes = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,)
+    m = sigma_nodes.shape[0]
+    nodes = _make_nodes(designs, mat, sigma_nodes)
+    # start every node from the base strains (exact for parallel tendons, close otherwise)
+    x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
+    x, ok, iters = _newton(np.repeat(x_base, m, axis=0), nodes, opts)
+    res = _residual(x, nodes).reshape(b, m, 6)
+    x = x.reshape(b, m, 6)
+    ok = ok.reshape(b, m).all(axis=1)
+    iters = iters.reshape(b, m).max(axis=1)
+
+    # eq. (MAG): 4th-order Magnus step on SE(3) for g' = g xi^ with body twists xi = (nu, kappa)
+    # at both ends and the middle of each step (Simpson / Lobatto nodes):
+    #   Omega = h/6 (xi_0 + 4 xi_1/2 + xi_1) + h^2/12 [xi_0, xi_1],   g_{k+1} = g_k exp(Omega).
+    xi0, xi1, xim = x[:, :k], x[:, 1:k + 1], x[:, k + 1:]
+    h = widths[None, :, None] * designs.L[:, None, None]  # (B, K, 1) m
+    cv, cw = se3_bracket(xi0[..., :3], xi0[..., 3:], xi1[..., :3], xi1[..., 3:])
+    mean = (xi0 + 4.0 * xim + xi1) / 6.0
+    step_r, step_p = se3_exp(h * mean[..., :3] + h**2 / 12.0 * cv, h * mean[..., 3:] + h**2 / 12.0 * cw)
+    rot = np.empty((b, k + 1, 3, 3))
+    pos = np.empty((b, k + 1, 3))
+    rot[:, 0] = np.eye(3)
+    pos[:, 0] = 0.0
+    for j in range(k):
+        pos[:, j + 1] = pos[:, j] + np.einsum("bij,bj->bi", rot[:, j], step_p[:, j])
+        rot[:, j + 1] = rot[:, j] @ step_r[:, j]
+    R = rot[:, out_step]
+    p = pos[:, out_step]
+
+    x_out = x[:, out_step]
+    rho_out, _ = tendon_routing(designs, sigma_out)
+    tendons = p[:, :, None, :] + np.einsum("bnij,bntj->bnti", R, rho_out)
+    force = np.einsum("bnij,bnj->bni", R, mat.kse[:, None, :] * (x_out[..., :3] - _E3))
+    moment = np.einsum("bnij,bnj->bni", R, mat.kbt[:, None, :] * x_out[..., 3:])
+    residual = _wrench_norm(res, designs.L[:, None]).max(axis=1)
+    scale = np.maximum(designs.tension.sum(axis=1), 1.0)
+    converged = ok & np.isfinite(residual) & (residual <= opts.residual_tol * scale)
+    converged &= np.isfinite(tendons).all(axis=(1, 2, 3))
+    return RodSolution(
+        s=designs.L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons,
+        force=force, moment=moment, converged=converged, residual=residual, iterations=iters,
+    )
+
+
+def _wrench_norm(res: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """sqrt(|force|^2 + |moment / L|^2) of ``(..., 6)`` residuals, N."""
+    return np.sqrt((res[..., :3] ** 2).sum(-1) + (res[..., 3:] ** 2).sum(-1) / length**2)
+
+
+# --------------------------------------------------------------------------- external loads
+
+
+@dataclass
+class _ShootingProblem:
+    designs: DesignBatch
+    mat: _Material
+    f_g: np.ndarray  # (B, 3) N/m
+    tip_force: np.ndarray  # (B, 3) N
+    tip_moment: np.ndarray  # (B, 3) N m
+    starts: np.ndarray  # (K,)
+    widths: np.ndarray  # (K,)
+
+
+def _solve_with_loads(
+    designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions, base: RodSolution
+) -> RodSolution:
+    b = designs.n_designs
+    mat = material(designs)
+    f_g, F, M = loads.resolved(b, mat.area)
+    starts, widths, out_step = _step_grid(sigma_out, opts.max_step_loads)
+    L = designs.L
+    moment_scale = (designs.tension * designs.offset).sum(1) + np.linalg.norm(M, axis=1)
+    moment_scale += np.linalg.norm(F, axis=1) * L + np.linalg.norm(f_g, axis=1) * L**2 + 1e-12
+
+    # first guess of M(0) from the tendon-only shape: tip and distributed loads about the base
+    tip = base.backbone[:, np.argmax(base.s[0])] if sigma_out.max() == 1.0 else np.zeros((b, 3))
+    y = np.cross(tip, F) + M + np.cross(0.5 * tip, f_g * L[:, None])
+    ok = base.converged.copy()
+    total_iters = np.zeros(b, dtype=np.int64)
+    for lam in np.linspace(0.0, 1.0, opts.load_steps + 1)[1:]:
+        prob = _ShootingProblem(designs, mat, lam * f_g, lam * F, lam * M, starts, widths)
+        y, step_ok, iters = _shoot(prob, y, moment_scale, opts)
+        ok &= step_ok
+        total_iters += iters
+    prob = _ShootingProblem(designs, mat, f_g, F, M, starts, widths)
+    traj = _integrate_loads(prob, y, record=True)
+    rec_step = out_step
+    p, R, x = traj["p"][:, rec_step], traj["R"][:, rec_step], traj["x"][:, rec_step]
+    rho_out, _ = tendon_routing(designs, sigma_out)
+    tendons = p[:, :, None, :] + np.einsum("bnij,bntj->bnti", R, rho_out)
+    force = np.einsum("bnij,bnj->bni", R, mat.kse[:, None, :] * (x[..., :3] - _E3))
+    moment = np.einsum("bnij,bnj->bni", R, mat.kbt[:, None, :] * x[..., 3:])
+    tip_res = traj["M"][:, -1] - M
+    residual = np.linalg.norm(tip_res, axis=1) / L
+    converged = ok & traj["ok"] & np.isfinite(tendons).all(axis=(1, 2, 3))
+    converged &= np.linalg.norm(tip_res, axis=1) <= 1e3 * opts.shooting_tol * moment_scale
+    return RodSolution(
+        s=L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons, force=force,
+        moment=moment, converged=converged, residual=residual, iterations=total_iters,
+    )
+
+
+def _shoot(prob: _ShootingProblem, y: np.ndarray, scale: np.ndarray, opts: SolverOptions):
+    """Newton on the tip-moment condition M(L) = M_tip for M(0) ``(B, 3)``, finite-difference Jacobian."""
+    b = y.shape[0]
+    ok = np.zeros(b, dtype=bool)
+    iters = np.zeros(b, dtype=np.int64)
+    active = np.arange(b)
+    y = y.copy()
+    for _ in range(opts.max_shooting):
+        sub = _take_problem(prob, active)
+        ya = y[active]
+        eps = 1e-7 * scale[active]
+        # one vectorised integration of the 4 trajectories (nominal + 3 perturbations)
+        trial = np.concatenate([ya] + [ya + eps[:, None] * np.eye(3)[i] for i in range(3)], axis=0)
+        out = _integrate_loads(_tile_problem(sub, 4), trial, record=False)
+        resid = (out["M"][:, -1] - np.tile(sub.tip_moment, (4, 1))).reshape(4, -1, 3)
+        jac = np.stack([(resid[i + 1] - resid[0]) / eps[:, None] for i in range(3)], axis=-1)
+        err = np.linalg.norm(resid[0], axis=1) / scale[active]
+        iters[active] += 1
+        done = (err < opts.shooting_tol) & out["ok"][: ya.shape[0]]
+        ok[active[done]] = True
+        bad = ~np.isfinite(err)
+        keep = ~done & ~bad
+        if not keep.any():
+            break
+        try:
+            delta = np.linalg.solve(jac[keep], -resid[0][keep][..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        y[active[keep]] = ya[keep] + delta
+        active = active[keep]
+    return y, ok, iters
+
+
+def _take_problem(prob: _ShootingProblem, idx: np.ndarray) -> _ShootingProblem:
+    return _ShootingProblem(
+        prob.designs.take(idx), _Material(prob.mat.kse[idx], prob.mat.kbt[idx], prob.mat.area[idx]),
+        prob.f_g[idx], prob.tip_force[idx], prob.tip_moment[idx], prob.starts, prob.widths,
+    )
+
+
+def _tile_problem(prob: _ShootingProblem, reps: int) -> _ShootingProblem:
+    idx = np.tile(np.arange(prob.designs.n_designs), reps)
+    return _take_problem(prob, idx)
+
+
+def _integrate_loads(prob: _ShootingProblem, m0: np.ndarray, *, record: bool) -> dict:
+    """RK4 on (p, R, M) in s with strains from (W1, W2) at every stage (eq. MT).
+
+    Args:
+        m0: total moment M(0) about the base, base frame, N m, ``(B, 3)``.
+
+    Returns:
+        dict with ``M`` ``(B, K+1, 3)`` and, if ``record``, ``p``, ``R``, ``x`` at every step edge.
+    """
+    d = prob.designs
+    b = d.n_designs
+    L = d.L
+    k = prob.starts.shape[0]
+    opts = SolverOptions()
+    state_p = np.zeros((b, 3))
+    state_R = np.broadcast_to(np.eye(3), (b, 3, 3)).copy()
+    state_M = m0.copy()
+    x = _undeformed(b)
+    ok = np.ones(b, dtype=bool)
+    keep = {"p": [state_p], "R": [state_R], "M": [state_M], "x": []}
+
+    def strains(sigma: float, R, Mt, x0):
+        rho, drho = tendon_routing(d, np.array([sigma]))
+        N = prob.tip_force + prob.f_g * (L * (1.0 - sigma))[:, None]
+        target = np.concatenate([np.einsum("bji,bj->bi", R, N), np.einsum("bji,bj->bi", R, Mt)], axis=1)
+        nodes = _Nodes(rho[:, 0], drho[:, 0], d.tension, prob.mat.kse, prob.mat.kbt, d.r, target)
+        xs, conv, _ = _newton(x0.copy(), nodes, opts)
+        return xs, conv, N
+
+    def deriv(sigma, R, Mt, x0):
+        xs, conv, N = strains(sigma, R, Mt, x0)
+        dp = np.einsum("bij,bj->bi", R, xs[:, :3])
+        dR = R @ hat(xs[:, 3:])
+        dM = -np.cross(dp, N)
+        return L[:, None] * dp, L[:, None, None] * dR, L[:, None] * dM, xs, conv
+
+    for j in range(k):
+        s0, h = prob.starts[j], prob.widths[j]
+        k1 = deriv(s0, state_R, state_M, x)
+        if record:
+            keep["x"].append(k1[3])
+        x = k1[3]
+        k2 = deriv(s0 + h / 2, state_R + h / 2 * k1[1], state_M + h / 2 * k1[2], x)
+        k3 = deriv(s0 + h / 2, state_R + h / 2 * k2[1], state_M + h / 2 * k2[2], k2[3])
+        k4 = deriv(s0 + h, state_R + h * k3[1], state_M + h * k3[2], k3[3])
+        for kk in (k1, k2, k3, k4):
+            ok &= kk[4]
+        state_p = state_p + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        state_R = state_R + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        state_M = state_M + h / 6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+        for _ in range(2):  # Newton-Schulz projection back onto SO(3)
+            state_R = 1.5 * state_R - 0.5 * state_R @ np.swapaxes(state_R, 1, 2) @ state_R
+        x = k4[3]
+        keep["p"].append(state_p)
+        keep["R"].append(state_R)
+        keep["M"].append(state_M)
+    last = strains(1.0, state_R, state_M, x)
+    keep["x"].append(last[0])
+    ok &= last[1]
+    out = {"M": np.stack(keep["M"], axis=1), "ok": ok}
+    if record:
+        out.update(p=np.stack(keep["p"], axis=1), R=np.stack(keep["R"], axis=1), x=np.stack(keep["x"], axis=1))
+    return out
