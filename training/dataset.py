@@ -116,7 +116,7 @@ def generate(
     _plan(out, cfg)
     features = design_space.sample_designs(cfg.n, seed=cfg.seed).features()
     todo = [k for k in range(cfg.n_shards) if not shard_path(out, k).exists()]
-    done_designs = cfg.n - sum(len(_shard_range(cfg, k)) for k in todo)
+    done_designs = cfg.n - sum(len(range(cfg.n)[_shard_range(cfg, k)]) for k in todo)
     bar = _progress_bar(cfg.n, done_designs, progress)
     started = time.perf_counter()
     jobs = [(k, features[_shard_range(cfg, k)], np.arange(cfg.n)[_shard_range(cfg, k)]) for k in todo]
@@ -127,8 +127,7 @@ def generate(
     if bar is not None:
         bar.close()
     elapsed = time.perf_counter() - started
-    meta = _finish(out, cfg, solved=cfg.n - done_designs, elapsed=elapsed)
-    return meta
+    return _finish(out, cfg, solved=cfg.n - done_designs, elapsed=elapsed)
 
 
 def _shard_range(cfg: GenerateConfig, k: int) -> slice:
@@ -148,7 +147,8 @@ def _run_jobs(jobs, points: int, *, workers: int | None, scheduler: str | None):
     if not jobs:
         return
     if scheduler is not None:
-        from distributed import Client, as_completed as dask_completed
+        from distributed import Client
+        from distributed import as_completed as dask_completed
 
         with Client(scheduler) as client:
             futures = {client.submit(solve_shard, f, i, points, pure=False): k for k, f, i in jobs}

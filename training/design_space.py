@@ -102,7 +102,7 @@ def validate_design(design: DesignBatch) -> list[str]:
     names = feature_names(design.n_tendons)
     positive = {"E", "r", "L"} | {f"offset_{i}" for i in range(design.n_tendons)}
     for b, row in enumerate(feats):
-        for name, value in zip(names, row):
+        for name, value in zip(names, row, strict=False):
             if not np.isfinite(value):
                 problems.append(f"design {b}: {name} must be finite, got {value}")
             elif name in positive and value <= 0:

@@ -54,7 +54,7 @@ class DesignBatch:
     def __len__(self) -> int:
         return self.n_designs
 
-    def take(self, index) -> "DesignBatch":
+    def take(self, index) -> DesignBatch:
         """Sub-batch selected by an integer index array or slice."""
         return DesignBatch(
             E=self.E[index], r=self.r[index], L=self.L[index],
@@ -69,7 +69,7 @@ class DesignBatch:
         )
 
     @classmethod
-    def from_features(cls, features: np.ndarray) -> "DesignBatch":
+    def from_features(cls, features: np.ndarray) -> DesignBatch:
         """Inverse of :meth:`features` for ``(B, 3 + 3 N_t)`` arrays."""
         features = np.asarray(features, dtype=np.float64)
         n_t = (features.shape[1] - 3) // 3
@@ -82,7 +82,7 @@ class DesignBatch:
         )
 
     @classmethod
-    def concatenate(cls, batches: list["DesignBatch"]) -> "DesignBatch":
+    def concatenate(cls, batches: list[DesignBatch]) -> DesignBatch:
         return cls.from_features(np.concatenate([b.features() for b in batches], axis=0))
 
 

@@ -42,7 +42,7 @@ class Design(BaseModel):
     tip_moment: Vector3 | None = Field(None, description="tip moment, base frame, N m")
 
     @model_validator(mode="after")
-    def _gravity_needs_density(self) -> "Design":
+    def _gravity_needs_density(self) -> Design:
         if self.gravity is not None and any(self.gravity) and self.density is None:
             raise ValueError("gravity needs a density (kg/m^3)")
         return self
@@ -73,7 +73,7 @@ class SolveRequest(BaseModel):
         return s
 
     @model_validator(mode="after")
-    def _points_or_s(self) -> "SolveRequest":
+    def _points_or_s(self) -> SolveRequest:
         if self.points is not None and self.s is not None:
             raise ValueError("give either 'points' or 's', not both")
         return self

@@ -155,7 +155,7 @@ class _Nodes:
     radius: np.ndarray  # (P,)
     target: np.ndarray | None  # (P, 6) body-frame (R^T N, R^T M) or None for zero
 
-    def take(self, idx: np.ndarray) -> "_Nodes":
+    def take(self, idx: np.ndarray) -> _Nodes:
         return _Nodes(
             self.rho[idx], self.drho[idx], self.tau[idx], self.kse[idx], self.kbt[idx],
             self.radius[idx], None if self.target is None else self.target[idx],
@@ -298,7 +298,7 @@ def _step_grid(sigma_out: np.ndarray, max_step: float) -> tuple[np.ndarray, np.n
     """
     breaks = np.unique(np.concatenate([[0.0], sigma_out]))
     starts, widths, ends = [], [], []
-    for a, b in zip(breaks[:-1], breaks[1:]):
+    for a, b in zip(breaks[:-1], breaks[1:], strict=False):
         k = max(1, int(np.ceil((b - a) / max_step - 1e-9)))
         edges = np.linspace(a, b, k + 1)
         starts.extend(edges[:-1])
@@ -359,7 +359,7 @@ def solve(
 
 
 def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions) -> RodSolution:
-    b, n = designs.n_designs, sigma_out.shape[0]
+    b, _n = designs.n_designs, sigma_out.shape[0]
     mat = material(designs)
     starts, widths, out_step = _step_grid(sigma_out, opts.max_step)
     k = starts.shape[0]

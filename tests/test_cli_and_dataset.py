@@ -1,0 +1,165 @@
+"""The tdcr CLI (real subprocesses) and dataset generation (real processes, files and Dask)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import ROOT, designs_from_json, relative_l2
+from training import dataset
+from training.physics import solve
+
+TDCR = [sys.executable, "-m", "tdcr.cli"]
+
+
+def run_tdcr(*args, stdin: str | None = None, cwd=ROOT):
+    return subprocess.run([*TDCR, *args], input=stdin, capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def test_physics_and_design_space_import_without_torch():
+    code = (
+        "import sys, training, training.physics, training.design_space, training.dataset, "
+        "training.schemas, training.exact, tdcr, tdcr.cli; "
+        "assert 'torch' not in sys.modules, 'torch was imported'"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_solve_example_request_matches_the_library():
+    out = run_tdcr("solve", "examples/request.json")
+    assert out.returncode == 0, out.stderr
+    results = json.loads(out.stdout)["results"]
+    request = json.loads((ROOT / "examples/request.json").read_text())
+    assert len(results) == 2
+    sol = solve(designs_from_json(request["designs"]), np.linspace(0, 1, 5))
+    for j, res in enumerate(results):
+        assert res["converged"] is True and res["residual"] < 1e-8
+        assert np.array(res["tendons"]).shape == (5, 4, 3)
+        assert np.array(res["rotation"]).shape == (5, 3, 3)
+        assert relative_l2(np.array(res["tendons"]), sol.tendons[j]) < 1e-14
+        np.testing.assert_allclose(res["s"], sol.s[j])
+
+
+def test_solve_with_explicit_s_and_mixed_tendon_counts(tmp_path):
+    request = {
+        "designs": [
+            {"E": 3e10, "r": 1e-3, "L": 0.2, "tendons": [{"offset": 0.008, "tension": 1.0}]},
+            {"E": 3e10, "r": 1e-3, "L": 0.2, "tendons": [{"offset": 0.008, "tension": 1.0}] * 3,
+             "tip_force": [0.0, 0.01, 0.0]},
+        ],
+        "s": [0.0, 0.5, 1.0],
+    }
+    out = run_tdcr("solve", "-", stdin=json.dumps(request))
+    assert out.returncode == 0, out.stderr
+    results = json.loads(out.stdout)["results"]
+    assert [len(r["tendons"][0]) for r in results] == [1, 3]
+    assert all(r["converged"] for r in results)
+    np.testing.assert_allclose(results[0]["s"], [0.0, 0.1, 0.2])
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("{not json", "not valid JSON"),
+        ('{"designs": []}', "designs: List should have at least 1 item"),
+        ('{"designs": [{"E": 3e10, "r": 0.001, "L": 0.2, "tendons": [{"offset": 0.01, "tension": 1}]},'
+         ' {"E": 3e10, "r": -1, "L": 0.2, "tendons": [{"offset": 0.01, "tension": 1}]}]}',
+         "designs[1].r: Input should be greater than 0"),
+        ('{"designs": [{"E": 3e10, "r": 0.001, "L": 0.2, "tendons": [{"offset": 0.01, "tension": -2}]}]}',
+         "designs[0].tendons[0].tension: Input should be greater than or equal to 0"),
+        ('{"designs": [{"E": 3e10, "r": 0.001, "L": 0.2, "tendons": [{"offset": 0.01, "tension": 1}]}],'
+         ' "s": [0.5, 1.5]}', "s[1] = 1.5 is not a fraction of L"),
+        ('{"designs": [{"E": 3e10, "r": 0.001, "L": 0.2, "tendons": [{"offset": 0.01, "tension": 1}]}],'
+         ' "points": 100000}', "points: Input should be less than or equal to 1000"),
+    ],
+)
+def test_bad_requests_exit_2_with_a_message(body, message):
+    out = run_tdcr("solve", "-", stdin=body)
+    assert out.returncode == 2
+    assert message in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_missing_file_and_bad_flags_exit_2(tmp_path):
+    assert run_tdcr("solve", str(tmp_path / "nope.json")).returncode == 2
+    assert run_tdcr("generate", "--n", "0", "--out", str(tmp_path / "d")).returncode == 2
+    assert run_tdcr("generate", "--n", "ten", "--out", str(tmp_path / "d")).returncode == 2
+
+
+def _shard_times(out: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted((out / "shards").glob("*.npz"))}
+
+
+def test_generate_resumes_without_recomputing(tmp_path):
+    out = tmp_path / "data"
+    args = ("generate", "--n", "60", "--seed", "4", "--shard-size", "20", "--workers", "2", "--out", str(out),
+            "--quiet")
+    first = run_tdcr(*args)
+    assert first.returncode == 0, first.stderr
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["converged"] == 60 and meta["n_train"] == 48 and meta["n_test"] == 12
+    before = _shard_times(out)
+    (out / "shards" / "shard-00001.npz").unlink()
+    again = run_tdcr(*args)
+    assert again.returncode == 0, again.stderr
+    after = _shard_times(out)
+    assert set(after) == set(before)
+    assert after["shard-00000.npz"] == before["shard-00000.npz"]
+    assert after["shard-00002.npz"] == before["shard-00002.npz"]
+    assert json.loads(again.stdout)["last_run"]["designs_solved"] == 20
+    data = dataset.load(out)
+    np.testing.assert_array_equal(np.sort(data["index"]), np.arange(60))
+    train, test = dataset.load(out, "train"), dataset.load(out, "test")
+    assert len(train["index"]) == 48 and len(test["index"]) == 12
+    assert not set(train["index"]) & set(test["index"])
+    # the data are the solver's answers for the seeded designs
+    sol = solve(type(dataset.design_space.sample_designs(1, seed=0)).from_features(data["features"][:5]),
+                np.linspace(0, 1, 42))
+    np.testing.assert_allclose(data["tendons"][:5], sol.tendons, atol=1e-15)
+    # other settings in the same directory are refused
+    bad = run_tdcr("generate", "--n", "61", "--seed", "4", "--shard-size", "20", "--out", str(out), "--quiet")
+    assert bad.returncode == 2 and "other settings" in bad.stderr
+
+
+def test_killed_generation_resumes_to_the_same_dataset(tmp_path):
+    out = tmp_path / "killed"
+    args = [*TDCR, "generate", "--n", "400", "--seed", "9", "--shard-size", "10", "--workers", "1",
+            "--out", str(out), "--quiet"]
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list((out / "shards").glob("*.npz"))) < 3:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    partial = _shard_times(out)
+    assert 3 <= len(partial) < 40, "the run should have been killed part-way"
+    assert not (out / "metadata.json").exists()
+    done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    after = _shard_times(out)
+    assert all(after[name] == t for name, t in partial.items())  # nothing recomputed
+    data = dataset.load(out)
+    np.testing.assert_array_equal(np.sort(data["index"]), np.arange(400))  # nothing lost or duplicated
+    assert not list((out / "shards").glob("*.tmp-*"))
+
+
+def test_generate_on_a_local_dask_cluster(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+        meta = dataset.generate(tmp_path / "dask", dataset.GenerateConfig(n=30, seed=1, shard_size=10),
+                                scheduler=c.scheduler_address, progress=False)
+    assert meta["converged"] == 30
+    local = dataset.generate(tmp_path / "local", dataset.GenerateConfig(n=30, seed=1, shard_size=10),
+                             workers=1, progress=False)
+    assert local["converged"] == 30
+    a, b = dataset.load(tmp_path / "dask"), dataset.load(tmp_path / "local")
+    np.testing.assert_array_equal(a["tendons"], b["tendons"])
