@@ -1,0 +1,1 @@
+"""HTTP inference service and the torch-free ONNX runtime it uses."""

@@ -1,0 +1,130 @@
+"""Torch-free inference with the exported ONNX operators (onnxruntime + numpy).
+
+``Surrogate.predict`` turns raw SI designs ``(B, 15)`` and arclength fractions ``(n,)`` into
+backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m:
+
+* a pose model gives all three (tendons = p + R rho_i, inside the graph);
+* a tendon model gives tendons; the pose is the least-squares rigid fit (Kabsch) of the known
+  body-frame offsets rho_i(s) onto the predicted tendon points, at each s;
+* FNO models answer on their 42-point grid; other s are produced by cubic interpolation along
+  s of the grid outputs (rotations re-orthonormalised by SVD).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+N_T = 4
+
+
+def tendon_offsets(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for features ``(B, 15)``."""
+    length, offset, pitch = features[:, 2], features[:, 3:3 + N_T], features[:, 3 + N_T:3 + 2 * N_T]
+    phi = 2 * np.pi * np.arange(N_T) / N_T + pitch[:, None, :] * (length[:, None] * sigma[None, :])[..., None]
+    return offset[:, None, :, None] * np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=-1)
+
+
+def rigid_fit(body: np.ndarray, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid transform (Kabsch) with world ~ p + R body.
+
+    Args:
+        body: body-frame points, ``(..., N_t, 3)``; world: measured points ``(..., N_t, 3)``.
+
+    Returns:
+        ``(p (..., 3), R (..., 3, 3))`` with det R = +1.
+    """
+    cb, cw = body.mean(-2), world.mean(-2)
+    h = np.einsum("...ti,...tj->...ij", body - cb[..., None, :], world - cw[..., None, :])
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(np.einsum("...ji,...kj->...ik", vt, u)))
+    fix = np.ones(u.shape[:-1])
+    fix[..., -1] = d
+    rot = np.einsum("...ji,...j,...kj->...ik", vt, fix, u)
+    return cw - np.einsum("...ij,...j->...i", rot, cb), rot
+
+
+def _cubic_weights(grid: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Matrix ``(n_out, n_grid)`` of natural-cubic-spline interpolation from ``grid`` to ``sigma``."""
+    n = grid.size
+    eye = np.eye(n)
+    # natural cubic spline of each unit vector, evaluated at sigma (small dense solve, once per request)
+    h = np.diff(grid)
+    a = np.zeros((n, n))
+    rhs = np.zeros((n, n))
+    a[0, 0] = a[-1, -1] = 1.0
+    for i in range(1, n - 1):
+        a[i, i - 1], a[i, i], a[i, i + 1] = h[i - 1], 2 * (h[i - 1] + h[i]), h[i]
+        rhs[i] = 6 * ((eye[i + 1] - eye[i]) / h[i] - (eye[i] - eye[i - 1]) / h[i - 1])
+    m = np.linalg.solve(a, rhs)  # second derivatives per unit vector, (n, n)
+    k = np.clip(np.searchsorted(grid, sigma, side="right") - 1, 0, n - 2)
+    t0, t1 = grid[k], grid[k + 1]
+    hk = t1 - t0
+    A, B = (t1 - sigma) / hk, (sigma - t0) / hk
+    w = A[:, None] * eye[k] + B[:, None] * eye[k + 1]
+    w += ((A**3 - A)[:, None] * m[k] + (B**3 - B)[:, None] * m[k + 1]) * (hk**2 / 6)[:, None]
+    return w
+
+
+def _orthonormalize(rot: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(rot)
+    return u @ vt
+
+
+@dataclass
+class Surrogate:
+    """One exported model: its manifest entry and an onnxruntime session."""
+
+    name: str
+    entry: dict
+    session: object
+
+    @classmethod
+    def load(cls, models_dir: str | Path, name: str, *, threads: int = 0, verify: bool = True) -> Surrogate:
+        import onnxruntime as ort
+
+        models_dir = Path(models_dir)
+        entry = json.loads((models_dir / "manifest.json").read_text())["models"][name]
+        path = models_dir / entry["file"]
+        if verify and hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
+            raise ValueError(f"{path}: sha256 does not match the manifest")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        return cls(name=name, entry=entry, session=session)
+
+    @property
+    def grid(self) -> np.ndarray | None:
+        g = self.entry.get("grid")
+        return None if g is None else np.asarray(g)
+
+    def run(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
+        """Raw graph outputs at ``sigma`` (DeepONet) or on the grid (FNO), float32."""
+        feed = {"design": np.ascontiguousarray(features, dtype=np.float32)}
+        if self.grid is None:
+            feed["s"] = np.ascontiguousarray(sigma, dtype=np.float32)
+        names = [o.name for o in self.session.get_outputs()]
+        return dict(zip(names, self.session.run(names, feed)))
+
+    def predict(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
+        """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m, float64."""
+        features = np.asarray(features, dtype=np.float64)
+        sigma = np.asarray(sigma, dtype=np.float64)
+        grid = self.grid
+        out = {k: v.astype(np.float64) for k, v in self.run(features, sigma).items()}
+        if grid is not None and not (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9)):
+            w = _cubic_weights(grid, sigma)
+            out = {k: np.einsum("mn,bn...->bm...", w, v) for k, v in out.items()}
+            if "rotation" in out:
+                out["rotation"] = _orthonormalize(out["rotation"])
+        if "rotation" not in out:
+            out["backbone"], out["rotation"] = rigid_fit(tendon_offsets(features, sigma), out["tendons"])
+        elif grid is not None:  # keep tendons = p + R rho consistent after interpolation
+            rho = tendon_offsets(features, sigma)
+            out["tendons"] = out["backbone"][:, :, None, :] + np.einsum("bnij,bntj->bnti", out["rotation"], rho)
+        return out

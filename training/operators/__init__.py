@@ -1,0 +1,1 @@
+"""Neural operators of the TDCR equilibrium map (PyTorch).  Layers -> models -> training -> export."""

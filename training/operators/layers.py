@@ -1,0 +1,123 @@
+"""Building blocks: MLPs, an ONNX-friendly truncated-DFT spectral convolution, Gram-Schmidt, geometry."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def mlp(sizes: list[int], activation: type[nn.Module], dropout: float = 0.0) -> nn.Sequential:
+    """Linear layers of the given sizes with ``activation`` (and optional dropout) between them; last is linear."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(activation())
+            if dropout > 0:
+                layers.append(nn.Dropout(dropout))
+    return nn.Sequential(*layers)
+
+
+def dft_bases(n: int, modes: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Real bases of the truncated rfft / irfft on ``n`` points, keeping rfft bins 0..modes-1.
+
+    Forward:  X_k = sum_j x_j exp(-2 pi i j k / n)  ->  Re = x @ cos, Im = -(x @ sin), each ``(n, modes)``.
+    Inverse (irfft of a spectrum that is zero above ``modes``, n > 2 (modes - 1)):
+        x_j = (1/n) [Re X_0 + 2 sum_{k>=1} (Re X_k cos - Im X_k sin)]  ->  ``(modes, n)`` bases.
+    """
+    j = torch.arange(n, dtype=torch.float64)[:, None]
+    k = torch.arange(modes, dtype=torch.float64)[None, :]
+    angle = 2.0 * math.pi * j * k / n
+    fwd_cos, fwd_sin = torch.cos(angle), -torch.sin(angle)
+    weight = torch.full((modes,), 2.0, dtype=torch.float64)
+    weight[0] = 1.0
+    inv_cos = (weight[:, None] * torch.cos(angle).T) / n
+    inv_sin = -(weight[:, None] * torch.sin(angle).T) / n
+    return fwd_cos.float(), fwd_sin.float(), inv_cos.float(), inv_sin.float()
+
+
+class SpectralConv1d(nn.Module):
+    """Fourier layer kernel on a fixed grid of ``n`` points with ``modes`` retained rfft bins.
+
+    Equivalent to ``irfft(W * rfft(x)[..., :modes], n)`` with complex weights W (in, out, modes),
+    but written with precomputed cos / sin bases (``(n, modes)``), so it exports to plain ONNX
+    MatMuls and is exact (tested against torch.fft).
+
+    ``mixing='shared'`` (the paper's parameter count): one real (C_in, C_out) matrix and a bias,
+    shared by all retained modes.  ``mixing='full'``: complex weights per mode (in, out, modes).
+
+    Shapes: ``(B, C_in, n) -> (B, C_out, n)``.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, modes: int, n: int, mixing: str = "shared"):
+        super().__init__()
+        scale = 1.0 / (in_channels * out_channels)
+        self.mixing = mixing
+        if mixing == "shared":
+            self.weight = nn.Parameter(torch.empty(out_channels, in_channels))
+            self.bias = nn.Parameter(torch.zeros(out_channels, 1))
+            nn.init.kaiming_uniform_(self.weight, a=math.sqrt(5))
+        elif mixing == "full":
+            self.weight_re = nn.Parameter(scale * torch.rand(in_channels, out_channels, modes))
+            self.weight_im = nn.Parameter(scale * torch.rand(in_channels, out_channels, modes))
+        else:
+            raise ValueError(f"mixing must be 'shared' or 'full', not {mixing!r}")
+        fc, fs, ic, is_ = dft_bases(n, modes)
+        self.register_buffer("fwd_cos", fc, persistent=False)
+        self.register_buffer("fwd_sin", fs, persistent=False)
+        self.register_buffer("inv_cos", ic, persistent=False)
+        self.register_buffer("inv_sin", is_, persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x_re = x @ self.fwd_cos  # (B, C_in, modes)
+        x_im = x @ self.fwd_sin
+        if self.mixing == "shared":
+            return self.weight @ (x_re @ self.inv_cos + x_im @ self.inv_sin) + self.bias
+        y_re = torch.einsum("bim,iom->bom", x_re, self.weight_re) - torch.einsum("bim,iom->bom", x_im, self.weight_im)
+        y_im = torch.einsum("bim,iom->bom", x_re, self.weight_im) + torch.einsum("bim,iom->bom", x_im, self.weight_re)
+        return y_re @ self.inv_cos + y_im @ self.inv_sin  # (B, C_out, n)
+
+
+def gram_schmidt(a1: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices from two vectors ``(..., 3)``: columns b1, b2, b1 x b2 (Gram-Schmidt).  ``(..., 3, 3)``."""
+    b1 = a1 / torch.linalg.vector_norm(a1, dim=-1, keepdim=True).clamp_min(1e-12)
+    u2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
+    b2 = u2 / torch.linalg.vector_norm(u2, dim=-1, keepdim=True).clamp_min(1e-12)
+    b3 = torch.linalg.cross(b1, b2, dim=-1)
+    return torch.stack([b1, b2, b3], dim=-1)
+
+
+class DesignGeometry(nn.Module):
+    """Undeformed-robot geometry and input normalisation, inside the graph.
+
+    ``features`` are raw SI designs ``(B, 3 + 3 N_t)`` = [E, r, L, offsets, pitches, tensions].
+    """
+
+    def __init__(self, low: torch.Tensor, high: torch.Tensor, n_tendons: int):
+        super().__init__()
+        self.n_tendons = n_tendons
+        self.register_buffer("low", low.float())
+        self.register_buffer("high", high.float())
+        self.register_buffer("base_angle", 2.0 * math.pi * torch.arange(n_tendons, dtype=torch.float32) / n_tendons)
+
+    def normalize(self, features: torch.Tensor) -> torch.Tensor:
+        """Affine map of the Table I box onto [-1, 1]; ``(B, F) -> (B, F)``."""
+        return 2.0 * (features - self.low) / (self.high - self.low) - 1.0
+
+    def rho(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for ``sigma`` ``(n,)`` fractions of L."""
+        t = self.n_tendons
+        length = features[:, 2:3]  # (B, 1)
+        offset = features[:, 3:3 + t][:, None, :]  # (B, 1, N_t)
+        pitch = features[:, 3 + t:3 + 2 * t][:, None, :]
+        s = length * sigma[None, :]  # (B, n) m
+        phi = self.base_angle + pitch * s[:, :, None]  # (B, n, N_t)
+        return torch.stack([offset * torch.cos(phi), offset * torch.sin(phi), torch.zeros_like(phi)], dim=-1)
+
+    def undeformed_tendons(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """Tendon positions of the straight rod, m, ``(B, n, N_t, 3)``."""
+        rho = self.rho(features, sigma)
+        z = (features[:, 2:3] * sigma[None, :])[:, :, None, None]  # (B, n, 1, 1)
+        return rho + torch.cat([torch.zeros_like(z), torch.zeros_like(z), z], dim=-1)

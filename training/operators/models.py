@@ -1,0 +1,168 @@
+"""The four operators of the paper (Section III) and a registry of them by name.
+
+Every model maps raw SI designs ``(B, 3 + 3 N_t)`` to SI outputs: normalisation, the
+undeformed-robot geometry, Gram-Schmidt and the tendon geometry are inside the module (and so
+inside the exported ONNX graph).  The networks predict the deviation from the undeformed robot
+in units of L:
+
+* tendon models (G'):  tendons = undeformed(s) + L * net(d, s)                  ``(B, n, N_t, 3)``
+* pose models (G):     p = (0, 0, s) + L * net_p,  R = GS(e1 + net_a1, e2 + net_a2),
+                       tendons = p + R rho_i(s)    (paper eq. tend-path)
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+from training import design_space
+from training.operators.layers import DesignGeometry, SpectralConv1d, gram_schmidt, mlp
+
+N_T = design_space.N_TENDONS
+N_FEATURES = 3 + 3 * N_T
+
+
+@dataclass(frozen=True)
+class DeepONetConfig:
+    """Stacked DeepONet: branch MLP on the design, trunk MLP on s, ``p`` basis functions per output."""
+
+    branch_width: int = 64
+    branch_layers: int = 5
+    trunk_width: int = 128
+    trunk_layers: int = 5
+    p: int = 100
+    dropout: float = 0.0
+
+
+@dataclass(frozen=True)
+class FNOConfig:
+    """FNO on the fixed grid of ``n_points`` arclengths: lift, ``layers`` Fourier layers, linear projection."""
+
+    width: int = 128
+    layers: int = 5
+    modes: int = 5
+    n_points: int = 42
+    dropout: float = 0.0
+    mixing: str = "shared"
+
+
+class _OperatorBase(nn.Module):
+    """Shared output heads.  ``kind`` is 'tendons' (G') or 'pose' (G)."""
+
+    def __init__(self, kind: str):
+        super().__init__()
+        if kind not in ("tendons", "pose"):
+            raise ValueError(f"unknown kind {kind!r}")
+        self.kind = kind
+        self.out_channels = 3 * N_T if kind == "tendons" else 9
+        low, high = design_space.feature_bounds(N_T)
+        self.geometry = DesignGeometry(torch.as_tensor(low), torch.as_tensor(high), N_T)
+
+    def raw(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor):
+        """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons)."""
+        length = features[:, 2:3, None]  # (B, 1, 1)
+        if self.kind == "tendons":
+            b, n = out.shape[0], out.shape[1]
+            delta = out.reshape(b, n, N_T, 3)
+            return self.geometry.undeformed_tendons(features, sigma) + length[..., None] * delta
+        s = features[:, 2:3] * sigma[None, :]  # (B, n)
+        straight = torch.stack([torch.zeros_like(s), torch.zeros_like(s), s], dim=-1)
+        backbone = straight + length * out[..., 0:3]
+        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)
+        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)
+        rotation = gram_schmidt(e1 + out[..., 3:6], e2 + out[..., 6:9])  # (B, n, 3, 3)
+        rho = self.geometry.rho(features, sigma)  # (B, n, N_t, 3)
+        tendons = backbone[:, :, None, :] + torch.einsum("bnij,bntj->bnti", rotation, rho)
+        return backbone, rotation, tendons
+
+    def tendons(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """Predicted tendon positions ``(B, n, N_t, 3)`` m (what both losses compare)."""
+        out = self.heads(features, sigma, self.raw(features, sigma))
+        return out if self.kind == "tendons" else out[2]
+
+
+class DeepONet(_OperatorBase):
+    """G'_DON / G_DON: out_c(d, s) = sum_k branch(d)_{c,k} trunk(s)_{c,k} + b_c (paper eq. don1, don2)."""
+
+    def __init__(self, kind: str, config: DeepONetConfig = DeepONetConfig()):
+        super().__init__(kind)
+        self.config = config
+        c, p = self.out_channels, config.p
+        self.branch = mlp([N_FEATURES] + [config.branch_width] * (config.branch_layers - 1) + [c * p], nn.Tanh,
+                          config.dropout)
+        self.trunk = mlp([1] + [config.trunk_width] * (config.trunk_layers - 1) + [c * p], nn.Tanh, config.dropout)
+        self.bias = nn.Parameter(torch.zeros(c))
+
+    def raw(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        c, p = self.out_channels, self.config.p
+        b = self.branch(self.geometry.normalize(features)).reshape(-1, c, p)  # (B, C, p)
+        t = self.trunk(2.0 * sigma[:, None] - 1.0).reshape(-1, c, p)  # (n, C, p)
+        return torch.einsum("bcp,ncp->bnc", b, t) + self.bias
+
+    def forward(self, features: torch.Tensor, sigma: torch.Tensor):
+        return self.heads(features, sigma, self.raw(features, sigma))
+
+
+class FNO(_OperatorBase):
+    """G'_FNO / G_FNO on the grid s_j = j / (n - 1): input channels [2 s - 1, normalised design]
+    ``(B, 1 + F, n)``, lifted to ``width``, ``layers`` Fourier layers (spectral + pointwise, eq. fno_int)
+    with ReLU between, and a final linear map to C channels (eq. fno1)."""
+
+    def __init__(self, kind: str, config: FNOConfig = FNOConfig()):
+        super().__init__(kind)
+        self.config = config
+        w = config.width
+        self.register_buffer("grid", torch.linspace(0.0, 1.0, config.n_points), persistent=False)
+        self.lift = nn.Linear(1 + N_FEATURES, w)
+        self.spectral = nn.ModuleList(SpectralConv1d(w, w, config.modes, config.n_points, config.mixing) for _ in range(config.layers))
+        self.pointwise = nn.ModuleList(nn.Conv1d(w, w, 1) for _ in range(config.layers))
+        self.dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
+        self.project = nn.Linear(w, self.out_channels)
+
+    def raw(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
+        b, n = features.shape[0], self.config.n_points
+        d = self.geometry.normalize(features)[:, None, :].expand(b, n, N_FEATURES)
+        s = (2.0 * self.grid - 1.0)[None, :, None].expand(b, n, 1)
+        x = self.lift(torch.cat([s, d], dim=-1)).transpose(1, 2)  # (B, W, n)
+        for k, (spec, point) in enumerate(zip(self.spectral, self.pointwise)):
+            x = spec(x) + point(x)
+            if k < len(self.spectral) - 1:
+                x = self.dropout(torch.relu(x))
+        return self.project(x.transpose(1, 2))  # (B, n, C)
+
+    def forward(self, features: torch.Tensor):
+        return self.heads(features, self.grid, self.raw(features))
+
+    def tendons(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
+        out = self.heads(features, self.grid, self.raw(features))
+        return out if self.kind == "tendons" else out[2]
+
+
+#: name -> (class, kind, config class, paper parameter count)
+REGISTRY: dict[str, tuple[type[_OperatorBase], str, type, int]] = {
+    "deeponet": (DeepONet, "tendons", DeepONetConfig, 219_904),
+    "deeponet_pose": (DeepONet, "pose", DeepONetConfig, 205_668),
+    "fno": (FNO, "tendons", FNOConfig, 168_844),
+    "fno_pose": (FNO, "pose", FNOConfig, 168_457),
+}
+
+
+def build_model(name: str, hyperparameters: dict | None = None) -> _OperatorBase:
+    """Instantiate a registered model; ``hyperparameters`` override its config's defaults."""
+    if name not in REGISTRY:
+        raise KeyError(f"unknown model {name!r}; known: {sorted(REGISTRY)}")
+    cls, kind, config_cls, _ = REGISTRY[name]
+    return cls(kind, config_cls(**(hyperparameters or {})))
+
+
+def hyperparameters(model: _OperatorBase) -> dict:
+    return asdict(model.config)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
