@@ -56,6 +56,100 @@ def _cmd_generate(args) -> int:
     return 0
 
 
+def _model_names(names: list[str] | None) -> list[str]:
+    from training.operators.models import REGISTRY
+
+    names = names or list(REGISTRY)
+    unknown = [n for n in names if n not in REGISTRY]
+    if unknown:
+        raise UsageError(f"unknown model(s) {unknown}; known: {sorted(REGISTRY)}")
+    return names
+
+
+def _cmd_train(args) -> int:
+    from training.operators.train import PRESETS, make_config, train
+
+    _model_names([args.model])
+    if args.preset not in PRESETS:
+        raise UsageError(f"unknown preset {args.preset!r}; known: {sorted(PRESETS)}")
+    if not (Path(args.data) / "metadata.json").exists():
+        raise UsageError(f"{args.data} is not a dataset (no metadata.json); run `tdcr generate` first")
+    hyper = json.loads(args.hyperparameters) if args.hyperparameters else {}
+    cfg = make_config(args.model, args.preset, epochs=args.epochs, batch_size=args.batch_size, seed=args.seed,
+                      dropout=args.dropout, n_train=args.n_train, time_budget_min=args.minutes,
+                      hyperparameters=hyper)
+    try:
+        summary = train(cfg, args.data, args.out or f"runs/{args.model}", progress=not args.quiet)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    print(json.dumps(summary))
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from training.operators.export import export_run
+
+    meta_path = Path(args.data) / "metadata.json" if args.data else None
+    meta = None
+    if meta_path is not None and meta_path.exists():
+        full = json.loads(meta_path.read_text())
+        meta = {k: full[k] for k in ("n", "seed", "n_train", "n_test", "points")}
+    for run in args.runs:
+        if not (Path(run) / "model.pt").exists():
+            raise UsageError(f"{run}: no model.pt (train it first)")
+        entry = export_run(run, args.models_dir, dataset_meta=meta)
+        print(f"exported {entry['name']} -> {Path(args.models_dir) / entry['file']} (sha256 {entry['sha256'][:12]})")
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    from training.operators.evaluate import evaluate, format_table
+    from training.operators.export import update_manifest
+
+    manifest_path = Path(args.models_dir) / "manifest.json"
+    if not manifest_path.exists():
+        raise UsageError(f"no manifest at {manifest_path}")
+    manifest = json.loads(manifest_path.read_text())
+    names = args.models or sorted(manifest["models"])
+    missing = [n for n in names if n not in manifest["models"]]
+    if missing:
+        raise UsageError(f"not in the manifest: {missing}")
+    results = evaluate(args.models_dir, args.data, names)
+    for name in names:
+        entry = manifest["models"][name]
+        entry["metrics"] = {"test_relative_l2": results[name], "baseline_relative_l2": results["undeformed baseline"]}
+        update_manifest(Path(args.models_dir), entry)
+    print(format_table(results))
+    return 0
+
+
+def _cmd_predict(args) -> int:
+    import numpy as np
+
+    from service.inference import Surrogate
+    from training.schemas import to_batch
+
+    request = _read_request(args.request)
+    if any(len(d.tendons) != 4 for d in request.designs):
+        bad = [i for i, d in enumerate(request.designs) if len(d.tendons) != 4]
+        raise UsageError(f"designs {bad}: the surrogates are trained for 4 tendons")
+    manifest_path = Path(args.models_dir) / "manifest.json"
+    if not manifest_path.exists():
+        raise UsageError(f"no manifest at {manifest_path}")
+    if args.model not in json.loads(manifest_path.read_text())["models"]:
+        raise UsageError(f"model {args.model!r} is not in {manifest_path}")
+    model = Surrogate.load(args.models_dir, args.model)
+    feats = to_batch(request.designs).features()
+    sigma = request.fractions()
+    out = model.predict(feats, sigma)
+    results = [{"s": (feats[j, 2] * sigma).tolist(), "backbone": out["backbone"][j].tolist(),
+                "rotation": out["rotation"][j].tolist(), "tendons": out["tendons"][j].tolist()}
+               for j in range(len(feats))]
+    json.dump({"model": args.model, "results": results}, sys.stdout, default=np.ndarray.tolist)
+    sys.stdout.write("\n")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tdcr", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -74,6 +168,39 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_generate)
+
+    p = sub.add_parser("train", help="train one neural operator on a dataset (torch)")
+    p.add_argument("--model", required=True, help="deeponet, deeponet_pose, fno or fno_pose")
+    p.add_argument("--data", required=True, help="dataset directory from `tdcr generate`")
+    p.add_argument("--out", default=None, help="run directory (default runs/MODEL); resumes if present")
+    p.add_argument("--preset", default="tuned", help="paper or tuned")
+    p.add_argument("--epochs", type=int, default=None)
+    p.add_argument("--minutes", type=float, default=None, help="time budget; the schedule anneals within it")
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--n-train", type=int, default=None, help="use only the first N training designs")
+    p.add_argument("--dropout", type=float, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--hyperparameters", default=None, help='JSON overrides, e.g. \'{"p": 50}\'')
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("export", help="export trained runs to ONNX and update models/manifest.json")
+    p.add_argument("runs", nargs="+", help="run directories holding model.pt")
+    p.add_argument("--models-dir", default="models")
+    p.add_argument("--data", default=None, help="dataset the runs were trained on (recorded in the manifest)")
+    p.set_defaults(func=_cmd_export)
+
+    p = sub.add_parser("evaluate", help="held-out relative l2 of exported models vs the undeformed robot")
+    p.add_argument("--data", required=True)
+    p.add_argument("--models-dir", default="models")
+    p.add_argument("--models", nargs="*", default=None)
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("predict", help="surrogate shapes for a request JSON (onnxruntime only)")
+    p.add_argument("request", help="request JSON file, or - for stdin")
+    p.add_argument("--model", default="deeponet")
+    p.add_argument("--models-dir", default="models")
+    p.set_defaults(func=_cmd_predict)
     return parser
 
 

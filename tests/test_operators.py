@@ -1,0 +1,190 @@
+"""Neural operators: layers against references, tiny end-to-end train -> export -> onnxruntime -> CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from service.inference import Surrogate, _cubic_weights, rigid_fit, tendon_offsets  # noqa: E402
+from tests.conftest import ROOT  # noqa: E402
+from training import dataset, design_space  # noqa: E402
+from training.operators.layers import SpectralConv1d, gram_schmidt  # noqa: E402
+from training.operators.models import REGISTRY, build_model, count_parameters  # noqa: E402
+from training.operators.train import Schedule, make_config, train  # noqa: E402
+from training.physics import solve  # noqa: E402
+
+TINY = {
+    "deeponet": {"branch_width": 16, "trunk_width": 16, "p": 8},
+    "deeponet_pose": {"branch_width": 16, "trunk_width": 16, "p": 8},
+    "fno": {"width": 16},
+    "fno_pose": {"width": 16},
+}
+
+
+@pytest.mark.parametrize("mixing", ["full", "shared"])
+def test_truncated_dft_spectral_layer_equals_torch_fft(mixing):
+    torch.manual_seed(0)
+    layer = SpectralConv1d(6, 5, modes=5, n=42, mixing=mixing)
+    x = torch.randn(3, 6, 42)
+    spec = torch.fft.rfft(x, dim=-1)[..., :5]
+    if mixing == "full":
+        w = torch.complex(layer.weight_re, layer.weight_im)
+        mixed = torch.einsum("bim,iom->bom", spec, w)
+        ref = torch.fft.irfft(mixed, n=42, dim=-1)
+    else:
+        ref = layer.weight @ torch.fft.irfft(spec, n=42, dim=-1) + layer.bias
+    torch.testing.assert_close(layer(x), ref, rtol=1e-5, atol=1e-5)
+
+
+def test_gram_schmidt_gives_rotations():
+    a1, a2 = torch.randn(100, 3), torch.randn(100, 3)
+    R = gram_schmidt(a1, a2)
+    torch.testing.assert_close(R.transpose(-1, -2) @ R, torch.eye(3).expand(100, 3, 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(100), atol=1e-5, rtol=0)
+
+
+def test_parameter_counts_against_the_paper():
+    counts = {name: count_parameters(build_model(name)) for name in REGISTRY}
+    assert counts["fno"] == REGISTRY["fno"][3] == 168_844
+    assert counts["fno_pose"] == REGISTRY["fno_pose"][3] == 168_457
+    # DeepONet: branch 15-64-64-64-64-12p and trunk 1-128-128-128-128-12p with p = 100 (+12 biases)
+    assert counts["deeponet"] == (15 * 64 + 64 + 3 * (64 * 64 + 64) + 64 * 1200 + 1200
+                                  + 128 + 128 + 3 * (128 * 128 + 128) + 128 * 1200 + 1200 + 12)
+
+
+def test_schedule_warms_up_and_anneals():
+    s = Schedule()
+    assert s(0.0) == pytest.approx(1e-4)
+    assert s(0.3 / 4) == pytest.approx(3e-3)
+    assert s(0.25 + 0.3 / 4) == pytest.approx(3e-3 * 0.7)
+    assert s(1.0) == pytest.approx(5e-6, rel=1e-3)
+
+
+def test_zero_network_output_is_the_undeformed_robot():
+    feats = torch.as_tensor(design_space.sample_designs(4, seed=0).features(), dtype=torch.float32)
+    sigma = torch.linspace(0, 1, 42)
+    for name in REGISTRY:
+        model = build_model(name, TINY[name])
+        out = torch.zeros(4, 42, model.out_channels)
+        heads = model.heads(feats, sigma, out)
+        tendons = heads if model.kind == "tendons" else heads[2]
+        torch.testing.assert_close(tendons, model.geometry.undeformed_tendons(feats, sigma))
+
+
+def test_kabsch_recovers_the_solver_pose():
+    d = design_space.sample_designs(5, seed=3)
+    sigma = np.linspace(0, 1, 42)
+    sol = solve(d, sigma)
+    p, R = rigid_fit(tendon_offsets(d.features(), sigma), sol.tendons)
+    np.testing.assert_allclose(p, sol.backbone, atol=1e-12)
+    np.testing.assert_allclose(R, sol.rotation, atol=1e-9)
+
+
+def test_cubic_interpolation_off_the_fno_grid():
+    """FNO outputs live on 42 points; other s come from a natural cubic spline: < 1e-4 relative here."""
+    d = design_space.sample_designs(50, seed=8)
+    grid = np.linspace(0, 1, 42)
+    off = np.sort(np.random.default_rng(0).uniform(0, 1, 30))
+    on_grid, exact = solve(d, grid), solve(d, off)
+    interp = np.einsum("mn,bntk->bmtk", _cubic_weights(grid, off), on_grid.tendons)
+    diff, ref = (interp - exact.tendons).reshape(50, -1), exact.tendons.reshape(50, -1)
+    err = np.linalg.norm(diff, axis=1) / np.linalg.norm(ref, axis=1)
+    assert err.max() < 1e-4
+    np.testing.assert_allclose(_cubic_weights(grid, grid), np.eye(42), atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data") / "tiny"
+    dataset.generate(out, dataset.GenerateConfig(n=150, seed=2, shard_size=50), workers=1, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def tiny_models(tiny_data, tmp_path_factory):
+    from training.operators.export import export_run
+
+    root = tmp_path_factory.mktemp("runs")
+    models = root / "models"
+    for name in REGISTRY:
+        cfg = make_config(name, "tuned", epochs=2, batch_size=40, hyperparameters=TINY[name])
+        train(cfg, tiny_data, root / name, progress=False, monitor_designs=20)
+        export_run(root / name, models)
+    return root, models
+
+
+def test_training_is_deterministic_on_cpu(tiny_data, tmp_path):
+    cfg = make_config("deeponet", "tuned", epochs=2, batch_size=40, hyperparameters=TINY["deeponet"])
+    train(cfg, tiny_data, tmp_path / "a", progress=False, monitor_designs=20)
+    train(cfg, tiny_data, tmp_path / "b", progress=False, monitor_designs=20)
+    a = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["state_dict"]
+    b = torch.load(tmp_path / "b" / "model.pt", weights_only=False)["state_dict"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    lines = (tmp_path / "a" / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(x)["epoch"] for x in lines] == [1, 2]
+    # resuming a finished run trains no further epochs
+    again = train(cfg, tiny_data, tmp_path / "a", progress=False, monitor_designs=20)
+    assert again["epochs"] == 2
+
+
+@pytest.mark.parametrize("name", list(REGISTRY))
+def test_onnx_matches_torch(tiny_models, name):
+    from training.operators.train import load_trained
+
+    root, models = tiny_models
+    model, _ = load_trained(root / name / "model.pt")
+    feats = design_space.sample_designs(64, seed=11).features()
+    sigma = np.linspace(0, 1, 42)
+    surrogate = Surrogate.load(models, name)
+    raw = surrogate.run(feats, sigma)
+    with torch.no_grad():
+        ref = model(torch.as_tensor(feats, dtype=torch.float32), torch.as_tensor(sigma, dtype=torch.float32)) \
+            if model.__class__.__name__ == "DeepONet" else model(torch.as_tensor(feats, dtype=torch.float32))
+    ref = ref if isinstance(ref, tuple) else (ref,)
+    for got, want in zip([raw[k] for k in ([ "tendons"] if model.kind == "tendons"
+                                          else ["backbone", "rotation", "tendons"])], ref):
+        rel = np.linalg.norm(got - want.numpy()) / np.linalg.norm(want.numpy())
+        assert rel <= 1e-5
+    manifest = json.loads((models / "manifest.json").read_text())["models"][name]
+    assert manifest["parameters"] == count_parameters(model)
+    assert manifest["hyperparameters"]["p" if "deeponet" in name else "width"] in (8, 16)
+    out = surrogate.predict(feats[:3], np.array([0.0, 0.33, 1.0]))
+    assert out["tendons"].shape == (3, 3, 4, 3) and out["rotation"].shape == (3, 3, 3, 3)
+    R = out["rotation"]
+    np.testing.assert_allclose(np.einsum("...ji,...jk->...ik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-5)
+
+
+def test_tampered_model_is_refused(tiny_models, tmp_path):
+    import shutil
+
+    _, models = tiny_models
+    copy = tmp_path / "m"
+    shutil.copytree(models, copy)
+    (copy / "fno.onnx").write_bytes((copy / "fno.onnx").read_bytes() + b"\0")
+    with pytest.raises(ValueError, match="sha256"):
+        Surrogate.load(copy, "fno")
+
+
+def test_cli_predict_and_evaluate(tiny_models, tiny_data):
+    _, models = tiny_models
+    cmd = [sys.executable, "-m", "tdcr.cli"]
+    out = subprocess.run([*cmd, "predict", "examples/request.json", "--model", "deeponet_pose",
+                          "--models-dir", str(models)], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr
+    body = json.loads(out.stdout)
+    assert body["model"] == "deeponet_pose" and np.array(body["results"][1]["tendons"]).shape == (5, 4, 3)
+    bad = subprocess.run([*cmd, "predict", "examples/request.json", "--model", "nope", "--models-dir", str(models)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert bad.returncode == 2 and "nope" in bad.stderr
+    ev = subprocess.run([*cmd, "evaluate", "--data", str(tiny_data), "--models-dir", str(models)],
+                        capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert ev.returncode == 0, ev.stderr
+    assert "undeformed baseline" in ev.stdout and "fno_pose" in ev.stdout
+    entry = json.loads((models / "manifest.json").read_text())["models"]["fno"]
+    assert entry["metrics"]["test_relative_l2"]["n"] == 30

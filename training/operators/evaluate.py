@@ -1,0 +1,53 @@
+"""Held-out accuracy of the exported (ONNX) models, next to the undeformed-robot baseline.
+
+Error per design: relative l2 of tendon positions over all points and tendons (paper eq. l2Error),
+||y_hat - y|| / ||y||.  Summaries: mean, median and 95th percentile over the test designs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from service.inference import Surrogate, tendon_offsets
+from training import dataset
+
+
+def relative_l2(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per-design relative l2 error, ``(B,)``, over all trailing axes."""
+    axes = tuple(range(1, truth.ndim))
+    return np.sqrt(((pred - truth) ** 2).sum(axis=axes) / (truth**2).sum(axis=axes))
+
+
+def summary(errors: np.ndarray) -> dict:
+    return {"mean": float(errors.mean()), "median": float(np.median(errors)),
+            "p95": float(np.percentile(errors, 95)), "n": int(errors.size)}
+
+
+def undeformed_tendons(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The straight robot with the design's routing, m, ``(B, n, 4, 3)``."""
+    rho = tendon_offsets(features, sigma)
+    rho[..., 2] += (features[:, 2:3] * sigma[None, :])[..., None]
+    return rho
+
+
+def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batch: int = 5000) -> dict:
+    """Metrics of each named model on the test split, plus the baseline; returns name -> summary."""
+    test = dataset.load(data, "test")
+    feats, truth = test["features"], test["tendons"]
+    sigma = np.linspace(0.0, 1.0, truth.shape[1])
+    results = {"undeformed baseline": summary(relative_l2(undeformed_tendons(feats, sigma), truth))}
+    for name in names:
+        model = Surrogate.load(models_dir, name)
+        pred = np.concatenate([model.predict(feats[i:i + batch], sigma)["tendons"]
+                               for i in range(0, len(feats), batch)])
+        results[name] = summary(relative_l2(pred, truth))
+    return results
+
+
+def format_table(results: dict) -> str:
+    lines = ["| model | mean rel. l2 | median | p95 | test designs |", "|---|---:|---:|---:|---:|"]
+    for name, r in results.items():
+        lines.append(f"| {name} | {r['mean']:.4f} | {r['median']:.4f} | {r['p95']:.4f} | {r['n']} |")
+    return "\n".join(lines)
