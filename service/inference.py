@@ -109,7 +109,7 @@ class Surrogate:
         if self.grid is None:
             feed["s"] = np.ascontiguousarray(sigma, dtype=np.float32)
         names = [o.name for o in self.session.get_outputs()]
-        return dict(zip(names, self.session.run(names, feed)))
+        return dict(zip(names, self.session.run(names, feed), strict=True))
 
     def predict(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m, float64."""

@@ -147,8 +147,8 @@ def test_onnx_matches_torch(tiny_models, name):
         ref = model(torch.as_tensor(feats, dtype=torch.float32), torch.as_tensor(sigma, dtype=torch.float32)) \
             if model.__class__.__name__ == "DeepONet" else model(torch.as_tensor(feats, dtype=torch.float32))
     ref = ref if isinstance(ref, tuple) else (ref,)
-    for got, want in zip([raw[k] for k in ([ "tendons"] if model.kind == "tendons"
-                                          else ["backbone", "rotation", "tendons"])], ref):
+    names = ["tendons"] if model.kind == "tendons" else ["backbone", "rotation", "tendons"]
+    for got, want in zip([raw[k] for k in names], ref, strict=True):
         rel = np.linalg.norm(got - want.numpy()) / np.linalg.norm(want.numpy())
         assert rel <= 1e-5
     manifest = json.loads((models / "manifest.json").read_text())["models"][name]

@@ -11,7 +11,7 @@ from torch import nn
 def mlp(sizes: list[int], activation: type[nn.Module], dropout: float = 0.0) -> nn.Sequential:
     """Linear layers of the given sizes with ``activation`` (and optional dropout) between them; last is linear."""
     layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=False)):
         layers.append(nn.Linear(a, b))
         if i < len(sizes) - 2:
             layers.append(activation())

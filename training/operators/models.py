@@ -119,7 +119,9 @@ class FNO(_OperatorBase):
         w = config.width
         self.register_buffer("grid", torch.linspace(0.0, 1.0, config.n_points), persistent=False)
         self.lift = nn.Linear(1 + N_FEATURES, w)
-        self.spectral = nn.ModuleList(SpectralConv1d(w, w, config.modes, config.n_points, config.mixing) for _ in range(config.layers))
+        self.spectral = nn.ModuleList(
+            SpectralConv1d(w, w, config.modes, config.n_points, config.mixing) for _ in range(config.layers)
+        )
         self.pointwise = nn.ModuleList(nn.Conv1d(w, w, 1) for _ in range(config.layers))
         self.dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
         self.project = nn.Linear(w, self.out_channels)
@@ -129,7 +131,7 @@ class FNO(_OperatorBase):
         d = self.geometry.normalize(features)[:, None, :].expand(b, n, N_FEATURES)
         s = (2.0 * self.grid - 1.0)[None, :, None].expand(b, n, 1)
         x = self.lift(torch.cat([s, d], dim=-1)).transpose(1, 2)  # (B, W, n)
-        for k, (spec, point) in enumerate(zip(self.spectral, self.pointwise)):
+        for k, (spec, point) in enumerate(zip(self.spectral, self.pointwise, strict=True)):
             x = spec(x) + point(x)
             if k < len(self.spectral) - 1:
                 x = self.dropout(torch.relu(x))
