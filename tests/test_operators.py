@@ -31,14 +31,14 @@ TINY = {
 def test_truncated_dft_spectral_layer_equals_torch_fft(mixing):
     torch.manual_seed(0)
     layer = SpectralConv1d(6, 5, modes=5, n=42, mixing=mixing)
-    x = torch.randn(3, 6, 42)
-    spec = torch.fft.rfft(x, dim=-1)[..., :5]
+    x = torch.randn(3, 42, 6)  # (B, n, C)
+    spec = torch.fft.rfft(x, dim=1)[:, :5]  # (B, modes, C)
     if mixing == "full":
         w = torch.complex(layer.weight_re, layer.weight_im)
-        mixed = torch.einsum("bim,iom->bom", spec, w)
-        ref = torch.fft.irfft(mixed, n=42, dim=-1)
+        mixed = torch.einsum("bmi,iom->bmo", spec, w)
+        ref = torch.fft.irfft(mixed, n=42, dim=1)
     else:
-        ref = layer.weight @ torch.fft.irfft(spec, n=42, dim=-1) + layer.bias
+        ref = layer.linear(torch.fft.irfft(spec, n=42, dim=1))
     torch.testing.assert_close(layer(x), ref, rtol=1e-5, atol=1e-5)
 
 

@@ -41,14 +41,14 @@ def dft_bases(n: int, modes: int) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
 class SpectralConv1d(nn.Module):
     """Fourier layer kernel on a fixed grid of ``n`` points with ``modes`` retained rfft bins.
 
-    Equivalent to ``irfft(W * rfft(x)[..., :modes], n)`` with complex weights W (in, out, modes),
-    but written with precomputed cos / sin bases (``(n, modes)``), so it exports to plain ONNX
-    MatMuls and is exact (tested against torch.fft).
+    Equivalent to ``irfft(W * rfft(x)[:modes], n)`` along the grid axis, but written with
+    precomputed cos / sin bases, so it exports to plain ONNX MatMuls and is exact (tested
+    against torch.fft).
 
-    ``mixing='shared'`` (the paper's parameter count): one real (C_in, C_out) matrix and a bias,
+    ``mixing='shared'`` (the paper's parameter count): one real (C_in -> C_out) matrix and a bias,
     shared by all retained modes.  ``mixing='full'``: complex weights per mode (in, out, modes).
 
-    Shapes: ``(B, C_in, n) -> (B, C_out, n)``.
+    Shapes: ``(B, n, C_in) -> (B, n, C_out)`` (channels last, so channel mixing is one GEMM).
     """
 
     def __init__(self, in_channels: int, out_channels: int, modes: int, n: int, mixing: str = "shared"):
@@ -56,28 +56,29 @@ class SpectralConv1d(nn.Module):
         scale = 1.0 / (in_channels * out_channels)
         self.mixing = mixing
         if mixing == "shared":
-            self.weight = nn.Parameter(torch.empty(out_channels, in_channels))
-            self.bias = nn.Parameter(torch.zeros(out_channels, 1))
-            nn.init.kaiming_uniform_(self.weight, a=math.sqrt(5))
+            self.linear = nn.Linear(in_channels, out_channels)
         elif mixing == "full":
             self.weight_re = nn.Parameter(scale * torch.rand(in_channels, out_channels, modes))
             self.weight_im = nn.Parameter(scale * torch.rand(in_channels, out_channels, modes))
         else:
             raise ValueError(f"mixing must be 'shared' or 'full', not {mixing!r}")
         fc, fs, ic, is_ = dft_bases(n, modes)
-        self.register_buffer("fwd_cos", fc, persistent=False)
-        self.register_buffer("fwd_sin", fs, persistent=False)
-        self.register_buffer("inv_cos", ic, persistent=False)
-        self.register_buffer("inv_sin", is_, persistent=False)
+        # transposed so that the grid axis is contracted by a shared left operand
+        self.register_buffer("fwd_cos", fc.T.contiguous(), persistent=False)  # (modes, n)
+        self.register_buffer("fwd_sin", fs.T.contiguous(), persistent=False)
+        self.register_buffer("inv_cos", ic.T.contiguous(), persistent=False)  # (n, modes)
+        self.register_buffer("inv_sin", is_.T.contiguous(), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x_re = x @ self.fwd_cos  # (B, C_in, modes)
-        x_im = x @ self.fwd_sin
+        x_re = self.fwd_cos @ x  # (B, modes, C_in)
+        x_im = self.fwd_sin @ x
         if self.mixing == "shared":
-            return self.weight @ (x_re @ self.inv_cos + x_im @ self.inv_sin) + self.bias
-        y_re = torch.einsum("bim,iom->bom", x_re, self.weight_re) - torch.einsum("bim,iom->bom", x_im, self.weight_im)
-        y_im = torch.einsum("bim,iom->bom", x_re, self.weight_im) + torch.einsum("bim,iom->bom", x_im, self.weight_re)
-        return y_re @ self.inv_cos + y_im @ self.inv_sin  # (B, C_out, n)
+            # mix channels on the retained coefficients (the matrix commutes with the inverse transform)
+            w = self.linear.weight.T
+            return self.inv_cos @ (x_re @ w) + self.inv_sin @ (x_im @ w) + self.linear.bias
+        y_re = torch.einsum("bmi,iom->bmo", x_re, self.weight_re) - torch.einsum("bmi,iom->bmo", x_im, self.weight_im)
+        y_im = torch.einsum("bmi,iom->bmo", x_re, self.weight_im) + torch.einsum("bmi,iom->bmo", x_im, self.weight_re)
+        return self.inv_cos @ y_re + self.inv_sin @ y_im  # (B, n, C_out)
 
 
 def gram_schmidt(a1: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:

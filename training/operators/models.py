@@ -122,7 +122,7 @@ class FNO(_OperatorBase):
         self.spectral = nn.ModuleList(
             SpectralConv1d(w, w, config.modes, config.n_points, config.mixing) for _ in range(config.layers)
         )
-        self.pointwise = nn.ModuleList(nn.Conv1d(w, w, 1) for _ in range(config.layers))
+        self.pointwise = nn.ModuleList(nn.Linear(w, w) for _ in range(config.layers))
         self.dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
         self.project = nn.Linear(w, self.out_channels)
 
@@ -130,12 +130,12 @@ class FNO(_OperatorBase):
         b, n = features.shape[0], self.config.n_points
         d = self.geometry.normalize(features)[:, None, :].expand(b, n, N_FEATURES)
         s = (2.0 * self.grid - 1.0)[None, :, None].expand(b, n, 1)
-        x = self.lift(torch.cat([s, d], dim=-1)).transpose(1, 2)  # (B, W, n)
+        x = self.lift(torch.cat([s, d], dim=-1))  # (B, n, W)
         for k, (spec, point) in enumerate(zip(self.spectral, self.pointwise, strict=True)):
             x = spec(x) + point(x)
             if k < len(self.spectral) - 1:
                 x = self.dropout(torch.relu(x))
-        return self.project(x.transpose(1, 2))  # (B, n, C)
+        return self.project(x)  # (B, n, C)
 
     def forward(self, features: torch.Tensor):
         return self.heads(features, self.grid, self.raw(features))
