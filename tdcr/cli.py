@@ -77,6 +77,7 @@ def _cmd_train(args) -> int:
     hyper = json.loads(args.hyperparameters) if args.hyperparameters else {}
     cfg = make_config(args.model, args.preset, epochs=args.epochs, batch_size=args.batch_size, seed=args.seed,
                       dropout=args.dropout, n_train=args.n_train, time_budget_min=args.minutes,
+                      patience=args.patience,
                       hyperparameters=hyper)
     try:
         summary = train(cfg, args.data, args.out or f"runs/{args.model}", progress=not args.quiet)
@@ -150,6 +151,53 @@ def _cmd_predict(args) -> int:
     return 0
 
 
+def _cmd_serve(args) -> int:
+    import uvicorn
+
+    from service.settings import Settings
+
+    settings = Settings()
+    if not (settings.models_dir / "manifest.json").exists():
+        raise UsageError(f"no models at {settings.models_dir} (set TDCR_MODELS_DIR)")
+    uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port,
+                workers=args.workers or settings.workers, log_level=args.log_level)
+    return 0
+
+
+def _cmd_loadtest(args) -> int:
+    import asyncio
+
+    from service.loadtest import format_rows, sweep
+
+    def ints(text):
+        try:
+            values = [int(v) for v in text.split(",")]
+        except ValueError:
+            raise UsageError(f"expected comma-separated integers, got {text!r}") from None
+        if any(v < 1 for v in values):
+            raise UsageError("concurrency and batch sizes must be >= 1")
+        return values
+
+    if args.requests < 1 or args.seconds <= 0:
+        raise UsageError("--requests must be >= 1 and --seconds > 0")
+    rows, before, after = asyncio.run(sweep(
+        args.url, concurrencies=ints(args.concurrency), batches=ints(args.batch), model=args.model,
+        binary=args.binary, max_requests=args.requests, max_seconds=args.seconds))
+    print(format_rows(rows, before, after))
+    return 1 if any(r.errors for r in rows) else 0
+
+
+def _cmd_openapi(args) -> int:
+    from service.app import create_app
+
+    text = json.dumps(create_app().openapi(), indent=2, sort_keys=True) + "\n"
+    if args.out == "-":
+        sys.stdout.write(text)
+    else:
+        Path(args.out).write_text(text)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tdcr", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -180,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-train", type=int, default=None, help="use only the first N training designs")
     p.add_argument("--dropout", type=float, default=None)
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--patience", type=int, default=None, help="stop after this many epochs without improvement")
     p.add_argument("--hyperparameters", default=None, help='JSON overrides, e.g. \'{"p": 50}\'')
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)
@@ -201,6 +250,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default="deeponet")
     p.add_argument("--models-dir", default="models")
     p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("serve", help="run the HTTP service (settings from TDCR_* environment variables)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--log-level", default="info")
+    p.set_defaults(func=_cmd_serve)
+
+    p = sub.add_parser("loadtest", help="load-test a running service (bounded in requests and seconds)")
+    p.add_argument("--url", default="http://127.0.0.1:8000")
+    p.add_argument("--concurrency", default="1,4,16,64")
+    p.add_argument("--batch", default="1,32,1024")
+    p.add_argument("--model", default=None)
+    p.add_argument("--binary", action="store_true", help=".npy requests and .npz answers instead of JSON")
+    p.add_argument("--requests", type=int, default=2000, help="at most this many requests per cell")
+    p.add_argument("--seconds", type=float, default=10.0, help="at most this long per cell")
+    p.set_defaults(func=_cmd_loadtest)
+
+    p = sub.add_parser("openapi", help="write the service's OpenAPI document")
+    p.add_argument("--out", default="openapi/openapi.json")
+    p.set_defaults(func=_cmd_openapi)
     return parser
 
 

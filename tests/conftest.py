@@ -35,3 +35,38 @@ def reference_cases() -> list[dict]:
 def relative_l2(pred: np.ndarray, truth: np.ndarray) -> float:
     """Relative l2 error ||pred - truth|| / ||truth|| over all entries (paper eq. l2Error)."""
     return float(np.linalg.norm(pred - truth) / np.linalg.norm(truth))
+
+
+TINY = {
+    "deeponet": {"branch_width": 16, "trunk_width": 16, "p": 8},
+    "deeponet_pose": {"branch_width": 16, "trunk_width": 16, "p": 8},
+    "fno": {"width": 16},
+    "fno_pose": {"width": 16},
+}
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory):
+    """A 150-design solver dataset on disk."""
+    from training import dataset
+
+    out = tmp_path_factory.mktemp("data") / "tiny"
+    dataset.generate(out, dataset.GenerateConfig(n=150, seed=2, shard_size=50), workers=1, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tiny_data, tmp_path_factory):
+    """All four operators, tiny, trained for 2 epochs and exported: ``(runs dir, models dir)``."""
+    pytest.importorskip("torch")
+    from training.operators.export import export_run
+    from training.operators.models import REGISTRY
+    from training.operators.train import make_config, train
+
+    root = tmp_path_factory.mktemp("runs")
+    models = root / "models"
+    for name in REGISTRY:
+        cfg = make_config(name, "tuned", epochs=2, batch_size=40, hyperparameters=TINY[name])
+        train(cfg, tiny_data, root / name, progress=False, monitor_designs=20)
+        export_run(root / name, models)
+    return root, models

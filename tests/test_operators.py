@@ -12,20 +12,12 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from service.inference import Surrogate, _cubic_weights, rigid_fit, tendon_offsets  # noqa: E402
-from tests.conftest import ROOT  # noqa: E402
+from tests.conftest import ROOT, TINY  # noqa: E402
 from training import dataset, design_space  # noqa: E402
 from training.operators.layers import SpectralConv1d, gram_schmidt  # noqa: E402
 from training.operators.models import REGISTRY, build_model, count_parameters  # noqa: E402
 from training.operators.train import Schedule, make_config, train  # noqa: E402
 from training.physics import solve  # noqa: E402
-
-TINY = {
-    "deeponet": {"branch_width": 16, "trunk_width": 16, "p": 8},
-    "deeponet_pose": {"branch_width": 16, "trunk_width": 16, "p": 8},
-    "fno": {"width": 16},
-    "fno_pose": {"width": 16},
-}
-
 
 @pytest.mark.parametrize("mixing", ["full", "shared"])
 def test_truncated_dft_spectral_layer_equals_torch_fft(mixing):
@@ -97,26 +89,6 @@ def test_cubic_interpolation_off_the_fno_grid():
     err = np.linalg.norm(diff, axis=1) / np.linalg.norm(ref, axis=1)
     assert err.max() < 1e-4
     np.testing.assert_allclose(_cubic_weights(grid, grid), np.eye(42), atol=1e-12)
-
-
-@pytest.fixture(scope="module")
-def tiny_data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data") / "tiny"
-    dataset.generate(out, dataset.GenerateConfig(n=150, seed=2, shard_size=50), workers=1, progress=False)
-    return out
-
-
-@pytest.fixture(scope="module")
-def tiny_models(tiny_data, tmp_path_factory):
-    from training.operators.export import export_run
-
-    root = tmp_path_factory.mktemp("runs")
-    models = root / "models"
-    for name in REGISTRY:
-        cfg = make_config(name, "tuned", epochs=2, batch_size=40, hyperparameters=TINY[name])
-        train(cfg, tiny_data, root / name, progress=False, monitor_designs=20)
-        export_run(root / name, models)
-    return root, models
 
 
 def test_training_is_deterministic_on_cpu(tiny_data, tmp_path):

@@ -33,3 +33,18 @@ def solution_to_dict(sol: RodSolution, j: int) -> dict:
         "converged": bool(sol.converged[j]),
         "residual": float(sol.residual[j]),
     }
+
+
+def solve_request_dicts(designs: list[dict], fractions: list[float]) -> list[dict]:
+    """Process-pool entry point: designs as validated JSON dicts."""
+    from training.schemas import Design
+
+    return solve_designs([Design.model_validate(d) for d in designs], np.asarray(fractions))
+
+
+def warm_up() -> bool:
+    """Import and run the solver once (used to warm up worker processes)."""
+    from training.design_space import sample_designs
+
+    solve(sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5))
+    return True

@@ -90,6 +90,12 @@ def gram_schmidt(a1: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:
     return torch.stack([b1, b2, b3], dim=-1)
 
 
+# log(E I) over Table I: E I from 15.5e9 * pi (5e-4)^4 / 4 to 45.5e9 * pi (1.5e-3)^4 / 4 (N m^2)
+_LOG_EI_LOW = math.log(15.5e9 * math.pi * 5e-4**4 / 4)
+_LOG_EI_HIGH = math.log(45.5e9 * math.pi * 1.5e-3**4 / 4)
+_LOG_EI_MID, _LOG_EI_HALF = (_LOG_EI_LOW + _LOG_EI_HIGH) / 2, (_LOG_EI_HIGH - _LOG_EI_LOW) / 2
+
+
 class DesignGeometry(nn.Module):
     """Undeformed-robot geometry and input normalisation, inside the graph.
 
@@ -106,6 +112,22 @@ class DesignGeometry(nn.Module):
     def normalize(self, features: torch.Tensor) -> torch.Tensor:
         """Affine map of the Table I box onto [-1, 1]; ``(B, F) -> (B, F)``."""
         return 2.0 * (features - self.low) / (self.high - self.low) - 1.0
+
+    def physics_features(self, features: torch.Tensor) -> torch.Tensor:
+        """Dimensionless groups of the linearised (small-deflection) model, ``(B, 2 N_t + 3)``.
+
+        a_i = tau_i rho_i L / (E I) (bending angle a tendon alone would cause, rad, scaled by 1/10),
+        the linearised bending vector sum_i a_i [cos, sin](2 pi i / N_t), log(E I) mapped over
+        Table I onto [-1, 1], and pitch_i L / 7.
+        """
+        t = self.n_tendons
+        e, r, length = features[:, 0:1], features[:, 1:2], features[:, 2:3]
+        offset, pitch, tension = features[:, 3:3 + t], features[:, 3 + t:3 + 2 * t], features[:, 3 + 2 * t:]
+        ei = e * (math.pi / 4.0) * r**4
+        a = tension * offset * length / ei / 10.0  # (B, N_t)
+        bend = torch.stack([(a * torch.cos(self.base_angle)).sum(1), (a * torch.sin(self.base_angle)).sum(1)], dim=1)
+        log_ei = (torch.log(ei) - _LOG_EI_MID) / _LOG_EI_HALF
+        return torch.cat([a, bend, log_ei, pitch * length / 7.0], dim=1)
 
     def rho(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for ``sigma`` ``(n,)`` fractions of L."""

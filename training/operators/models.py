@@ -34,6 +34,7 @@ class DeepONetConfig:
     trunk_layers: int = 5
     p: int = 100
     dropout: float = 0.0
+    inputs: str = "table"
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,7 @@ class FNOConfig:
     n_points: int = 42
     dropout: float = 0.0
     mixing: str = "shared"
+    inputs: str = "table"
 
 
 class _OperatorBase(nn.Module):
@@ -62,6 +64,18 @@ class _OperatorBase(nn.Module):
 
     def raw(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def encode(self, features: torch.Tensor) -> torch.Tensor:
+        """Network input from raw SI designs: the Table I affine map (``inputs='table'``, the paper's),
+        plus the linearised-model groups of :meth:`DesignGeometry.physics_features` (``'physics'``)."""
+        x = self.geometry.normalize(features)
+        if self.config.inputs == "physics":
+            x = torch.cat([x, self.geometry.physics_features(features)], dim=1)
+        return x
+
+    @property
+    def n_inputs(self) -> int:
+        return N_FEATURES + (2 * N_T + 3 if self.config.inputs == "physics" else 0)
 
     def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor):
         """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons)."""
@@ -93,14 +107,14 @@ class DeepONet(_OperatorBase):
         super().__init__(kind)
         self.config = config
         c, p = self.out_channels, config.p
-        self.branch = mlp([N_FEATURES] + [config.branch_width] * (config.branch_layers - 1) + [c * p], nn.Tanh,
+        self.branch = mlp([self.n_inputs] + [config.branch_width] * (config.branch_layers - 1) + [c * p], nn.Tanh,
                           config.dropout)
         self.trunk = mlp([1] + [config.trunk_width] * (config.trunk_layers - 1) + [c * p], nn.Tanh, config.dropout)
         self.bias = nn.Parameter(torch.zeros(c))
 
     def raw(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         c, p = self.out_channels, self.config.p
-        b = self.branch(self.geometry.normalize(features)).reshape(-1, c, p)  # (B, C, p)
+        b = self.branch(self.encode(features)).reshape(-1, c, p)  # (B, C, p)
         t = self.trunk(2.0 * sigma[:, None] - 1.0).reshape(-1, c, p)  # (n, C, p)
         return torch.einsum("bcp,ncp->bnc", b, t) + self.bias
 
@@ -118,7 +132,7 @@ class FNO(_OperatorBase):
         self.config = config
         w = config.width
         self.register_buffer("grid", torch.linspace(0.0, 1.0, config.n_points), persistent=False)
-        self.lift = nn.Linear(1 + N_FEATURES, w)
+        self.lift = nn.Linear(1 + self.n_inputs, w)
         self.spectral = nn.ModuleList(
             SpectralConv1d(w, w, config.modes, config.n_points, config.mixing) for _ in range(config.layers)
         )
@@ -128,7 +142,7 @@ class FNO(_OperatorBase):
 
     def raw(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
         b, n = features.shape[0], self.config.n_points
-        d = self.geometry.normalize(features)[:, None, :].expand(b, n, N_FEATURES)
+        d = self.encode(features)[:, None, :].expand(b, n, self.n_inputs)
         s = (2.0 * self.grid - 1.0)[None, :, None].expand(b, n, 1)
         x = self.lift(torch.cat([s, d], dim=-1))  # (B, n, W)
         for k, (spec, point) in enumerate(zip(self.spectral, self.pointwise, strict=True)):

@@ -60,6 +60,7 @@ class TrainConfig:
     n_train: int | None = None
     time_budget_min: float | None = None
     patience: int = 200
+    clip_grad_norm: float | None = None
     schedule: Schedule = field(default_factory=Schedule)
     hyperparameters: dict = field(default_factory=dict)
     preset: str = "paper"
@@ -69,7 +70,7 @@ PRESETS: dict[str, dict] = {
     # the paper's settings: batch 5000, squared-error loss, cyclic schedule
     "paper": {"batch_size": 5000, "loss": "mse", "schedule": Schedule()},
     # ours: smaller batches, the relative loss (what is reported), one long cosine cycle
-    "tuned": {"batch_size": 500, "loss": "relative",
+    "tuned": {"batch_size": 500, "loss": "relative", "clip_grad_norm": 1.0,
               "schedule": Schedule(initial=1e-4, peak=2e-3, end=1e-6, warmup=0.05, cycles=1, gamma=1.0)},
 }
 
@@ -77,6 +78,8 @@ PRESETS: dict[str, dict] = {
 def make_config(model: str, preset: str = "tuned", **overrides) -> TrainConfig:
     base = dict(PRESETS[preset])
     base.update({k: v for k, v in overrides.items() if v is not None})
+    if preset == "tuned":  # physics-informed inputs unless overridden
+        base["hyperparameters"] = {"inputs": "physics", **base.get("hyperparameters", {})}
     return TrainConfig(model=model, preset=preset, **base)
 
 
@@ -170,6 +173,8 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
             loss = loss_fn(model.tendons(x_train[idx], sigma), y_train[idx], cfg.loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if cfg.clip_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip_grad_norm)
             opt.step()
             total += loss.item() * idx.numel()
             count += idx.numel()

@@ -1,0 +1,147 @@
+"""The FastAPI application: ``create_app()`` builds it; the lifespan handler loads the models.
+
+Run with ``tdcr serve --port 8000`` or ``uvicorn --factory service.app:create_app``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from service.errors import ApiError, unprocessable
+from service.metrics import Metrics
+from service.routers import exact, health, models, predict
+from service.schemas import PredictRequest
+from service.settings import Settings
+from service.state import ServiceState, load_models, start_pool
+
+log = logging.getLogger("tdcr.service")
+VERSION = "0.1.0"
+
+
+class BodyLimit:
+    """ASGI middleware: 413 for bodies over ``limit`` bytes (declared or streamed)."""
+
+    def __init__(self, app, limit: int):
+        self.app, self.limit = app, limit
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        declared = dict(scope.get("headers") or {}).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.limit:
+            return await _send_error(send, 413, f"request body over {self.limit} bytes")
+        seen = 0
+
+        async def limited_receive():
+            nonlocal seen
+            message = await receive()
+            seen += len(message.get("body", b""))
+            if seen > self.limit:
+                raise _TooLarge()
+            return message
+
+        try:
+            await self.app(scope, limited_receive, send)
+        except _TooLarge:
+            await _send_error(send, 413, f"request body over {self.limit} bytes")
+
+
+class _TooLarge(Exception):
+    pass
+
+
+async def _send_error(send, status: int, message: str) -> None:
+    import json
+
+    body = json.dumps({"message": message, "detail": message}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+    await send({"type": "http.response.body", "body": body})
+
+
+def _error_response(request: Request, exc: ApiError) -> JSONResponse:
+    state: ServiceState = request.app.state.service
+    state.metrics.errors.labels(request.url.path, exc.kind).inc()
+    return JSONResponse({"message": exc.message, "detail": exc.detail}, status_code=exc.status)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    state = ServiceState(settings=settings, metrics=Metrics.create())
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        load_models(state)
+        try:
+            start_pool(state)
+        except Exception as exc:  # noqa: BLE001 - reported by /readyz
+            state.problems.append(f"solver pool: {exc}")
+        state.ready = not state.problems and bool(state.models)
+        log.info("ready=%s models=%s problems=%s", state.ready, sorted(state.models), state.problems)
+        yield
+        if state.pool is not None:
+            state.pool.shutdown(wait=False, cancel_futures=True)
+
+    app = FastAPI(title="tdcr-surrogates", version=VERSION, lifespan=lifespan,
+                  description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "
+                              "and the Cosserat solver (/exact).  SI units throughout.")
+    app.state.service = state
+    for router in (predict.router, exact.router, models.router, health.router):
+        app.include_router(router)
+
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, exc: ApiError):
+        return _error_response(request, exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError):
+        items = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", "invalid"), "type": e.get("type", "invalid")}
+                 for e in exc.errors()]
+        return _error_response(request, unprocessable(items))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        return _error_response(request, ApiError(exc.status_code, str(exc.detail), kind=f"http_{exc.status_code}"))
+
+    @app.exception_handler(Exception)
+    async def unexpected(request: Request, exc: Exception):  # pragma: no cover - must never happen
+        log.exception("unexpected error on %s", request.url.path)
+        return _error_response(request, ApiError(500, "internal error", kind="internal"))
+
+    @app.middleware("http")
+    async def count_requests(request: Request, call_next):
+        started = time.perf_counter()
+        response = await call_next(request)
+        path = request.url.path if request.url.path in _PATHS else "other"
+        state.metrics.requests.labels(path, str(response.status_code)).inc()
+        if path not in ("/predict", "/exact"):
+            state.metrics.latency.labels(path, "").observe(time.perf_counter() - started)
+        return response
+
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+_PATHS = {"/predict", "/exact", "/models", "/healthz", "/readyz", "/metrics"}
+
+
+def _openapi(app: FastAPI) -> dict:
+    """FastAPI's document plus the JSON schema of PredictRequest (its body is parsed by hand)."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    js = PredictRequest.model_json_schema(ref_template="#/components/schemas/{model}")
+    components.update(js.pop("$defs", {}))
+    components["PredictRequest"] = js
+    app.openapi_schema = schema
+    return schema

@@ -1,0 +1,111 @@
+"""A small client for planners (httpx): sync :class:`Client` and async :class:`AsyncClient`.
+
+    with Client("http://localhost:8000") as c:
+        shapes = c.predict(features, points=42)          # (B, 15) SI designs -> dict of arrays
+        shapes["tendons"]                                 # (B, n, 4, 3) m
+
+``predict`` sends ``.npy`` and receives ``.npz`` (binary), the fast path for large batches;
+``predict_json`` and ``exact`` send the JSON request format.
+"""
+
+from __future__ import annotations
+
+import io
+
+import httpx
+import numpy as np
+
+NPY, NPZ = "application/x-npy", "application/x-npz"
+
+
+class TDCRError(RuntimeError):
+    """A 4xx / 5xx answer; ``status`` and the server's ``message``."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(f"HTTP {status}: {message}")
+        self.status, self.message = status, message
+
+
+def _npy(features: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(features, dtype=np.float64), allow_pickle=False)
+    return buf.getvalue()
+
+
+def _params(model: str | None, points: int | None, s) -> list[tuple[str, str]]:
+    params = [] if model is None else [("model", model)]
+    if s is not None:
+        params += [("s", repr(float(v))) for v in s]
+    elif points is not None:
+        params.append(("points", str(points)))
+    return params
+
+
+def _decode(response: httpx.Response) -> dict:
+    if response.status_code >= 400:
+        try:
+            message = response.json().get("message", response.text)
+        except ValueError:
+            message = response.text
+        raise TDCRError(response.status_code, message)
+    if response.headers.get("content-type", "").startswith(NPZ):
+        with np.load(io.BytesIO(response.content)) as z:
+            out = {k: z[k] for k in z.files}
+        out["model"] = response.headers.get("x-tdcr-model")
+        return out
+    return response.json()
+
+
+class Client:
+    def __init__(self, base_url: str, *, timeout: float = 60.0, **kwargs):
+        self._http = httpx.Client(base_url=base_url, timeout=timeout, **kwargs)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = 42, s=None) -> dict:
+        """Binary request: features ``(B, 15)`` -> arrays s, backbone, rotation, tendons, in_distribution."""
+        r = self._http.post("/predict", content=_npy(features), params=_params(model, points, s),
+                            headers={"content-type": NPY, "accept": NPZ})
+        return _decode(r)
+
+    def predict_json(self, request: dict) -> dict:
+        return _decode(self._http.post("/predict", json=request))
+
+    def exact(self, request: dict) -> dict:
+        return _decode(self._http.post("/exact", json=request))
+
+    def models(self) -> dict:
+        return _decode(self._http.get("/models"))
+
+
+class AsyncClient:
+    def __init__(self, base_url: str, *, timeout: float = 60.0, **kwargs):
+        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, **kwargs)
+
+    async def __aenter__(self):
+        return self
+
+    async def __aexit__(self, *exc):
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = 42,
+                      s=None) -> dict:
+        r = await self._http.post("/predict", content=_npy(features), params=_params(model, points, s),
+                                  headers={"content-type": NPY, "accept": NPZ})
+        return _decode(r)
+
+    async def predict_json(self, request: dict) -> dict:
+        return _decode(await self._http.post("/predict", json=request))
+
+    async def exact(self, request: dict) -> dict:
+        return _decode(await self._http.post("/exact", json=request))

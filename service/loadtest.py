@@ -1,0 +1,114 @@
+"""Load test of a running service (httpx, asyncio), bounded in requests and seconds.
+
+For each (concurrency, batch size) it keeps ``concurrency`` requests in flight until
+``requests`` are done or ``seconds`` pass, then reports latency percentiles, requests/s,
+designs/s and errors.  Server memory (resident set size from /metrics) is read before and after.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+
+import httpx
+import numpy as np
+
+from service.client import NPY, NPZ, _npy
+from training import design_space
+
+
+@dataclass
+class Row:
+    concurrency: int
+    batch: int
+    encoding: str
+    requests: int
+    errors: int
+    seconds: float
+    p50_ms: float
+    p95_ms: float
+    p99_ms: float
+
+    @property
+    def rps(self) -> float:
+        return self.requests / self.seconds
+
+    @property
+    def designs_per_s(self) -> float:
+        return self.requests * self.batch / self.seconds
+
+
+async def server_rss(client: httpx.AsyncClient) -> float | None:
+    """Resident memory of the server process in bytes, from its Prometheus metrics."""
+    try:
+        text = (await client.get("/metrics")).text
+    except httpx.HTTPError:
+        return None
+    for line in text.splitlines():
+        if line.startswith("process_resident_memory_bytes"):
+            return float(line.split()[-1])
+    return None
+
+
+async def run_cell(client: httpx.AsyncClient, *, concurrency: int, batch: int, model: str | None, binary: bool,
+                   max_requests: int, max_seconds: float, seed: int = 0) -> Row:
+    feats = design_space.sample_designs(batch, seed=seed).features()
+    if binary:
+        body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ},
+                "params": {"model": model} if model else {}}
+    else:
+        designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
+            {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in feats]
+        body = {"json": {"designs": designs, **({"model": model} if model else {})}}
+    latencies: list[float] = []
+    errors = 0
+    issued = 0
+    deadline = time.perf_counter() + max_seconds
+
+    async def worker():
+        nonlocal errors, issued
+        while issued < max_requests and time.perf_counter() < deadline:
+            issued += 1
+            t = time.perf_counter()
+            try:
+                r = await client.post("/predict", **body)
+                ok = r.status_code == 200
+            except httpx.HTTPError:
+                ok = False
+            latencies.append(time.perf_counter() - t)
+            errors += not ok
+
+    start = time.perf_counter()
+    await asyncio.gather(*(worker() for _ in range(concurrency)))
+    elapsed = time.perf_counter() - start
+    lat = np.array(latencies) * 1e3
+    return Row(concurrency, batch, "npy" if binary else "json", len(latencies), errors, elapsed,
+               *(float(np.percentile(lat, q)) for q in (50, 95, 99)))
+
+
+async def sweep(url: str, *, concurrencies=(1, 4, 16, 64), batches=(1, 32, 1024), model: str | None = None,
+                binary: bool = False, max_requests: int = 2000, max_seconds: float = 10.0):
+    """Run every cell; returns ``(rows, rss_before, rss_after)``."""
+    limits = httpx.Limits(max_connections=max(concurrencies), max_keepalive_connections=max(concurrencies))
+    async with httpx.AsyncClient(base_url=url, timeout=60.0, limits=limits) as client:
+        before = await server_rss(client)
+        rows = []
+        for batch in batches:
+            for c in concurrencies:
+                rows.append(await run_cell(client, concurrency=c, batch=batch, model=model, binary=binary,
+                                           max_requests=max_requests, max_seconds=max_seconds))
+        after = await server_rss(client)
+    return rows, before, after
+
+
+def format_rows(rows: list[Row], before: float | None, after: float | None) -> str:
+    lines = ["| encoding | batch | concurrency | requests | errors | p50 (ms) | p95 (ms) | p99 (ms) | requests/s "
+             "| designs/s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r.encoding} | {r.batch} | {r.concurrency} | {r.requests} | {r.errors} | {r.p50_ms:.2f} | "
+                     f"{r.p95_ms:.2f} | {r.p99_ms:.2f} | {r.rps:,.0f} | {r.designs_per_s:,.0f} |")
+    if before and after:
+        lines.append(f"\nserver memory: {before / 2**20:.1f} MiB before, {after / 2**20:.1f} MiB after "
+                     f"({100 * (after - before) / before:+.1f} %)")
+    return "\n".join(lines)

@@ -1,0 +1,31 @@
+"""Prometheus metrics of one app instance (own registry, so several apps can live in one process)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from prometheus_client import CollectorRegistry, Counter, Histogram, ProcessCollector
+
+_LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 30)
+
+
+@dataclass
+class Metrics:
+    registry: CollectorRegistry
+    requests: Counter
+    latency: Histogram
+    designs: Counter
+    errors: Counter
+
+    @classmethod
+    def create(cls) -> Metrics:
+        reg = CollectorRegistry()
+        ProcessCollector(registry=reg)
+        return cls(
+            registry=reg,
+            requests=Counter("tdcr_requests", "HTTP requests", ["endpoint", "status"], registry=reg),
+            latency=Histogram("tdcr_request_seconds", "request latency, s", ["endpoint", "model"],
+                              buckets=_LATENCY_BUCKETS, registry=reg),
+            designs=Counter("tdcr_designs", "designs answered", ["endpoint", "model"], registry=reg),
+            errors=Counter("tdcr_errors", "error responses by kind", ["endpoint", "kind"], registry=reg),
+        )

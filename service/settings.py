@@ -1,0 +1,28 @@
+"""All service settings, from environment variables prefixed ``TDCR_`` (pydantic-settings)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Settings(BaseSettings):
+    """Service configuration.  E.g. ``TDCR_MODELS_DIR=/models TDCR_MAX_DESIGNS=5000 tdcr serve``."""
+
+    model_config = SettingsConfigDict(env_prefix="TDCR_", extra="ignore")
+
+    models_dir: Path = Field(ROOT / "models", description="directory with manifest.json and the ONNX files")
+    default_model: str | None = Field(None, description="model used when a request names none (default: best)")
+    max_designs: int = Field(100_000, ge=1, description="designs per /predict request")
+    max_points: int = Field(1000, ge=2, description="arclengths per request")
+    max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="request body limit, bytes")
+    onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads per model (0: all cores)")
+    exact_workers: int = Field(1, ge=1, description="solver processes behind /exact")
+    exact_max_designs: int = Field(2000, ge=1, description="designs per /exact request")
+    exact_max_pending: int = Field(8, ge=1, description="/exact requests queued or running before 503")
+    exact_timeout_s: float = Field(30.0, gt=0, description="per-request deadline of /exact before 504")
+    workers: int = Field(1, ge=1, description="uvicorn worker processes (scale out with replicas instead)")

@@ -1,0 +1,74 @@
+"""What the lifespan handler builds and keeps on ``app.state``."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.inference import Surrogate
+from service.metrics import Metrics
+from service.settings import Settings
+from training import design_space
+
+
+@dataclass
+class ServiceState:
+    settings: Settings
+    metrics: Metrics
+    manifest: dict = field(default_factory=dict)
+    models: dict[str, Surrogate] = field(default_factory=dict)
+    default_model: str | None = None
+    pool: ProcessPoolExecutor | None = None
+    exact_slots: asyncio.Semaphore | None = None
+    ready: bool = False
+    problems: list[str] = field(default_factory=list)
+
+
+def best_model(manifest: dict) -> str | None:
+    """The manifest model with the lowest mean test relative l2 (any model if none has metrics)."""
+    models = manifest.get("models", {})
+
+    def score(name):
+        m = (models[name].get("metrics") or {}).get("test_relative_l2") or {}
+        return m.get("mean", float("inf"))
+
+    return min(models, key=score) if models else None
+
+
+def load_models(state: ServiceState) -> None:
+    """Load every manifest model (checksum verified) and warm it up; record problems instead of raising."""
+    path = state.settings.models_dir / "manifest.json"
+    try:
+        state.manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        state.problems.append(f"cannot read {path}: {exc}")
+        return
+    warm = design_space.sample_designs(2, seed=0).features()
+    for name in state.manifest.get("models", {}):
+        try:
+            model = Surrogate.load(state.settings.models_dir, name, threads=state.settings.onnx_threads)
+            model.predict(warm, np.linspace(0.0, 1.0, 42))
+        except Exception as exc:  # noqa: BLE001 - any failure makes the model unavailable, reported by /readyz
+            state.problems.append(f"model {name}: {exc}")
+            continue
+        state.models[name] = model
+    default = state.settings.default_model or best_model(state.manifest)
+    if default is not None and default not in state.models:
+        state.problems.append(f"default model {default!r} is not loaded")
+    state.default_model = default
+
+
+def start_pool(state: ServiceState) -> None:
+    """Start the solver processes behind /exact and warm them up."""
+    ctx = multiprocessing.get_context("spawn")
+    state.pool = ProcessPoolExecutor(max_workers=state.settings.exact_workers, mp_context=ctx)
+    from training.exact import warm_up
+
+    for f in [state.pool.submit(warm_up) for _ in range(state.settings.exact_workers)]:
+        f.result(timeout=120)
+    state.exact_slots = asyncio.Semaphore(state.settings.exact_max_pending)

@@ -1,0 +1,259 @@
+"""The HTTP service in a real uvicorn process on a free loopback port (tiny models from conftest)."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from service.client import AsyncClient, Client, TDCRError
+from tests.conftest import ROOT, designs_from_json, relative_l2
+from training import design_space
+from training.physics import solve
+
+EXAMPLE = json.loads((ROOT / "examples" / "request.json").read_text())
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    def __init__(self, models: Path, **env):
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        environ = {**os.environ, "TDCR_MODELS_DIR": str(models), **{f"TDCR_{k.upper()}": str(v) for k, v in env.items()}}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port", str(self.port),
+             "--log-level", "warning"], cwd=ROOT, env=environ, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        deadline = time.time() + 90
+        while time.time() < deadline:
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.2)
+        self.stop()
+        raise RuntimeError(f"server did not become ready: {self.proc.stdout.read().decode()[-3000:]}")
+
+    def stop(self):
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+@pytest.fixture(scope="module")
+def server(tiny_models):
+    _, models = tiny_models
+    srv = Server(models, max_designs=3000, max_body_bytes=2_000_000, exact_max_designs=300, exact_max_pending=2,
+                 exact_timeout_s=60)
+    yield srv
+    srv.stop()
+
+
+def test_health_ready_models(server):
+    assert httpx.get(server.url + "/healthz").json() == {"status": "alive"}
+    ready = httpx.get(server.url + "/readyz").json()
+    assert ready["ready"] and sorted(ready["models"]) == ["deeponet", "deeponet_pose", "fno", "fno_pose"]
+    models = httpx.get(server.url + "/models").json()
+    assert set(models["models"]) == set(ready["models"])
+    assert models["models"]["fno"]["inputs"]["design"] == ["B", 15]
+
+
+@pytest.mark.parametrize("model", ["deeponet", "deeponet_pose", "fno", "fno_pose"])
+def test_predict_json_matches_the_runtime(server, tiny_models, model):
+    from service.inference import Surrogate
+
+    r = httpx.post(server.url + "/predict", json={**EXAMPLE, "model": model})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["model"] == model and len(body["results"]) == 2
+    feats = designs_from_json(EXAMPLE["designs"]).features()
+    ref = Surrogate.load(tiny_models[1], model).predict(feats, np.linspace(0, 1, 5))
+    for j, res in enumerate(body["results"]):
+        np.testing.assert_allclose(res["tendons"], ref["tendons"][j], rtol=1e-6, atol=1e-9)
+        assert np.array(res["rotation"]).shape == (5, 3, 3)
+        assert res["in_distribution"] is True and res["warnings"] == []
+
+
+def test_out_of_range_designs_are_flagged(server):
+    design = json.loads(json.dumps(EXAMPLE["designs"][0]))
+    design["tendons"][2]["tension"] = 6.5
+    design["E"] = 5e10
+    r = httpx.post(server.url + "/predict", json={"designs": [design], "s": [0.0, 0.5, 1.0]})
+    res = r.json()["results"][0]
+    assert res["in_distribution"] is False
+    assert any(w.startswith("E = 5e+10 Pa") for w in res["warnings"])
+    assert any(w.startswith("tension_2 = 6.5 N is outside the trained range [0, 5]") for w in res["warnings"])
+
+
+def test_binary_request_and_response_equal_json(server):
+    feats = design_space.sample_designs(64, seed=4).features()
+    with Client(server.url) as c:
+        out = c.predict(feats, model="fno_pose", points=42)
+        designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
+            {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in feats]
+        js = c.predict_json({"designs": designs, "model": "fno_pose"})
+    assert out["model"] == "fno_pose" and out["tendons"].shape == (64, 42, 4, 3)
+    np.testing.assert_allclose(out["tendons"], np.array([r["tendons"] for r in js["results"]]), rtol=1e-5, atol=1e-7)
+    assert out["in_distribution"].all()
+
+
+def test_async_client_and_exact_endpoint(server):
+    async def go():
+        async with AsyncClient(server.url) as c:
+            return await c.exact(EXAMPLE), await c.predict(design_space.sample_designs(3, seed=0).features())
+
+    exact, pred = asyncio.run(go())
+    sol = solve(designs_from_json(EXAMPLE["designs"]), np.linspace(0, 1, 5))
+    for j, res in enumerate(exact["results"]):
+        assert res["converged"] and res["residual"] < 1e-8
+        assert relative_l2(np.array(res["tendons"]), sol.tendons[j]) < 1e-12
+    assert pred["tendons"].shape == (3, 42, 4, 3)
+
+
+BAD = [
+    ({"designs": [{"E": -3e10, "r": 1e-3, "L": 0.2, "tendons": [{"offset": 0.01, "tension": 1}] * 4}]}, 422,
+     "designs[0].E: Input should be greater than 0"),
+    ({"designs": [EXAMPLE["designs"][0], {"E": 3e10, "r": 1e-3, "L": 0.2,
+                                           "tendons": [{"offset": 0.01, "tension": 1}] * 3}]}, 422,
+     "designs[1].tendons: the surrogates need 4 tendons, got 3"),
+    ({**EXAMPLE, "s": [0.1, 1.01], "points": None}, 422, "s[1] = 1.01 is not a fraction of L"),
+    ({**EXAMPLE, "points": 5000}, 422, "points: Input should be less than or equal to 1000"),
+    ({**EXAMPLE, "model": "gpt"}, 404, "unknown model 'gpt'"),
+    ({"designs": [EXAMPLE["designs"][0]] * 3001}, 413, "3001 designs exceed the limit of 3000"),
+    ({"designs": [{**EXAMPLE["designs"][0], "tip_force": [0, 0, 1]}]}, 422, "only supported by /exact"),
+]
+
+
+@pytest.mark.parametrize("body, status, message", BAD)
+def test_bad_predict_requests(server, body, status, message):
+    r = httpx.post(server.url + "/predict", json=body)
+    assert r.status_code == status
+    assert message in r.json()["message"]
+
+
+def test_bad_bodies_and_limits(server):
+    r = httpx.post(server.url + "/predict", content=b"{nope", headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "body" in r.json()["message"]
+    r = httpx.post(server.url + "/predict", content=b"not npy", headers={"content-type": "application/x-npy"})
+    assert r.status_code == 422 and "not a valid .npy" in r.json()["message"]
+    buf = io.BytesIO()
+    np.save(buf, np.full((2, 15), np.nan))
+    r = httpx.post(server.url + "/predict", content=buf.getvalue(), headers={"content-type": "application/x-npy"})
+    assert r.status_code == 422 and "design 0: E must be finite" in r.json()["message"]
+    big = b"[" + b" " * 2_100_000 + b"]"
+    r = httpx.post(server.url + "/predict", content=big, headers={"content-type": "application/json"})
+    assert r.status_code == 413
+    r = httpx.post(server.url + "/exact", json={"designs": [EXAMPLE["designs"][0]] * 301})
+    assert r.status_code == 413 and "/exact limit" in r.json()["message"]
+    r = httpx.post(server.url + "/exact", json={"designs": [{"E": "x"}]})
+    assert r.status_code == 422 and "designs[0].E" in r.json()["message"]
+    assert httpx.get(server.url + "/nowhere").status_code == 404
+
+
+def test_metrics_count_requests_designs_and_errors(server):
+    httpx.post(server.url + "/predict", json={**EXAMPLE, "model": "deeponet"})
+    text = httpx.get(server.url + "/metrics").text
+    assert 'tdcr_requests_total{endpoint="/predict",status="200"}' in text
+    assert 'tdcr_designs_total{endpoint="/predict",model="deeponet"}' in text
+    assert 'tdcr_errors_total{endpoint="/predict",kind="validation"}' in text
+    assert "tdcr_request_seconds_bucket" in text and "process_resident_memory_bytes" in text
+
+
+def test_exact_is_refused_when_saturated(tiny_models):
+    """Two slots: a third concurrent request gets 503 at once, the others finish."""
+    _, models = tiny_models
+    srv = Server(models, exact_max_pending=1, exact_timeout_s=60)
+    try:
+        slow = {"designs": [EXAMPLE["designs"][1]] * 400, "points": 400}
+
+        async def go():
+            async with httpx.AsyncClient(base_url=srv.url, timeout=120) as c:
+                first = asyncio.create_task(c.post("/exact", json=slow))
+                await asyncio.sleep(0.5)
+                second = await c.post("/exact", json=EXAMPLE)
+                return await first, second
+
+        first, second = asyncio.run(go())
+        assert first.status_code == 200
+        assert second.status_code == 503 and "saturated" in second.json()["message"]
+    finally:
+        srv.stop()
+
+
+def test_exact_deadline_gives_504(tiny_models):
+    _, models = tiny_models
+    srv = Server(models, exact_timeout_s=0.3)
+    try:
+        r = httpx.post(srv.url + "/exact", json={"designs": [EXAMPLE["designs"][1]] * 400, "points": 400}, timeout=60)
+        assert r.status_code == 504 and "did not finish within 0.3 s" in r.json()["message"]
+    finally:
+        srv.stop()
+
+
+def test_client_raises_with_the_server_message(server):
+    with Client(server.url) as c, pytest.raises(TDCRError, match="unknown model"):
+        c.predict(design_space.sample_designs(2, seed=0).features(), model="nope")
+
+
+def test_loadtest_cli_against_the_server(server):
+    out = subprocess.run([sys.executable, "-m", "tdcr.cli", "loadtest", "--url", server.url, "--concurrency", "1,4",
+                          "--batch", "1,32", "--requests", "40", "--seconds", "5"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert out.stdout.count("| json |") == 4 and "server memory" in out.stdout
+    bad = subprocess.run([sys.executable, "-m", "tdcr.cli", "loadtest", "--url", server.url, "--batch", "x"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert bad.returncode == 2
+
+
+finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
+tendon = st.fixed_dictionaries({"offset": finite, "pitch": finite, "tension": finite})
+design = st.fixed_dictionaries({"E": finite, "r": finite, "L": finite,
+                                "tendons": st.lists(tendon, min_size=0, max_size=6)})
+anything = st.recursive(st.none() | st.booleans() | finite | st.text(max_size=5),
+                        lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=5), c, max_size=3),
+                        max_leaves=8)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(body=st.one_of(st.fixed_dictionaries({"designs": st.lists(design, max_size=3)},
+                                            optional={"points": st.integers(-5, 2000), "model": st.text(max_size=8),
+                                                      "s": st.lists(finite, max_size=4)}), anything))
+def test_hypothesis_never_a_server_error(server, body):
+    try:
+        payload = json.dumps(body, allow_nan=True)
+    except (TypeError, ValueError):
+        return
+    r = httpx.post(server.url + "/predict", content=payload, headers={"content-type": "application/json"})
+    assert r.status_code in (200, 404, 413, 422), r.text
+    if r.status_code == 200:
+        for res in r.json()["results"]:
+            assert np.isfinite(np.array(res["tendons"])).all()
+
+
+def test_openapi_document_is_committed_and_current():
+    from service.app import create_app
+
+    committed = json.loads((ROOT / "openapi" / "openapi.json").read_text())
+    assert committed == json.loads(json.dumps(create_app().openapi())), "run `tdcr openapi` and commit"
