@@ -44,10 +44,10 @@ def main() -> None:
     for name in sorted(manifest["models"]):
         model = Surrogate.load(args.models_dir, name)
         model.predict(feats[:10], sigma)  # warm-up
-        t1 = best_time(lambda: model.predict(feats[:1], sigma), args.repeats)
-        t1k = best_time(lambda: model.predict(feats[:1000], sigma), args.repeats)
-        t80 = best_time(lambda: model.predict(feats, sigma), max(1, args.repeats // 2))
-        g80 = best_time(lambda: model.run(feats, sigma), max(1, args.repeats // 2))
+        t1 = best_time(lambda m=model: m.predict(feats[:1], sigma), args.repeats)
+        t1k = best_time(lambda m=model: m.predict(feats[:1000], sigma), args.repeats)
+        t80 = best_time(lambda m=model: m.predict(feats, sigma), max(1, args.repeats // 2))
+        g80 = best_time(lambda m=model: m.run(feats, sigma), max(1, args.repeats // 2))
         print(f"| {name} | {1e3 * t1:.2f} | {1e3 * t1k:.1f} | {t80:.3f} | {g80:.3f} |")
 
 

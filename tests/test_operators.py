@@ -13,11 +13,12 @@ torch = pytest.importorskip("torch")
 
 from service.inference import Surrogate, _cubic_weights, rigid_fit, tendon_offsets  # noqa: E402
 from tests.conftest import ROOT, TINY  # noqa: E402
-from training import dataset, design_space  # noqa: E402
+from training import design_space  # noqa: E402
 from training.operators.layers import SpectralConv1d, gram_schmidt  # noqa: E402
 from training.operators.models import REGISTRY, build_model, count_parameters  # noqa: E402
 from training.operators.train import Schedule, make_config, train  # noqa: E402
 from training.physics import solve  # noqa: E402
+
 
 @pytest.mark.parametrize("mixing", ["full", "shared"])
 def test_truncated_dft_spectral_layer_equals_torch_fft(mixing):

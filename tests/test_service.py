@@ -36,7 +36,8 @@ class Server:
     def __init__(self, models: Path, **env):
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        environ = {**os.environ, "TDCR_MODELS_DIR": str(models), **{f"TDCR_{k.upper()}": str(v) for k, v in env.items()}}
+        extra = {f"TDCR_{k.upper()}": str(v) for k, v in env.items()}
+        environ = {**os.environ, "TDCR_MODELS_DIR": str(models), **extra}
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port", str(self.port),
              "--log-level", "warning"], cwd=ROOT, env=environ, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
