@@ -19,14 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-N_T = 4
+from training.designs import DesignBatch
+from training.physics import tendon_routing
 
 
 def tendon_offsets(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for features ``(B, 15)``."""
-    length, offset, pitch = features[:, 2], features[:, 3:3 + N_T], features[:, 3 + N_T:3 + 2 * N_T]
-    phi = 2 * np.pi * np.arange(N_T) / N_T + pitch[:, None, :] * (length[:, None] * sigma[None, :])[..., None]
-    return offset[:, None, :, None] * np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=-1)
+    """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for features ``(B, 3 + 3 N_t)``."""
+    return tendon_routing(DesignBatch.from_features(features), np.asarray(sigma, dtype=np.float64))[0]
 
 
 def rigid_fit(body: np.ndarray, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
