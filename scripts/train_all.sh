@@ -14,4 +14,4 @@ train() { OMP_NUM_THREADS=1 .venv/bin/tdcr train --model "$1" --data "$data" --o
 (train fno && train fno_pose) &
 wait
 .venv/bin/tdcr export runs/deeponet runs/deeponet_pose runs/fno runs/fno_pose --data "$data"
-.venv/bin/tdcr evaluate --data "$data"
+.venv/bin/tdcr evaluate --data "$data" --ood 1000

@@ -32,8 +32,10 @@ def _npy(features: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _params(model: str | None, points: int | None, s) -> list[tuple[str, str]]:
+def _params(model: str | None, points: int | None, s, outputs=None) -> list[tuple[str, str]]:
     params = [] if model is None else [("model", model)]
+    if outputs is not None:
+        params.append(("outputs", ",".join(outputs)))
     if s is not None:
         params += [("s", repr(float(v))) for v in s]
     elif points is not None:
@@ -69,9 +71,13 @@ class Client:
     def close(self) -> None:
         self._http.close()
 
-    def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = 42, s=None) -> dict:
-        """Binary request: features ``(B, 15)`` -> arrays s, backbone, rotation, tendons, in_distribution."""
-        r = self._http.post("/predict", content=_npy(features), params=_params(model, points, s),
+    def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = 42, s=None,
+                outputs=None) -> dict:
+        """Binary request: features ``(B, 15)`` -> arrays s, backbone, rotation, tendons, in_distribution.
+
+        ``outputs``: e.g. ``["tendons"]`` to receive (and compute) only those arrays.
+        """
+        r = self._http.post("/predict", content=_npy(features), params=_params(model, points, s, outputs),
                             headers={"content-type": NPY, "accept": NPZ})
         return _decode(r)
 
@@ -99,8 +105,8 @@ class AsyncClient:
         await self._http.aclose()
 
     async def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = 42,
-                      s=None) -> dict:
-        r = await self._http.post("/predict", content=_npy(features), params=_params(model, points, s),
+                      s=None, outputs=None) -> dict:
+        r = await self._http.post("/predict", content=_npy(features), params=_params(model, points, s, outputs),
                                   headers={"content-type": NPY, "accept": NPZ})
         return _decode(r)
 

@@ -3,9 +3,8 @@
 ``Surrogate.predict`` turns raw SI designs ``(B, 15)`` and arclength fractions ``(n,)`` into
 backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m:
 
-* a pose model gives all three (tendons = p + R rho_i, inside the graph);
-* a tendon model gives tendons; the pose is the least-squares rigid fit (Kabsch) of the known
-  body-frame offsets rho_i(s) onto the predicted tendon points, at each s;
+* every graph gives all three: pose models tendons = p + R rho_i, tendon models the pose as the
+  least-squares rigid fit (Kabsch) of the known offsets rho_i(s) onto the predicted tendons;
 * FNO models answer on their 42-point grid; other s are produced by cubic interpolation along
   s of the grid outputs (rotations re-orthonormalised by SVD).
 """
@@ -26,25 +25,6 @@ from training.physics import tendon_routing
 def tendon_offsets(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for features ``(B, 3 + 3 N_t)``."""
     return tendon_routing(DesignBatch.from_features(features), np.asarray(sigma, dtype=np.float64))[0]
-
-
-def rigid_fit(body: np.ndarray, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid transform (Kabsch) with world ~ p + R body.
-
-    Args:
-        body: body-frame points, ``(..., N_t, 3)``; world: measured points ``(..., N_t, 3)``.
-
-    Returns:
-        ``(p (..., 3), R (..., 3, 3))`` with det R = +1.
-    """
-    cb, cw = body.mean(-2), world.mean(-2)
-    h = np.einsum("...ti,...tj->...ij", body - cb[..., None, :], world - cw[..., None, :])
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(np.einsum("...ji,...kj->...ik", vt, u)))
-    fix = np.ones(u.shape[:-1])
-    fix[..., -1] = d
-    rot = np.einsum("...ji,...j,...kj->...ik", vt, fix, u)
-    return cw - np.einsum("...ij,...j->...i", rot, cb), rot
 
 
 def _cubic_weights(grid: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -110,20 +90,22 @@ class Surrogate:
         names = [o.name for o in self.session.get_outputs()]
         return dict(zip(names, self.session.run(names, feed), strict=True))
 
-    def predict(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
-        """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m, float64."""
+    def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
+        """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m, float64.
+
+        ``pose=False`` returns ``tendons`` only (saves the conversion and, off the FNO grid, the
+        interpolation of the pose).
+        """
         features = np.asarray(features, dtype=np.float64)
         sigma = np.asarray(sigma, dtype=np.float64)
         grid = self.grid
-        out = {k: v.astype(np.float64) for k, v in self.run(features, sigma).items()}
+        out = {k: v.astype(np.float64) for k, v in self.run(features, sigma).items() if pose or k == "tendons"}
         if grid is not None and not (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9)):
             w = _cubic_weights(grid, sigma)
             out = {k: np.einsum("mn,bn...->bm...", w, v) for k, v in out.items()}
             if "rotation" in out:
                 out["rotation"] = _orthonormalize(out["rotation"])
-        if "rotation" not in out:
-            out["backbone"], out["rotation"] = rigid_fit(tendon_offsets(features, sigma), out["tendons"])
-        elif grid is not None:  # keep tendons = p + R rho consistent after interpolation
+        if pose and grid is not None and self.entry["kind"] == "pose":  # keep tendons = p + R rho after interpolation
             rho = tendon_offsets(features, sigma)
             out["tendons"] = out["backbone"][:, :, None, :] + np.einsum("bnij,bntj->bnti", out["rotation"], rho)
         return out

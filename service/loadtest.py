@@ -52,11 +52,11 @@ async def server_rss(client: httpx.AsyncClient) -> float | None:
 
 
 async def run_cell(client: httpx.AsyncClient, *, concurrency: int, batch: int, model: str | None, binary: bool,
-                   max_requests: int, max_seconds: float, seed: int = 0) -> Row:
+                   max_requests: int, max_seconds: float, seed: int = 0, outputs: str | None = None) -> Row:
     feats = design_space.sample_designs(batch, seed=seed).features()
     if binary:
-        body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ},
-                "params": {"model": model} if model else {}}
+        params = ({"model": model} if model else {}) | ({"outputs": outputs} if outputs else {})
+        body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ}, "params": params}
     else:
         designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
             {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in feats]
@@ -83,7 +83,8 @@ async def run_cell(client: httpx.AsyncClient, *, concurrency: int, batch: int, m
     await asyncio.gather(*(worker() for _ in range(concurrency)))
     elapsed = time.perf_counter() - start
     lat = np.array(latencies) * 1e3
-    return Row(concurrency, batch, "npy" if binary else "json", len(latencies), errors, elapsed,
+    encoding = ("npy" + (f" ({outputs})" if outputs else "")) if binary else "json"
+    return Row(concurrency, batch, encoding, len(latencies), errors, elapsed,
                *(float(np.percentile(lat, q)) for q in (50, 95, 99)))
 
 
@@ -105,10 +106,13 @@ async def sweep(url: str, *, concurrencies=(1, 4, 16, 64), batches=(1, 32, 1024)
 def format_rows(rows: list[Row], before: float | None, after: float | None) -> str:
     lines = ["| encoding | batch | concurrency | requests | errors | p50 (ms) | p95 (ms) | p99 (ms) | requests/s "
              "| designs/s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r.encoding} | {r.batch} | {r.concurrency} | {r.requests} | {r.errors} | {r.p50_ms:.2f} | "
-                     f"{r.p95_ms:.2f} | {r.p99_ms:.2f} | {r.rps:,.0f} | {r.designs_per_s:,.0f} |")
+    lines += [format_row(r) for r in rows]
     if before and after:
         lines.append(f"\nserver memory: {before / 2**20:.1f} MiB before, {after / 2**20:.1f} MiB after "
                      f"({100 * (after - before) / before:+.1f} %)")
     return "\n".join(lines)
+
+
+def format_row(r: Row) -> str:
+    return (f"| {r.encoding} | {r.batch} | {r.concurrency} | {r.requests} | {r.errors} | {r.p50_ms:.2f} | "
+            f"{r.p95_ms:.2f} | {r.p99_ms:.2f} | {r.rps:,.0f} | {r.designs_per_s:,.0f} |")

@@ -104,7 +104,7 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from training.operators.evaluate import evaluate, format_table
+    from training.operators.evaluate import evaluate, evaluate_ood, format_ood, format_table
     from training.operators.export import update_manifest
 
     manifest_path = Path(args.models_dir) / "manifest.json"
@@ -116,11 +116,29 @@ def _cmd_evaluate(args) -> int:
     if missing:
         raise UsageError(f"not in the manifest: {missing}")
     results = evaluate(args.models_dir, args.data, names)
+    ood = evaluate_ood(args.models_dir, names, n=args.ood) if args.ood else None
     for name in names:
         entry = manifest["models"][name]
         entry["metrics"] = {"test_relative_l2": results[name], "baseline_relative_l2": results["undeformed baseline"]}
+        if ood is not None:
+            entry["metrics"]["ood_mean_relative_l2"] = {label: row[name] for label, row in ood.items()}
         update_manifest(Path(args.models_dir), entry)
     print(format_table(results))
+    if ood is not None:
+        print(f"\nout of distribution (mean relative l2, {args.ood} designs per bin):\n")
+        print(format_ood(ood))
+    return 0
+
+
+def _cmd_params(args) -> int:
+    from training.operators.models import REGISTRY, build_model, count_parameters
+
+    print("| model | paper | ours (paper inputs) | ours (tuned: physics inputs) |")
+    print("|---|---:|---:|---:|")
+    for name, (_, _, _, paper) in REGISTRY.items():
+        ours = count_parameters(build_model(name))
+        tuned = count_parameters(build_model(name, {"inputs": "physics"}))
+        print(f"| {name} | {paper:,} | {ours:,} | {tuned:,} |")
     return 0
 
 
@@ -243,7 +261,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True)
     p.add_argument("--models-dir", default="models")
     p.add_argument("--models", nargs="*", default=None)
+    p.add_argument("--ood", type=int, default=0, help="also the paper's OOD bins, with this many designs per bin")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("params", help="parameter counts of the four operators next to the paper's")
+    p.set_defaults(func=_cmd_params)
 
     p = sub.add_parser("predict", help="surrogate shapes for a request JSON (onnxruntime only)")
     p.add_argument("request", help="request JSON file, or - for stdin")

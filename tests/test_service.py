@@ -117,6 +117,11 @@ def test_binary_request_and_response_equal_json(server):
     assert out["model"] == "fno_pose" and out["tendons"].shape == (64, 42, 4, 3)
     np.testing.assert_allclose(out["tendons"], np.array([r["tendons"] for r in js["results"]]), rtol=1e-5, atol=1e-7)
     assert out["in_distribution"].all()
+    with Client(server.url) as c:
+        only = c.predict(feats, model="deeponet", outputs=["tendons"])
+        assert "rotation" not in only and only["tendons"].shape == (64, 42, 4, 3)
+        with pytest.raises(TDCRError, match="outputs must be"):
+            c.predict(feats, outputs=["everything"])
 
 
 def test_async_client_and_exact_endpoint(server):

@@ -86,6 +86,19 @@ def _parse_npy(body: bytes, params, state: ServiceState) -> tuple[str | None, np
     return params.get("model"), feats, sigma
 
 
+def _outputs(params) -> tuple[str, ...]:
+    """The ``outputs`` query parameter of binary requests: a subset of backbone, rotation, tendons."""
+    allowed = ("backbone", "rotation", "tendons")
+    raw = params.get("outputs")
+    if raw is None:
+        return allowed
+    wanted = tuple(sorted({w.strip() for w in raw.split(",") if w.strip()}))
+    if not wanted or any(w not in allowed for w in wanted):
+        raise unprocessable([{"loc": ["query", "outputs"], "msg": f"outputs must be a comma-separated subset of "
+                              f"{list(allowed)}", "type": "value_error"}])
+    return wanted
+
+
 def _check_batch(n: int, state: ServiceState) -> None:
     if n > state.settings.max_designs:
         raise ApiError(413, f"{n} designs exceed the limit of {state.settings.max_designs} per request")
@@ -111,14 +124,14 @@ def _answer(body: bytes, content_type: str, accept: str, params, state: ServiceS
     else:
         name, feats, sigma = _parse_json(body, state)
     name, model = _resolve_model(name, state)
-    out = model.predict(feats, sigma)
+    wanted = _outputs(params) if content_type.startswith(NPY) else ("backbone", "rotation", "tendons")
+    out = model.predict(feats, sigma, pose=wanted != ("tendons",))
     warnings = _range_warnings(feats)
     s = feats[:, 2:3] * sigma[None, :]
     if NPZ in accept:
         buf = io.BytesIO()
-        np.savez(buf, s=s.astype(np.float32), backbone=out["backbone"].astype(np.float32),
-                 rotation=out["rotation"].astype(np.float32), tendons=out["tendons"].astype(np.float32),
-                 in_distribution=np.array([not w for w in warnings]))
+        arrays = {k: out[k].astype(np.float32) for k in wanted}
+        np.savez(buf, s=s.astype(np.float32), in_distribution=np.array([not w for w in warnings]), **arrays)
         return Response(buf.getvalue(), media_type=NPZ, headers={"X-TDCR-Model": name}), name, len(feats)
     out = {k: np.ascontiguousarray(v) for k, v in out.items()}  # orjson serialises C-contiguous arrays
     s = np.ascontiguousarray(s)
@@ -135,8 +148,9 @@ def _answer(body: bytes, content_type: str, accept: str, params, state: ServiceS
     description=(
         "JSON body (`PredictRequest`), or a `.npy` body (`Content-Type: application/x-npy`) holding raw SI "
         "designs `(B, 15)` = [E, r, L, offset_0..3, pitch_0..3, tension_0..3] with `model`, `points` or "
-        "repeated `s` as query parameters.  `Accept: application/x-npz` answers with arrays s (B, n) m, "
-        "backbone (B, n, 3) m, rotation (B, n, 3, 3), tendons (B, n, 4, 3) m and in_distribution (B,)."
+        "repeated `s`, and `outputs` (subset of backbone,rotation,tendons) as query parameters.  "
+        "`Accept: application/x-npz` answers with float32 arrays s (B, n) m, backbone (B, n, 3) m, "
+        "rotation (B, n, 3, 3), tendons (B, n, 4, 3) m and in_distribution (B,)."
     ),
     responses={
         200: {"model": PredictResponse, "content": {NPZ: {"schema": {"type": "string", "format": "binary"}}}},

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from service.inference import Surrogate, tendon_offsets
-from training import dataset
+from training import dataset, design_space
 
 
 def relative_l2(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -44,6 +44,35 @@ def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batc
                                for i in range(0, len(feats), batch)])
         results[name] = summary(relative_l2(pred, truth))
     return results
+
+
+def evaluate_ood(models_dir: str | Path, names: list[str], *, n: int = 1000, seed: int = 0) -> dict:
+    """The paper's out-of-distribution test: for each bin, ``n`` designs with every parameter at
+    high * (1 + p), p uniform in the bin, solved exactly; mean relative l2 per model and bin."""
+    from training.physics import solve
+
+    sigma = np.linspace(0.0, 1.0, 42)
+    models = {name: Surrogate.load(models_dir, name) for name in names}
+    table: dict[str, dict[str, float]] = {}
+    for k, bin_range in enumerate(design_space.OOD_BINS):
+        designs = design_space.sample_ood_designs(n, bin_range, seed=seed + k)
+        sol = solve(designs, sigma)
+        ok = sol.converged
+        feats, truth = designs.features()[ok], sol.tendons[ok]
+        label = f"{100 * bin_range[0]:+.0f}..{100 * bin_range[1]:+.0f} %"
+        row = {"undeformed baseline": float(relative_l2(undeformed_tendons(feats, sigma), truth).mean())}
+        for name, model in models.items():
+            row[name] = float(relative_l2(model.predict(feats, sigma)["tendons"], truth).mean())
+        table[label] = row
+    return table
+
+
+def format_ood(table: dict) -> str:
+    names = list(next(iter(table.values())))
+    lines = ["| bin (p of upper bound) | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+    for label, row in table.items():
+        lines.append(f"| {label} | " + " | ".join(f"{row[n]:.4f}" for n in names) + " |")
+    return "\n".join(lines)
 
 
 def format_table(results: dict) -> str:
