@@ -3,8 +3,9 @@
 ``Surrogate.predict`` turns raw SI designs ``(B, 15)`` and arclength fractions ``(n,)`` into
 backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m:
 
-* every graph gives all three: pose models tendons = p + R rho_i, tendon models the pose as the
-  least-squares rigid fit (Kabsch) of the known offsets rho_i(s) onto the predicted tendons;
+* a pose model's graph gives all three (tendons = p + R rho_i);
+* a tendon model's graph gives tendons; the pose is the least-squares rigid fit (Kabsch) of the
+  known body-frame offsets rho_i(s) onto the predicted tendon points, at each s (float64);
 * FNO models answer on their 42-point grid; other s are produced by cubic interpolation along
   s of the grid outputs (rotations re-orthonormalised by SVD).
 """
@@ -24,7 +25,49 @@ from training.physics import tendon_routing
 
 def tendon_offsets(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for features ``(B, 3 + 3 N_t)``."""
-    return tendon_routing(DesignBatch.from_features(features), np.asarray(sigma, dtype=np.float64))[0]
+    return tendon_routing(DesignBatch.from_features(features), np.asarray(sigma, dtype=np.float64),
+                          derivative=False)[0]
+
+
+def rigid_fit(body: np.ndarray, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid transform world ~ p + R body (Kabsch) for body points in the plane z = 0.
+
+    The first two columns of R are the polar factor A (A^T A)^(-1/2) of the 3 x 2 cross-covariance
+    A = sum_i (w_i - w_bar)(b_i - b_bar)_{xy}^T, in closed form for the 2 x 2 matrix
+    (sqrt(S) = (S + sqrt(det S) I) / sqrt(tr S + 2 sqrt(det S))); the third column is their cross
+    product, so det R = +1.  Computed on contiguous per-component arrays.
+
+    Args:
+        body: body-frame points with z = 0, ``(..., N_t, 3)``; world: measured points ``(..., N_t, 3)``.
+
+    Returns:
+        ``(p (..., 3), R (..., 3, 3))``.
+    """
+    mean = np.full(body.shape[-2], 1.0 / body.shape[-2])  # sums over the short tendon axis as BLAS products
+    bx, by = (np.ascontiguousarray(body[..., k], dtype=np.float64) for k in (0, 1))
+    bx_c, by_c = bx - (bx @ mean)[..., None], by - (by @ mean)[..., None]
+    a0, a1, centre = [], [], []
+    for k in range(3):
+        w = np.ascontiguousarray(world[..., k], dtype=np.float64)
+        wm = w @ mean
+        w_c = w - wm[..., None]
+        a0.append((w_c * bx_c) @ mean)  # 1 / N_t times the sums: the scale cancels in the polar factor
+        a1.append((w_c * by_c) @ mean)
+        centre.append(wm)
+    s00 = a0[0] ** 2 + a0[1] ** 2 + a0[2] ** 2
+    s11 = a1[0] ** 2 + a1[1] ** 2 + a1[2] ** 2
+    s01 = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2]
+    root_det = np.sqrt(np.maximum(s00 * s11 - s01 * s01, 0.0))
+    t = np.sqrt(s00 + s11 + 2.0 * root_det)
+    r00, r11, r01 = (s00 + root_det) / t, (s11 + root_det) / t, s01 / t
+    det = r00 * r11 - r01 * r01
+    i00, i11, i01 = r11 / det, r00 / det, -r01 / det
+    c1 = np.stack([a0[k] * i00 + a1[k] * i01 for k in range(3)], axis=-1)
+    c2 = np.stack([a0[k] * i01 + a1[k] * i11 for k in range(3)], axis=-1)
+    rot = np.stack([c1, c2, np.cross(c1, c2)], axis=-1)
+    cb = np.stack([bx @ mean, by @ mean, np.zeros_like(bx[..., 0])], axis=-1)
+    p = np.stack(centre, axis=-1) - np.einsum("...ij,...j->...i", rot, cb)
+    return p, rot
 
 
 def _cubic_weights(grid: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -105,7 +148,9 @@ class Surrogate:
             out = {k: np.einsum("mn,bn...->bm...", w, v) for k, v in out.items()}
             if "rotation" in out:
                 out["rotation"] = _orthonormalize(out["rotation"])
-        if pose and grid is not None and self.entry["kind"] == "pose":  # keep tendons = p + R rho after interpolation
+        if pose and "rotation" not in out:
+            out["backbone"], out["rotation"] = rigid_fit(tendon_offsets(features, sigma), out["tendons"])
+        elif pose and grid is not None:  # keep tendons = p + R rho consistent after interpolation
             rho = tendon_offsets(features, sigma)
             out["tendons"] = out["backbone"][:, :, None, :] + np.einsum("bnij,bntj->bnti", out["rotation"], rho)
         return out

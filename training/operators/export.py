@@ -4,8 +4,8 @@ Graph inputs / outputs (float32, SI units):
 
 * DeepONet models: ``design`` (B, 15) and ``s`` (n,) fractions of L  ->  outputs at those s.
 * FNO models: ``design`` (B, 15)  ->  outputs on their fixed grid s_j = j / 41 (42 points).
-* Every model outputs ``backbone`` (B, n, 3) m, ``rotation`` (B, n, 3, 3) and ``tendons``
-  (B, n, 4, 3) m (tendon models: the pose is a rigid fit of the tendon points, in the graph).
+* Tendon models output ``tendons`` (B, n, 4, 3) m; pose models ``backbone`` (B, n, 3) m,
+  ``rotation`` (B, n, 3, 3) and ``tendons`` (B, n, 4, 3) m.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ class _FixedGrid(torch.nn.Module):
 
 def io_names(model) -> tuple[list[str], list[str]]:
     inputs = ["design", "s"] if isinstance(model, DeepONet) else ["design"]
-    outputs = ["backbone", "rotation", "tendons"]
+    outputs = ["tendons"] if model.kind == "tendons" else ["backbone", "rotation", "tendons"]
     return inputs, outputs
 
 

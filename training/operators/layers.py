@@ -96,35 +96,6 @@ _LOG_EI_HIGH = math.log(45.5e9 * math.pi * 1.5e-3**4 / 4)
 _LOG_EI_MID, _LOG_EI_HALF = (_LOG_EI_LOW + _LOG_EI_HIGH) / 2, (_LOG_EI_HIGH - _LOG_EI_LOW) / 2
 
 
-def planar_rotation(db: torch.Tensor, dw: torch.Tensor) -> torch.Tensor:
-    """Rotation of the least-squares rigid fit dw ~ R db (Kabsch) for centred body points in z = 0.
-
-    The first two columns of R are the polar factor A (A^T A)^(-1/2) of the 3 x 2 cross-covariance
-    A = sum_i dw_i (db_i)_{xy}^T, in closed form for the 2 x 2 matrix
-    (sqrt(S) = (S + sqrt(det S) I) / sqrt(tr S + 2 sqrt(det S))); the third is their cross product.
-
-    Shapes: centred body and world points ``(..., N_t, 3)`` -> ``(..., 3, 3)``.
-    """
-    a0 = (dw * db[..., 0:1]).sum(-2)  # (..., 3): first column of A
-    a1 = (dw * db[..., 1:2]).sum(-2)
-    s00, s11, s01 = (a0 * a0).sum(-1), (a1 * a1).sum(-1), (a0 * a1).sum(-1)
-    root_det = torch.sqrt(torch.clamp(s00 * s11 - s01 * s01, min=0.0))
-    t = torch.sqrt(s00 + s11 + 2.0 * root_det)
-    r00, r11, r01 = (s00 + root_det) / t, (s11 + root_det) / t, s01 / t
-    det = r00 * r11 - r01 * r01
-    i00, i11, i01 = (r11 / det).unsqueeze(-1), (r00 / det).unsqueeze(-1), (-r01 / det).unsqueeze(-1)
-    c1 = a0 * i00 + a1 * i01
-    c2 = a0 * i01 + a1 * i11
-    return torch.stack([c1, c2, torch.linalg.cross(c1, c2, dim=-1)], dim=-1)
-
-
-def planar_rigid_fit(body: torch.Tensor, world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Least-squares rigid fit world ~ p + R body for body points in z = 0: ``(p (..., 3), R (..., 3, 3))``."""
-    cb, cw = body.mean(-2), world.mean(-2)
-    rot = planar_rotation(body - cb.unsqueeze(-2), world - cw.unsqueeze(-2))
-    return cw - (rot @ cb.unsqueeze(-1)).squeeze(-1), rot
-
-
 class DesignGeometry(nn.Module):
     """Undeformed-robot geometry and input normalisation, inside the graph.
 

@@ -5,13 +5,12 @@ undeformed-robot geometry, Gram-Schmidt and the tendon geometry are inside the m
 inside the exported ONNX graph).  The networks predict the deviation from the undeformed robot
 in units of L:
 
-* tendon models (G'):  tendons = undeformed(s) + L * net(d, s)                  ``(B, n, N_t, 3)``;
-                       the pose is the least-squares rigid fit of rho_i(s) onto them (Kabsch)
+* tendon models (G'):  tendons = undeformed(s) + L * net(d, s)                  ``(B, n, N_t, 3)``
 * pose models (G):     p = (0, 0, s) + L * net_p,  R = GS(e1 + net_a1, e2 + net_a2),
                        tendons = p + R rho_i(s)    (paper eq. tend-path)
 
-``forward`` returns ``(backbone (B, n, 3), rotation (B, n, 3, 3), tendons (B, n, N_t, 3))`` for
-every model; training uses :meth:`tendons` only.
+``forward`` returns ``tendons`` for tendon models and ``(backbone, rotation, tendons)`` for pose
+models; the runtime fits the pose of tendon models (``service.inference.rigid_fit``).
 """
 
 from __future__ import annotations
@@ -22,7 +21,7 @@ import torch
 from torch import nn
 
 from training import design_space
-from training.operators.layers import DesignGeometry, SpectralConv1d, gram_schmidt, mlp, planar_rotation
+from training.operators.layers import DesignGeometry, SpectralConv1d, gram_schmidt, mlp
 
 N_T = design_space.N_TENDONS
 N_FEATURES = 3 + 3 * N_T
@@ -81,23 +80,13 @@ class _OperatorBase(nn.Module):
     def n_inputs(self) -> int:
         return N_FEATURES + (2 * N_T + 3 if self.config.inputs == "physics" else 0)
 
-    def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor, *, pose: bool = True):
-        """``out`` ``(B, n, C)`` -> (backbone, rotation, tendons); tendons only if not ``pose`` and a tendon model."""
+    def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor):
+        """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons)."""
         length = features[:, 2:3, None]  # (B, 1, 1)
         if self.kind == "tendons":
             b, n = out.shape[0], out.shape[1]
-            delta = length[..., None] * out.reshape(b, n, N_T, 3)
-            tendons = self.geometry.undeformed_tendons(features, sigma) + delta
-            if not pose:
-                return tendons
-            # in float64 (near-collinear offsets make the fit ill-conditioned), centring offsets and
-            # deviations separately so that the large z = s terms cancel exactly
-            rho = self.geometry.rho(features, sigma).double()
-            rho_c = rho - rho.mean(-2, keepdim=True)
-            dev = delta.double()
-            rotation = planar_rotation(rho_c, rho_c + dev - dev.mean(-2, keepdim=True))
-            backbone = tendons.double().mean(-2) - (rotation @ rho.mean(-2).unsqueeze(-1)).squeeze(-1)
-            return backbone.to(out.dtype), rotation.to(out.dtype), tendons
+            delta = out.reshape(b, n, N_T, 3)
+            return self.geometry.undeformed_tendons(features, sigma) + length[..., None] * delta
         s = features[:, 2:3] * sigma[None, :]  # (B, n)
         straight = torch.stack([torch.zeros_like(s), torch.zeros_like(s), s], dim=-1)
         backbone = straight + length * out[..., 0:3]
@@ -110,7 +99,7 @@ class _OperatorBase(nn.Module):
 
     def tendons(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         """Predicted tendon positions ``(B, n, N_t, 3)`` m (what both losses compare)."""
-        out = self.heads(features, sigma, self.raw(features, sigma), pose=False)
+        out = self.heads(features, sigma, self.raw(features, sigma))
         return out if self.kind == "tendons" else out[2]
 
 
@@ -169,7 +158,7 @@ class FNO(_OperatorBase):
         return self.heads(features, self.grid, self.raw(features))
 
     def tendons(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
-        out = self.heads(features, self.grid, self.raw(features), pose=False)
+        out = self.heads(features, self.grid, self.raw(features))
         return out if self.kind == "tendons" else out[2]
 
 

@@ -116,7 +116,9 @@ def material(designs: DesignBatch) -> _Material:
     return _Material(kse=kse, kbt=kbt, area=area)
 
 
-def tendon_routing(designs: DesignBatch, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def tendon_routing(
+    designs: DesignBatch, sigma: np.ndarray, *, derivative: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Body-frame tendon offsets rho_i(s) and their arclength derivatives.
 
     rho_i(s) = offset_i [cos(2 pi i / N_t + pitch_i s), sin(...), 0].
@@ -124,6 +126,7 @@ def tendon_routing(designs: DesignBatch, sigma: np.ndarray) -> tuple[np.ndarray,
     Args:
         designs: ``B`` designs with ``N_t`` tendons.
         sigma: arclength fractions s / L, ``(M,)``.
+        derivative: also return drho / ds (else ``None``).
 
     Returns:
         ``(rho, drho)``, m and m/m, each ``(B, M, N_t, 3)``.
@@ -136,6 +139,8 @@ def tendon_routing(designs: DesignBatch, sigma: np.ndarray) -> tuple[np.ndarray,
     cos, sin = np.cos(phi), np.sin(phi)
     zeros = np.zeros_like(phi)
     rho = off[..., None] * np.stack([cos, sin, zeros], axis=-1)
+    if not derivative:
+        return rho, None
     drho = (off * designs.pitch[:, None, :])[..., None] * np.stack([-sin, cos, zeros], axis=-1)
     return rho, drho
 
