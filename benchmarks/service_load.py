@@ -37,7 +37,7 @@ def start_server(models_dir: str) -> tuple[subprocess.Popen, str]:
         port = s.getsockname()[1]
     env = {**os.environ, "TDCR_MODELS_DIR": models_dir}
     proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port",
-                             str(port), "--log-level", "warning"], cwd=ROOT, env=env)
+                             str(port), "--log-level", "warning"], cwd=ROOT, env=env)  # log to our stderr
     url = f"http://127.0.0.1:{port}"
     for _ in range(600):
         try:

@@ -85,6 +85,26 @@ def test_pure_tip_moment_gives_a_circle_of_curvature_M_over_EI():
     assert np.linalg.norm(sol.backbone[0] - expected) / np.linalg.norm(expected) < 1e-8
 
 
+@pytest.mark.parametrize("s", [[0.0], [0.0, 0.5], [0.25, 0.5, 1.0]])
+def test_loads_use_the_tip_condition_whatever_points_are_asked(s):
+    """Shooting always integrates to s = L: sub-sets of points agree with the full grid."""
+    d = one()
+    loads = ExternalLoads(tip_force=np.array([[0.05, 0.0, -0.02]]), tip_moment=np.array([[0.0, 0.01, 0.0]]))
+    grid = np.linspace(0, 1, 5)  # holds every tested s
+    full = solve(d, grid, loads=loads)
+    part = solve(d, np.array(s), loads=loads)
+    assert part.converged[0]
+    idx = [int(np.argmin(np.abs(grid - v))) for v in s]
+    np.testing.assert_allclose(part.backbone[0], full.backbone[0, idx], atol=1e-9)
+
+
+def test_only_the_base_point():
+    d = design_space.sample_designs(2, seed=0)
+    sol = solve(d, np.array([0.0]))
+    assert sol.converged.all() and sol.backbone.shape == (2, 1, 3)
+    np.testing.assert_allclose(sol.backbone, 0.0)
+
+
 def test_small_tip_force_matches_beam_theory():
     """Cantilever, tip force F perpendicular: delta = F L^3 / (3 E I) + F L / (G A) (shear), small load."""
     E, r, L, F = 3e10, 1e-3, 0.25, 1e-4

@@ -9,6 +9,7 @@ import os
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -38,9 +39,11 @@ class Server:
         self.url = f"http://127.0.0.1:{self.port}"
         extra = {f"TDCR_{k.upper()}": str(v) for k, v in env.items()}
         environ = {**os.environ, "TDCR_MODELS_DIR": str(models), **extra}
+        # the server's log goes to a file: an unread pipe would fill up and block the server
+        self.log = tempfile.NamedTemporaryFile(prefix="tdcr-server-", suffix=".log", delete=False)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port", str(self.port),
-             "--log-level", "warning"], cwd=ROOT, env=environ, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+             "--log-level", "warning"], cwd=ROOT, env=environ, stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.time() + 90
         while time.time() < deadline:
             try:
@@ -52,7 +55,10 @@ class Server:
                 break
             time.sleep(0.2)
         self.stop()
-        raise RuntimeError(f"server did not become ready: {self.proc.stdout.read().decode()[-3000:]}")
+        raise RuntimeError(f"server did not become ready: {self.log_text()[-3000:]}")
+
+    def log_text(self) -> str:
+        return Path(self.log.name).read_text(errors="replace")
 
     def stop(self):
         self.proc.terminate()
@@ -60,6 +66,8 @@ class Server:
             self.proc.wait(timeout=20)
         except subprocess.TimeoutExpired:
             self.proc.kill()
+        self.log.close()
+        assert "Exception in ASGI application" not in self.log_text(), self.log_text()[-5000:]
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,7 @@
-"""Schemathesis: cases generated from the committed OpenAPI document never give a 5xx.
+"""Schemathesis: cases generated from the committed OpenAPI document never give a 500.
+
+(The server's log is checked for unhandled exceptions when it stops; /exact may give its
+documented 503 / 504 under load.)
 
 The schemathesis pytest plugin does not run under pytest 9, so its Hypothesis strategies are
 driven directly, one test per operation.
@@ -37,6 +40,8 @@ def test_no_server_errors(live, name):
     @given(case=OPERATIONS[name].as_strategy())
     def run(case):
         response = case.call(base_url=live.url, timeout=60)
-        assert response.status_code < 500, (name, response.status_code, response.text[:500])
+        # /exact may answer 503 (saturated) or 504 (past its deadline) by design; nothing else is a 5xx
+        allowed = {503, 504} if name == "POST /exact" else set()
+        assert response.status_code < 500 or response.status_code in allowed, (name, response.text[:500])
 
     run()

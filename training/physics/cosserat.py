@@ -296,22 +296,18 @@ def _line_search(x: np.ndarray, step: np.ndarray, grad: np.ndarray, nodes: _Node
 
 
 def _step_grid(sigma_out: np.ndarray, max_step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Integration steps aligned with the output points.
+    """Integration steps from 0 to max(sigma_out), aligned with the output points.
 
-    Returns ``(starts (K,), widths (K,), out_step (n,))`` in fractions of L, where
-    ``out_step[j]`` is the number of steps taken before output point j.
+    Returns ``(edges (K+1,), widths (K,), out_step (n,))`` in fractions of L, where
+    ``out_step[j]`` is the index of output point j among the edges (K = 0 when all s are 0).
     """
     breaks = np.unique(np.concatenate([[0.0], sigma_out]))
-    starts, widths, ends = [], [], []
-    for a, b in zip(breaks[:-1], breaks[1:], strict=False):
+    edges = [np.zeros(1)]
+    for a, b in zip(breaks[:-1], breaks[1:], strict=True):
         k = max(1, int(np.ceil((b - a) / max_step - 1e-9)))
-        edges = np.linspace(a, b, k + 1)
-        starts.extend(edges[:-1])
-        widths.extend(np.diff(edges))
-        ends.extend(edges[1:])
-    ends = np.asarray(ends)
-    out_step = np.searchsorted(np.concatenate([[0.0], ends]), sigma_out)
-    return np.asarray(starts), np.asarray(widths), out_step
+        edges.append(np.linspace(a, b, k + 1)[1:])
+    edges = np.concatenate(edges)
+    return edges, np.diff(edges), np.searchsorted(edges, sigma_out)
 
 
 def _make_nodes(designs: DesignBatch, mat: _Material, sigma: np.ndarray) -> _Nodes:
@@ -366,10 +362,10 @@ def solve(
 def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions) -> RodSolution:
     b, _n = designs.n_designs, sigma_out.shape[0]
     mat = material(designs)
-    starts, widths, out_step = _step_grid(sigma_out, opts.max_step)
-    k = starts.shape[0]
-    edges = np.concatenate([starts, [starts[-1] + widths[-1]]])  # (K+1,), the outputs among them
-    sigma_nodes = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,)
+    edges, widths, out_step = _step_grid(sigma_out, opts.max_step)
+    k = widths.shape[0]
+    starts = edges[:-1]
+    sigma_nodes = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,), the outputs among the edges
     m = sigma_nodes.shape[0]
     nodes = _make_nodes(designs, mat, sigma_nodes)
     # start every node from the base strains (exact for parallel tendons, close otherwise)
@@ -438,7 +434,9 @@ def _solve_with_loads(
     b = designs.n_designs
     mat = material(designs)
     f_g, F, M = loads.resolved(b, mat.area)
-    starts, widths, out_step = _step_grid(sigma_out, opts.max_step_loads)
+    # the tip condition sits at s = L: integrate to sigma = 1 whatever the requested points
+    edges, widths, _ = _step_grid(np.append(sigma_out, 1.0), opts.max_step_loads)
+    starts, out_step = edges[:-1], np.searchsorted(edges, sigma_out)
     L = designs.L
     moment_scale = (designs.tension * designs.offset).sum(1) + np.linalg.norm(M, axis=1)
     moment_scale += np.linalg.norm(F, axis=1) * L + np.linalg.norm(f_g, axis=1) * L**2 + 1e-12
@@ -572,7 +570,7 @@ def _integrate_loads(prob: _ShootingProblem, m0: np.ndarray, *, record: bool) ->
         keep["p"].append(state_p)
         keep["R"].append(state_R)
         keep["M"].append(state_M)
-    last = strains(1.0, state_R, state_M, x)
+    last = strains(1.0, state_R, state_M, x)  # the grid always ends at the tip
     keep["x"].append(last[0])
     ok &= last[1]
     out = {"M": np.stack(keep["M"], axis=1), "ok": ok}
