@@ -88,7 +88,10 @@ def out_of_range(features: np.ndarray, n_tendons: int = N_TENDONS) -> list[list[
     low, high = feature_bounds(n_tendons)
     names = feature_names(n_tendons)
     bad = (features < low) | (features > high)
-    return [[names[j] for j in np.flatnonzero(row)] for row in bad]
+    out: list[list[str]] = [[] for _ in range(len(features))]
+    for b, j in zip(*np.nonzero(bad), strict=True):  # only the offending entries are visited
+        out[b].append(names[j])
+    return out
 
 
 def validate_design(design: DesignBatch) -> list[str]:
@@ -97,16 +100,22 @@ def validate_design(design: DesignBatch) -> list[str]:
     Checks: all values finite; E, r, L and offsets positive; tensions non-negative.
     Each message names the design index and the field.
     """
-    problems = []
     feats = design.features()
-    names = feature_names(design.n_tendons)
-    positive = {"E", "r", "L"} | {f"offset_{i}" for i in range(design.n_tendons)}
-    for b, row in enumerate(feats):
-        for name, value in zip(names, row, strict=False):
-            if not np.isfinite(value):
-                problems.append(f"design {b}: {name} must be finite, got {value}")
-            elif name in positive and value <= 0:
-                problems.append(f"design {b}: {name} must be positive, got {value}")
-            elif name.startswith("tension") and value < 0:
-                problems.append(f"design {b}: {name} must be non-negative, got {value}")
+    n_t = design.n_tendons
+    names = feature_names(n_t)
+    positive = np.zeros(feats.shape[1], dtype=bool)
+    positive[:3 + n_t] = True  # E, r, L, offsets
+    tension = np.zeros(feats.shape[1], dtype=bool)
+    tension[3 + 2 * n_t:] = True
+    finite = np.isfinite(feats)
+    bad = ~finite | (positive & (feats <= 0)) | (tension & (feats < 0))
+    problems = []
+    for b, j in zip(*np.nonzero(bad), strict=True):  # row-major: by design, then field
+        value = feats[b, j]
+        if not finite[b, j]:
+            problems.append(f"design {b}: {names[j]} must be finite, got {value}")
+        elif positive[j]:
+            problems.append(f"design {b}: {names[j]} must be positive, got {value}")
+        else:
+            problems.append(f"design {b}: {names[j]} must be non-negative, got {value}")
     return problems

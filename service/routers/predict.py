@@ -25,16 +25,15 @@ N_FEATURES = 3 + 3 * design_space.N_TENDONS
 
 
 def _range_warnings(features: np.ndarray) -> list[list[str]]:
+    """Per design, one line for each parameter outside the trained (Table I) ranges."""
     names = design_space.feature_names()
     low, high = design_space.feature_bounds()
     units = {p.name: p.unit for p in design_space.TABLE_I.values()}
-    out = []
-    for row in features:
-        msgs = []
-        for j in np.flatnonzero((row < low) | (row > high)):
-            unit = units[names[j].split("_")[0]]
-            msgs.append(f"{names[j]} = {row[j]:.6g} {unit} is outside the trained range [{low[j]:.6g}, {high[j]:.6g}]")
-        out.append(msgs)
+    out: list[list[str]] = [[] for _ in range(len(features))]
+    for b, j in zip(*np.nonzero((features < low) | (features > high)), strict=True):
+        unit = units[names[j].split("_")[0]]
+        out[b].append(f"{names[j]} = {features[b, j]:.6g} {unit} is outside the trained range "
+                      f"[{low[j]:.6g}, {high[j]:.6g}]")
     return out
 
 

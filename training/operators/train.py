@@ -12,7 +12,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
@@ -227,4 +227,4 @@ def load_trained(path: str | Path):
     return model, record
 
 
-__all__ = ["PRESETS", "Schedule", "TrainConfig", "load_trained", "make_config", "replace", "train"]
+__all__ = ["PRESETS", "Schedule", "TrainConfig", "load_trained", "make_config", "train"]
