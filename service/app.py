@@ -54,6 +54,33 @@ class BodyLimit:
             await _send_error(send, 413, f"request body over {self.limit} bytes")
 
 
+class RequestMetrics:
+    """ASGI middleware: counts requests by endpoint and status; latency of the endpoints without a model."""
+
+    def __init__(self, app, metrics: Metrics):
+        self.app, self.metrics = app, metrics
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        started = time.perf_counter()
+        path = scope["path"] if scope["path"] in _PATHS else "other"
+        status = 500
+
+        async def send_status(message):
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            self.metrics.requests.labels(path, str(status)).inc()
+            if path not in ("/predict", "/exact"):
+                self.metrics.latency.labels(path, "").observe(time.perf_counter() - started)
+
+
 class _TooLarge(Exception):
     pass
 
@@ -116,16 +143,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         log.exception("unexpected error on %s", request.url.path)
         return _error_response(request, ApiError(500, "internal error", kind="internal"))
 
-    @app.middleware("http")
-    async def count_requests(request: Request, call_next):
-        started = time.perf_counter()
-        response = await call_next(request)
-        path = request.url.path if request.url.path in _PATHS else "other"
-        state.metrics.requests.labels(path, str(response.status_code)).inc()
-        if path not in ("/predict", "/exact"):
-            state.metrics.latency.labels(path, "").observe(time.perf_counter() - started)
-        return response
-
+    app.add_middleware(RequestMetrics, metrics=state.metrics)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
