@@ -134,7 +134,10 @@ class Surrogate:
         return dict(zip(names, self.session.run(names, feed), strict=True))
 
     def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
-        """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m, float64.
+        """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
+
+        Graph outputs stay float32 (the networks' precision); the pose fit of tendon models and
+        the FNO interpolation compute in float64.
 
         ``pose=False`` returns ``tendons`` only (saves the conversion and, off the FNO grid, the
         interpolation of the pose).
@@ -142,7 +145,7 @@ class Surrogate:
         features = np.asarray(features, dtype=np.float64)
         sigma = np.asarray(sigma, dtype=np.float64)
         grid = self.grid
-        out = {k: v.astype(np.float64) for k, v in self.run(features, sigma).items() if pose or k == "tendons"}
+        out = {k: v for k, v in self.run(features, sigma).items() if pose or k == "tendons"}
         if grid is not None and not (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9)):
             w = _cubic_weights(grid, sigma)
             out = {k: np.einsum("mn,bn...->bm...", w, v) for k, v in out.items()}
