@@ -63,12 +63,17 @@ def load_models(state: ServiceState) -> None:
     state.default_model = default
 
 
-def start_pool(state: ServiceState) -> None:
-    """Start the solver processes behind /exact and warm them up."""
-    ctx = multiprocessing.get_context("spawn")
-    state.pool = ProcessPoolExecutor(max_workers=state.settings.exact_workers, mp_context=ctx)
+def new_pool(settings: Settings) -> ProcessPoolExecutor:
+    """Solver processes behind /exact, started and warmed up (blocking: call outside the event loop)."""
     from training.exact import warm_up
 
-    for f in [state.pool.submit(warm_up) for _ in range(state.settings.exact_workers)]:
+    pool = ProcessPoolExecutor(max_workers=settings.exact_workers, mp_context=multiprocessing.get_context("spawn"))
+    for f in [pool.submit(warm_up) for _ in range(settings.exact_workers)]:
         f.result(timeout=120)
+    return pool
+
+
+def start_pool(state: ServiceState) -> None:
+    """Start the solver pool and the /exact admission slots (at startup)."""
+    state.pool = new_pool(state.settings)
     state.exact_slots = asyncio.Semaphore(state.settings.exact_max_pending)

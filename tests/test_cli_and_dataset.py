@@ -15,6 +15,7 @@ import pytest
 
 from tests.conftest import ROOT, designs_from_json, relative_l2
 from training import dataset
+from training.designs import DesignBatch
 from training.physics import solve
 
 TDCR = [sys.executable, "-m", "tdcr.cli"]
@@ -121,8 +122,7 @@ def test_generate_resumes_without_recomputing(tmp_path):
     assert len(train["index"]) == 48 and len(test["index"]) == 12
     assert not set(train["index"]) & set(test["index"])
     # the data are the solver's answers for the seeded designs
-    sol = solve(type(dataset.design_space.sample_designs(1, seed=0)).from_features(data["features"][:5]),
-                np.linspace(0, 1, 42))
+    sol = solve(DesignBatch.from_features(data["features"][:5]), np.linspace(0, 1, 42))
     np.testing.assert_allclose(data["tendons"][:5], sol.tendons, atol=1e-15)
     # other settings in the same directory are refused
     bad = run_tdcr("generate", "--n", "61", "--seed", "4", "--shard-size", "20", "--out", str(out), "--quiet")

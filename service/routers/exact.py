@@ -8,10 +8,11 @@ from concurrent.futures.process import BrokenProcessPool
 
 import orjson
 from fastapi import APIRouter, Request, Response
+from starlette.concurrency import run_in_threadpool
 
 from service.errors import ApiError
 from service.schemas import ErrorResponse, ExactRequest, ExactResponse
-from service.state import ServiceState, start_pool
+from service.state import ServiceState, new_pool
 from training.exact import solve_request_dicts
 
 router = APIRouter(tags=["exact"])
@@ -47,7 +48,7 @@ async def exact(body: ExactRequest, request: Request) -> Response:
             raise ApiError(504, f"the solver did not finish within {settings.exact_timeout_s} s",
                            kind="deadline") from None
         except BrokenProcessPool:
-            start_pool(state)
+            state.pool = await run_in_threadpool(new_pool, settings)  # never block the event loop
             raise ApiError(503, "a solver process died; the pool was restarted", kind="unavailable") from None
     state.metrics.latency.labels("/exact", "solver").observe(time.perf_counter() - started)
     state.metrics.designs.labels("/exact", "solver").inc(len(designs))

@@ -452,7 +452,7 @@ def _solve_with_loads(
         ok &= step_ok
         total_iters += iters
     prob = _ShootingProblem(designs, mat, f_g, F, M, starts, widths)
-    traj = _integrate_loads(prob, y, record=True)
+    traj = _integrate_loads(prob, y, opts, record=True)
     rec_step = out_step
     p, R, x = traj["p"][:, rec_step], traj["R"][:, rec_step], traj["x"][:, rec_step]
     rho_out, _ = tendon_routing(designs, sigma_out)
@@ -482,7 +482,7 @@ def _shoot(prob: _ShootingProblem, y: np.ndarray, scale: np.ndarray, opts: Solve
         eps = 1e-7 * scale[active]
         # one vectorised integration of the 4 trajectories (nominal + 3 perturbations)
         trial = np.concatenate([ya] + [ya + eps[:, None] * np.eye(3)[i] for i in range(3)], axis=0)
-        out = _integrate_loads(_tile_problem(sub, 4), trial, record=False)
+        out = _integrate_loads(_tile_problem(sub, 4), trial, opts, record=False)
         resid = (out["M"][:, -1] - np.tile(sub.tip_moment, (4, 1))).reshape(4, -1, 3)
         jac = np.stack([(resid[i + 1] - resid[0]) / eps[:, None] for i in range(3)], axis=-1)
         err = np.linalg.norm(resid[0], axis=1) / scale[active]
@@ -514,7 +514,7 @@ def _tile_problem(prob: _ShootingProblem, reps: int) -> _ShootingProblem:
     return _take_problem(prob, idx)
 
 
-def _integrate_loads(prob: _ShootingProblem, m0: np.ndarray, *, record: bool) -> dict:
+def _integrate_loads(prob: _ShootingProblem, m0: np.ndarray, opts: SolverOptions, *, record: bool) -> dict:
     """RK4 on (p, R, M) in s with strains from (W1, W2) at every stage (eq. MT).
 
     Args:
@@ -527,7 +527,6 @@ def _integrate_loads(prob: _ShootingProblem, m0: np.ndarray, *, record: bool) ->
     b = d.n_designs
     L = d.L
     k = prob.starts.shape[0]
-    opts = SolverOptions()
     state_p = np.zeros((b, 3))
     state_R = np.broadcast_to(np.eye(3), (b, 3, 3)).copy()
     state_M = m0.copy()
