@@ -97,28 +97,42 @@ def _orthonormalize(rot: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
+def _session(path: Path, threads: int):
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    # idle intra-op threads sleep instead of spinning: on a few cores, spinning threads steal the CPU
+    # from the event loop and from the other requests' threads
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
 @dataclass
 class Surrogate:
-    """One exported model: its manifest entry and an onnxruntime session."""
+    """One exported model: its manifest entry and two onnxruntime sessions, one for small batches
+    (one thread: no thread-pool hand-offs for a few designs) and one for large batches."""
 
     name: str
     entry: dict
     session: object
+    small_session: object | None = None
+    small_batch: int = 64
 
     @classmethod
-    def load(cls, models_dir: str | Path, name: str, *, threads: int = 0, verify: bool = True) -> Surrogate:
-        import onnxruntime as ort
-
+    def load(cls, models_dir: str | Path, name: str, *, threads: int = 0, verify: bool = True,
+             small_batch: int = 64) -> Surrogate:
+        """``threads``: intra-op threads of the large-batch session (0: all cores); batches of at most
+        ``small_batch`` designs run on a single-threaded session."""
         models_dir = Path(models_dir)
         entry = json.loads((models_dir / "manifest.json").read_text())["models"][name]
         path = models_dir / entry["file"]
         if verify and hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
             raise ValueError(f"{path}: sha256 does not match the manifest")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        return cls(name=name, entry=entry, session=session)
+        small = _session(path, 1) if small_batch > 0 and threads != 1 else None
+        return cls(name=name, entry=entry, session=_session(path, threads), small_session=small,
+                   small_batch=small_batch)
 
     @property
     def grid(self) -> np.ndarray | None:
@@ -130,8 +144,10 @@ class Surrogate:
         feed = {"design": np.ascontiguousarray(features, dtype=np.float32)}
         if self.grid is None:
             feed["s"] = np.ascontiguousarray(sigma, dtype=np.float32)
-        names = [o.name for o in self.session.get_outputs()]
-        return dict(zip(names, self.session.run(names, feed), strict=True))
+        session = self.small_session if self.small_session is not None and len(features) <= self.small_batch \
+            else self.session
+        names = [o.name for o in session.get_outputs()]
+        return dict(zip(names, session.run(names, feed), strict=True))
 
     def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.

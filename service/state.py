@@ -51,7 +51,8 @@ def load_models(state: ServiceState) -> None:
     warm = design_space.sample_designs(2, seed=0).features()
     for name in state.manifest.get("models", {}):
         try:
-            model = Surrogate.load(state.settings.models_dir, name, threads=state.settings.onnx_threads)
+            model = Surrogate.load(state.settings.models_dir, name, threads=state.settings.onnx_threads,
+                                   small_batch=state.settings.onnx_small_batch)
             model.predict(warm, np.linspace(0.0, 1.0, 42))
         except Exception as exc:  # noqa: BLE001 - any failure makes the model unavailable, reported by /readyz
             state.problems.append(f"model {name}: {exc}")

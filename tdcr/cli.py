@@ -77,7 +77,7 @@ def _cmd_train(args) -> int:
     hyper = json.loads(args.hyperparameters) if args.hyperparameters else {}
     cfg = make_config(args.model, args.preset, epochs=args.epochs, batch_size=args.batch_size, seed=args.seed,
                       dropout=args.dropout, n_train=args.n_train, time_budget_min=args.minutes,
-                      patience=args.patience,
+                      patience=args.patience, loss=args.loss,
                       hyperparameters=hyper)
     try:
         summary = train(cfg, args.data, args.out or f"runs/{args.model}", progress=not args.quiet)
@@ -119,7 +119,8 @@ def _cmd_evaluate(args) -> int:
     ood = evaluate_ood(args.models_dir, names, n=args.ood) if args.ood else None
     for name in names:
         entry = manifest["models"][name]
-        entry["metrics"] = {"test_relative_l2": results[name], "baseline_relative_l2": results["undeformed baseline"]}
+        entry["metrics"] = {"test_relative_l2": results[name], "baseline_relative_l2": results["undeformed baseline"],
+                            "linearized_reference_relative_l2": results["linearized reference"]}
         if ood is not None:
             entry["metrics"]["ood_mean_relative_l2"] = {label: row[name] for label, row in ood.items()}
         update_manifest(Path(args.models_dir), entry)
@@ -247,6 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dropout", type=float, default=None)
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--patience", type=int, default=None, help="stop after this many epochs without improvement")
+    p.add_argument("--loss", choices=["mse", "relative", "relative_l2"], default=None,
+                   help="mse: the paper's squared error (m^2); relative: mean squared relative l2; "
+                        "relative_l2: mean relative l2 (the reported metric); default: the preset's")
     p.add_argument("--hyperparameters", default=None, help='JSON overrides, e.g. \'{"p": 50}\'')
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)

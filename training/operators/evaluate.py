@@ -1,4 +1,5 @@
-"""Held-out accuracy of the exported (ONNX) models, next to the undeformed-robot baseline.
+"""Held-out accuracy of the exported (ONNX) models, next to two physics baselines without a network:
+the undeformed robot, and the linearised reference robot the tuned operators correct.
 
 Error per design: relative l2 of tendon positions over all points and tendons (paper eq. l2Error),
 ||y_hat - y|| / ||y||.  Summaries: mean, median and 95th percentile over the test designs.
@@ -12,6 +13,8 @@ import numpy as np
 
 from service.inference import Surrogate, tendon_offsets
 from training import dataset, design_space
+from training.designs import DesignBatch
+from training.physics import SolverOptions, solve
 
 
 def relative_l2(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -32,12 +35,23 @@ def undeformed_tendons(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     return rho
 
 
+def linearized_tendons(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The operators' reference robot (first-order strains, no network), m, ``(B, n, 4, 3)``."""
+    designs = DesignBatch.from_features(features)
+    return solve(designs, sigma, options=SolverOptions(linearized=True)).tendons
+
+
+BASELINES = {"undeformed baseline": undeformed_tendons, "linearized reference": linearized_tendons}
+
+
 def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batch: int = 5000) -> dict:
     """Metrics of each named model on the test split, plus the baseline; returns name -> summary."""
     test = dataset.load(data, "test")
     feats, truth = test["features"], test["tendons"]
     sigma = np.linspace(0.0, 1.0, truth.shape[1])
-    results = {"undeformed baseline": summary(relative_l2(undeformed_tendons(feats, sigma), truth))}
+    results = {label: summary(relative_l2(np.concatenate([fn(feats[i:i + batch], sigma)
+                                                         for i in range(0, len(feats), batch)]), truth))
+               for label, fn in BASELINES.items()}
     for name in names:
         model = Surrogate.load(models_dir, name)
         pred = np.concatenate([model.predict(feats[i:i + batch], sigma)["tendons"]
@@ -49,8 +63,6 @@ def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batc
 def evaluate_ood(models_dir: str | Path, names: list[str], *, n: int = 1000, seed: int = 0) -> dict:
     """The paper's out-of-distribution test: for each bin, ``n`` designs with every parameter at
     high * (1 + p), p uniform in the bin, solved exactly; mean relative l2 per model and bin."""
-    from training.physics import solve
-
     sigma = np.linspace(0.0, 1.0, 42)
     models = {name: Surrogate.load(models_dir, name) for name in names}
     table: dict[str, dict[str, float]] = {}
@@ -60,7 +72,7 @@ def evaluate_ood(models_dir: str | Path, names: list[str], *, n: int = 1000, see
         ok = sol.converged
         feats, truth = designs.features()[ok], sol.tendons[ok]
         label = f"{100 * bin_range[0]:+.0f}..{100 * bin_range[1]:+.0f} %"
-        row = {"undeformed baseline": float(relative_l2(undeformed_tendons(feats, sigma), truth).mean())}
+        row = {label: float(relative_l2(fn(feats, sigma), truth).mean()) for label, fn in BASELINES.items()}
         for name, model in models.items():
             row[name] = float(relative_l2(model.predict(feats, sigma)["tendons"], truth).mean())
         table[label] = row

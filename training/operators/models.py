@@ -1,12 +1,15 @@
 """The four operators of the paper (Section III) and a registry of them by name.
 
-Every model maps raw SI designs ``(B, 3 + 3 N_t)`` to SI outputs: normalisation, the
-undeformed-robot geometry, Gram-Schmidt and the tendon geometry are inside the module (and so
-inside the exported ONNX graph).  The networks predict the deviation from the undeformed robot
-in units of L:
+Every model maps raw SI designs ``(B, 3 + 3 N_t)`` to SI outputs: normalisation, the reference
+robot, Gram-Schmidt and the tendon geometry are inside the module (and so inside the exported
+ONNX graph).  The networks predict the deviation from a reference robot (``reference``):
 
-* tendon models (G'):  tendons = undeformed(s) + L * net(d, s)                  ``(B, n, N_t, 3)``
-* pose models (G):     p = (0, 0, s) + L * net_p,  R = GS(e1 + net_a1, e2 + net_a2),
+* ``'undeformed'`` (the paper's): the straight rod, p_0 = (0, 0, s), R_0 = I; outputs in units of L.
+* ``'linearized'`` (tuned preset): the rod integrated from the first-order strains of the local
+  equilibrium (:mod:`training.operators.kinematics`); outputs in units of L / 100.
+
+* tendon models (G'):  tendons = p_0 + R_0 rho_i(s) + L * net(d, s)            ``(B, n, N_t, 3)``
+* pose models (G):     p = p_0 + L * net_p,  R = R_0 GS(e1 + net_a1, e2 + net_a2),
                        tendons = p + R rho_i(s)    (paper eq. tend-path)
 
 ``forward`` returns ``tendons`` for tendon models and ``(backbone, rotation, tendons)`` for pose
@@ -21,10 +24,15 @@ import torch
 from torch import nn
 
 from training import design_space
+from training.operators import kinematics
 from training.operators.layers import DesignGeometry, SpectralConv1d, gram_schmidt, mlp
 
 N_T = design_space.N_TENDONS
 N_FEATURES = 3 + 3 * N_T
+#: ``reference='linearized'``: network outputs are corrections in units of this fraction of L
+_LINEARIZED_SCALE = 0.01
+#: grid of the linearised reference robot of DeepONets (FNOs use their own grid)
+_REFERENCE_POINTS = 42
 
 
 @dataclass(frozen=True)
@@ -38,6 +46,7 @@ class DeepONetConfig:
     p: int = 100
     dropout: float = 0.0
     inputs: str = "table"
+    reference: str = "undeformed"
 
 
 @dataclass(frozen=True)
@@ -51,13 +60,16 @@ class FNOConfig:
     dropout: float = 0.0
     mixing: str = "shared"
     inputs: str = "table"
+    reference: str = "undeformed"
 
 
 class _OperatorBase(nn.Module):
     """Shared output heads.  ``kind`` is 'tendons' (G') or 'pose' (G)."""
 
-    def __init__(self, kind: str):
+    def __init__(self, kind: str, config):
         super().__init__()
+        if config.reference not in ("undeformed", "linearized"):
+            raise ValueError(f"reference must be 'undeformed' or 'linearized', not {config.reference!r}")
         if kind not in ("tendons", "pose"):
             raise ValueError(f"unknown kind {kind!r}")
         self.kind = kind
@@ -80,26 +92,59 @@ class _OperatorBase(nn.Module):
     def n_inputs(self) -> int:
         return N_FEATURES + (2 * N_T + 3 if self.config.inputs == "physics" else 0)
 
-    def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor):
-        """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons)."""
+    def reference(self, features: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pose of the linearised reference robot, batch last: backbone ``(3, n, B)`` m and rotation
+        ``(3, 3, n, B)``, on the model's grid or (DeepONet) at any ``sigma``."""
+        grid = self.reference_grid
+        p, r = kinematics.linearized_pose(features, grid, self.geometry.base_angle)
+        if sigma is not grid:  # a DeepONet asked for arbitrary s: one Magnus step from the grid point below
+            p, r = kinematics.partial_step(p, r, features, sigma, self.geometry.base_angle)
+        return p, r
+
+    def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor, ref=None):
+        """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons).
+
+        ``ref``: the precomputed :meth:`reference` (training caches it); computed when omitted.
+        """
+        if self.config.reference == "linearized":
+            return self._linearized_heads(features, sigma, out.permute(2, 1, 0), ref)
         length = features[:, 2:3, None]  # (B, 1, 1)
+        rho = self.geometry.rho(features, sigma)  # (B, n, N_t, 3)
         if self.kind == "tendons":
             b, n = out.shape[0], out.shape[1]
-            delta = out.reshape(b, n, N_T, 3)
-            return self.geometry.undeformed_tendons(features, sigma) + length[..., None] * delta
+            return self.geometry.undeformed_tendons(features, sigma) + length[..., None] * out.reshape(b, n, N_T, 3)
+        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)
+        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)
         s = features[:, 2:3] * sigma[None, :]  # (B, n)
         straight = torch.stack([torch.zeros_like(s), torch.zeros_like(s), s], dim=-1)
         backbone = straight + length * out[..., 0:3]
-        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)
-        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)
         rotation = gram_schmidt(e1 + out[..., 3:6], e2 + out[..., 6:9])  # (B, n, 3, 3)
-        rho = self.geometry.rho(features, sigma)  # (B, n, N_t, 3)
         tendons = backbone[:, :, None, :] + torch.einsum("bnij,bntj->bnti", rotation, rho)
         return backbone, rotation, tendons
 
-    def tendons(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    def _linearized_heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor, ref):
+        """The heads around the linearised reference, computed batch last (``out`` ``(C, n, B)``);
+        corrections in units of L / 100; tendon channels are ordered (tendon, coordinate)."""
+        if ref is None:
+            ref = self.reference(features, sigma)
+        ref_p, ref_r = ref
+        scale = features[:, 2] * _LINEARIZED_SCALE  # (B,) m
+        n, b = out.shape[1], out.shape[2]
+        rho = kinematics.tendon_offsets(features, sigma, self.geometry.base_angle)  # (2, N_t, n, B)
+        if self.kind == "tendons":
+            tendons = kinematics.tendon_positions(ref_p, ref_r, rho) + scale * out.reshape(N_T, 3, n, b)
+            return tendons.permute(3, 2, 0, 1)
+        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)[:, None, None]
+        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)[:, None, None]
+        backbone = ref_p + scale * out[0:3]
+        correction = kinematics.gram_schmidt(e1 + _LINEARIZED_SCALE * out[3:6], e2 + _LINEARIZED_SCALE * out[6:9])
+        rotation = kinematics.matmul3(ref_r, correction)
+        tendons = kinematics.tendon_positions(backbone, rotation, rho)
+        return backbone.permute(2, 1, 0), rotation.permute(3, 2, 0, 1), tendons.permute(3, 2, 0, 1)
+
+    def tendons(self, features: torch.Tensor, sigma: torch.Tensor, ref=None) -> torch.Tensor:
         """Predicted tendon positions ``(B, n, N_t, 3)`` m (what both losses compare)."""
-        out = self.heads(features, sigma, self.raw(features, sigma))
+        out = self.heads(features, sigma, self.raw(features, sigma), ref)
         return out if self.kind == "tendons" else out[2]
 
 
@@ -107,13 +152,14 @@ class DeepONet(_OperatorBase):
     """G'_DON / G_DON: out_c(d, s) = sum_k branch(d)_{c,k} trunk(s)_{c,k} + b_c (paper eq. don1, don2)."""
 
     def __init__(self, kind: str, config: DeepONetConfig = DeepONetConfig()):
-        super().__init__(kind)
+        super().__init__(kind, config)
         self.config = config
         c, p = self.out_channels, config.p
         self.branch = mlp([self.n_inputs] + [config.branch_width] * (config.branch_layers - 1) + [c * p], nn.Tanh,
                           config.dropout)
         self.trunk = mlp([1] + [config.trunk_width] * (config.trunk_layers - 1) + [c * p], nn.Tanh, config.dropout)
         self.bias = nn.Parameter(torch.zeros(c))
+        self.register_buffer("_reference_grid", torch.linspace(0.0, 1.0, _REFERENCE_POINTS), persistent=False)
 
     def raw(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         c, p = self.out_channels, self.config.p
@@ -126,6 +172,10 @@ class DeepONet(_OperatorBase):
     def forward(self, features: torch.Tensor, sigma: torch.Tensor):
         return self.heads(features, sigma, self.raw(features, sigma))
 
+    @property
+    def reference_grid(self) -> torch.Tensor:
+        return self._reference_grid
+
 
 class FNO(_OperatorBase):
     """G'_FNO / G_FNO on the grid s_j = j / (n - 1): input channels [2 s - 1, normalised design]
@@ -133,7 +183,7 @@ class FNO(_OperatorBase):
     with ReLU between, and a final linear map to C channels (eq. fno1)."""
 
     def __init__(self, kind: str, config: FNOConfig = FNOConfig()):
-        super().__init__(kind)
+        super().__init__(kind, config)
         self.config = config
         w = config.width
         self.register_buffer("grid", torch.linspace(0.0, 1.0, config.n_points), persistent=False)
@@ -159,9 +209,13 @@ class FNO(_OperatorBase):
     def forward(self, features: torch.Tensor):
         return self.heads(features, self.grid, self.raw(features))
 
-    def tendons(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
-        out = self.heads(features, self.grid, self.raw(features))
+    def tendons(self, features: torch.Tensor, sigma: torch.Tensor | None = None, ref=None) -> torch.Tensor:
+        out = self.heads(features, self.grid, self.raw(features), ref)
         return out if self.kind == "tendons" else out[2]
+
+    @property
+    def reference_grid(self) -> torch.Tensor:
+        return self.grid
 
 
 #: name -> (class, kind, config class, paper parameter count)

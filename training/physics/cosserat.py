@@ -60,6 +60,10 @@ class SolverOptions:
         load_steps: load-continuation steps for external loads.
         residual_tol: a design whose wrench residual (N) exceeds this times its load
             scale is reported as not converged.
+        linearized: replace the local Newton solve by the first-order strains (the roots of
+            (W1, W2) with the tendon tangents of the undeformed rod; the neural operators'
+            reference robot).  Tendon loads only; ``converged`` then only flags non-finite
+            results and ``residual`` says how far from equilibrium the result is.
     """
 
     max_step: float = 1.0 / 41.0
@@ -70,6 +74,7 @@ class SolverOptions:
     max_shooting: int = 20
     load_steps: int = 4
     residual_tol: float = 1e-8
+    linearized: bool = False
 
 
 @dataclass(frozen=True)
@@ -274,6 +279,17 @@ def _newton(x: np.ndarray, nodes: _Nodes, opts: SolverOptions) -> tuple[np.ndarr
     return x, converged, iterations
 
 
+def _first_order_strains(nodes: _Nodes) -> np.ndarray:
+    """Strains ``(P, 6)`` solving (W1, W2) with the tendon tangents t_i of the undeformed rod:
+    nu = e3 - K_se^-1 sum_i tau_i t_i, kappa = -K_bt^-1 sum_i tau_i rho_i x t_i.  Exact to first
+    order in the tensions."""
+    x0 = _undeformed(nodes.rho.shape[0])
+    t, _ = _tendon_directions(x0, nodes)
+    nu = _E3 - (nodes.tau[..., None] * t).sum(axis=1) / nodes.kse
+    kappa = -(nodes.tau[..., None] * _cross(nodes.rho, t)).sum(axis=1) / nodes.kbt
+    return np.concatenate([nu, kappa], axis=1)
+
+
 def _line_search(x: np.ndarray, step: np.ndarray, grad: np.ndarray, nodes: _Nodes) -> np.ndarray:
     """Backtracking (Armijo) step lengths on Phi, ``(P,)``; 1 where the full step is accepted."""
     alpha = np.ones(x.shape[0])
@@ -353,10 +369,33 @@ def solve(
     if sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -1e-9 or sigma_out.max() > 1 + 1e-9:
         raise ValueError("s_fraction must be a non-empty array of fractions in [0, 1]")
     sigma_out = np.clip(sigma_out, 0.0, 1.0)
+    if opts.linearized and loads is not None and not loads.is_zero():
+        raise ValueError("the linearized model covers tendon loads only")
     base = _solve_tendon_only(designs, sigma_out, opts)
     if loads is None or loads.is_zero():
         return base
     return _solve_with_loads(designs, sigma_out, loads, opts, base)
+
+
+def body_strains(designs: DesignBatch, s_fraction: np.ndarray, *, options: SolverOptions | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Equilibrium body strains under tendon loads only: the roots of (W1, W2) at each arclength.
+
+    Args:
+        designs: ``B`` designs.
+        s_fraction: arclengths as fractions of L, ``(M,)``.
+        options: numerical settings.
+
+    Returns:
+        ``(strains (B, M, 6), converged (B,))`` with strains = (nu (1), kappa (rad/m)) in the body frame.
+    """
+    opts = options or SolverOptions()
+    sigma = np.asarray(s_fraction, dtype=np.float64).reshape(-1)
+    b, m = designs.n_designs, sigma.shape[0]
+    mat = material(designs)
+    x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
+    x, ok, _ = _newton(np.repeat(x_base, m, axis=0), _make_nodes(designs, mat, sigma), opts)
+    return x.reshape(b, m, 6), ok.reshape(b, m).all(axis=1)
 
 
 def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions) -> RodSolution:
@@ -368,9 +407,13 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
     sigma_nodes = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,), the outputs among the edges
     m = sigma_nodes.shape[0]
     nodes = _make_nodes(designs, mat, sigma_nodes)
-    # start every node from the base strains (exact for parallel tendons, close otherwise)
-    x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
-    x, ok, iters = _newton(np.repeat(x_base, m, axis=0), nodes, opts)
+    if opts.linearized:
+        x = _first_order_strains(nodes)
+        ok, iters = np.ones(x.shape[0], dtype=bool), np.zeros(x.shape[0], dtype=np.int64)
+    else:
+        # start every node from the base strains (exact for parallel tendons, close otherwise)
+        x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
+        x, ok, iters = _newton(np.repeat(x_base, m, axis=0), nodes, opts)
     res = _residual(x, nodes).reshape(b, m, 6)
     x = x.reshape(b, m, 6)
     ok = ok.reshape(b, m).all(axis=1)
@@ -401,7 +444,9 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
     moment = np.einsum("bnij,bnj->bni", R, mat.kbt[:, None, :] * x_out[..., 3:])
     residual = _wrench_norm(res, designs.L[:, None]).max(axis=1)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
-    converged = ok & np.isfinite(residual) & (residual <= opts.residual_tol * scale)
+    converged = ok & np.isfinite(residual)
+    if not opts.linearized:  # the linearized model reports its residual but is not an equilibrium
+        converged &= residual <= opts.residual_tol * scale
     converged &= np.isfinite(tendons).all(axis=(1, 2, 3))
     return RodSolution(
         s=designs.L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons,
