@@ -114,6 +114,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state.ready = not state.problems and bool(state.models)
         log.info("ready=%s models=%s problems=%s", state.ready, sorted(state.models), state.problems)
         yield
+        for batcher in state.batchers.values():
+            batcher.close()
         if state.pool is not None:
             state.pool.shutdown(wait=False, cancel_futures=True)
 

@@ -16,6 +16,7 @@ class Metrics:
     latency: Histogram
     designs: Counter
     errors: Counter
+    batch: Histogram
 
     @classmethod
     def create(cls) -> Metrics:
@@ -28,4 +29,6 @@ class Metrics:
                               buckets=_LATENCY_BUCKETS, registry=reg),
             designs=Counter("tdcr_designs", "designs answered", ["endpoint", "model"], registry=reg),
             errors=Counter("tdcr_errors", "error responses by kind", ["endpoint", "kind"], registry=reg),
+            batch=Histogram("tdcr_graph_run_designs", "designs per onnxruntime run (dynamic batching)", ["model"],
+                            buckets=(1, 2, 4, 8, 16, 32, 64, 256, 1024, 4096, 16384, 65536), registry=reg),
         )

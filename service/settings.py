@@ -21,6 +21,7 @@ class Settings(BaseSettings):
     max_points: int = Field(1000, ge=2, description="arclengths per request")
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="request body limit, bytes")
     onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads per model (0: all cores)")
+    batch_max_designs: int = Field(4096, ge=1, description="designs of concurrent /predict requests run together")
     onnx_small_batch: int = Field(64, ge=0, description="batches up to this size run on a one-thread session")
     exact_workers: int = Field(1, ge=1, description="solver processes behind /exact")
     exact_max_designs: int = Field(2000, ge=1, description="designs per /exact request")

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.batching import Batcher
 from service.inference import Surrogate
 from service.metrics import Metrics
 from service.settings import Settings
@@ -22,6 +23,7 @@ class ServiceState:
     metrics: Metrics
     manifest: dict = field(default_factory=dict)
     models: dict[str, Surrogate] = field(default_factory=dict)
+    batchers: dict[str, Batcher] = field(default_factory=dict)
     default_model: str | None = None
     pool: ProcessPoolExecutor | None = None
     exact_slots: asyncio.Semaphore | None = None
@@ -58,6 +60,8 @@ def load_models(state: ServiceState) -> None:
             state.problems.append(f"model {name}: {exc}")
             continue
         state.models[name] = model
+        state.batchers[name] = Batcher(model, max_designs=state.settings.batch_max_designs,
+                                       on_run=state.metrics.batch.labels(name).observe)
     default = state.settings.default_model or best_model(state.manifest)
     if default is not None and default not in state.models:
         state.problems.append(f"default model {default!r} is not loaded")

@@ -187,11 +187,13 @@ def test_bad_bodies_and_limits(server):
 
 def test_metrics_count_requests_designs_and_errors(server):
     httpx.post(server.url + "/predict", json={**EXAMPLE, "model": "deeponet"})
+    assert httpx.post(server.url + "/predict", json={"designs": [{"E": -1}]}).status_code == 422
     text = httpx.get(server.url + "/metrics").text
     assert 'tdcr_requests_total{endpoint="/predict",status="200"}' in text
     assert 'tdcr_designs_total{endpoint="/predict",model="deeponet"}' in text
     assert 'tdcr_errors_total{endpoint="/predict",kind="validation"}' in text
     assert "tdcr_request_seconds_bucket" in text and "process_resident_memory_bytes" in text
+    assert 'tdcr_graph_run_designs_count{model="deeponet"}' in text
 
 
 def test_exact_is_refused_when_saturated(tiny_models):

@@ -114,7 +114,7 @@ def _resolve_model(name: str | None, state: ServiceState):
     if name not in state.models:
         known = sorted(state.models)
         raise ApiError(404, f"unknown model {name!r}; available: {known}", kind="not_found")
-    return name, state.models[name]
+    return name, state.batchers[name]
 
 
 def _answer(body: bytes, content_type: str, accept: str, params, state: ServiceState) -> tuple[Response, str, int]:

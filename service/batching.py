@@ -1,0 +1,96 @@
+"""Dynamic batching of /predict: concurrent requests for one model share one onnxruntime run.
+
+A graph run has a fixed cost (about a thousand small nodes, whatever the batch) on top of its
+per-design cost, so under load, running the designs of all queued requests together multiplies
+throughput.  One worker thread per model takes everything queued when it becomes free (no
+waiting window: a lone request runs at once), groups it by (arclengths, pose wanted), runs each
+group as one batch and hands every request its rows.  Results do not depend on the batch: the
+operators treat designs independently.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.inference import Surrogate
+
+
+@dataclass
+class _Job:
+    features: np.ndarray  # (b, F) raw SI designs
+    sigma: np.ndarray  # (n,) fractions of L
+    pose: bool
+    future: Future = field(default_factory=Future)
+
+
+class Batcher:
+    """Queue and worker thread of one model.  ``max_designs``: the most designs run together."""
+
+    def __init__(self, model: Surrogate, *, max_designs: int = 4096, on_run: Callable[[int], None] | None = None):
+        """``on_run(designs)`` is called after every graph run (e.g. to feed a histogram)."""
+        self.model = model
+        self.on_run = on_run
+        self.max_designs = max_designs
+        self._queue: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self.runs = 0  # graph runs so far (a run may serve several requests)
+        self._thread = threading.Thread(target=self._work, name=f"batcher-{model.name}", daemon=True)
+        self._thread.start()
+
+    def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
+        """As :meth:`Surrogate.predict`, run together with whatever else is queued (blocks the caller)."""
+        job = _Job(np.asarray(features, dtype=np.float64), np.asarray(sigma, dtype=np.float64), pose)
+        self._queue.put(job)
+        return job.future.result()
+
+    def close(self) -> None:
+        self._queue.put(None)
+        self._thread.join(timeout=10)
+
+    def _work(self) -> None:
+        while True:
+            job = self._queue.get()
+            if job is None:
+                return
+            jobs = [job]
+            designs = len(job.features)
+            while designs < self.max_designs:
+                try:
+                    nxt = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if nxt is None:
+                    self._queue.put(None)  # stop after this round
+                    break
+                jobs.append(nxt)
+                designs += len(nxt.features)
+            groups: dict[tuple[bytes, bool], list[_Job]] = {}
+            for j in jobs:
+                groups.setdefault((j.sigma.tobytes(), j.pose), []).append(j)
+            for group in groups.values():
+                self._run(group)
+
+    def _run(self, jobs: list[_Job]) -> None:
+        self.runs += 1
+        if self.on_run is not None:
+            self.on_run(sum(len(j.features) for j in jobs))
+        try:
+            if len(jobs) == 1:
+                jobs[0].future.set_result(self.model.predict(jobs[0].features, jobs[0].sigma, pose=jobs[0].pose))
+                return
+            out = self.model.predict(np.concatenate([j.features for j in jobs]), jobs[0].sigma, pose=jobs[0].pose)
+        except Exception as exc:  # noqa: BLE001 - handed to the waiting requests, which report it
+            for j in jobs:
+                if not j.future.done():
+                    j.future.set_exception(exc)
+            return
+        start = 0
+        for j in jobs:
+            stop = start + len(j.features)
+            j.future.set_result({k: v[start:stop] for k, v in out.items()})
+            start = stop
