@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import httpx
 import numpy as np
+import orjson
 
 from service.client import NPY, NPZ, _npy
 from training import design_space
@@ -59,8 +60,10 @@ async def run_cell(client: httpx.AsyncClient, *, concurrency: int, batch: int, m
         body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ}, "params": params}
     else:
         designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
-            {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in feats]
-        body = {"json": {"designs": designs, **({"model": model} if model else {})}}
+            {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in feats.tolist()]
+        # serialised once, as load generators do: the client's CPU is shared with the server here
+        payload = orjson.dumps({"designs": designs, **({"model": model} if model else {})})
+        body = {"content": payload, "headers": {"content-type": "application/json"}}
     latencies: list[float] = []
     errors = 0
     issued = 0

@@ -88,17 +88,38 @@ def magnus_kinematics(xi_nodes: torch.Tensor, xi_mid: torch.Tensor, step: torch.
     mean = (xa + 4.0 * xi_mid + xb) * (step / 6.0)
     h2 = step * step / 12.0
     rot_k, pos_k = se3_exp(mean[0:3] + h2 * (cross3(wa, vb) - cross3(wb, va)), mean[3:6] + h2 * cross3(wa, wb))
-    batch = xi_nodes.shape[-1]
-    rot = torch.eye(3, dtype=xi_nodes.dtype)[:, :, None].expand(3, 3, batch)
-    rots = [rot]
-    for step_rot in rot_k.unbind(2):  # sequential composition, unrolled in the exported graph
-        rot = matmul3(rot, step_rot)
-        rots.append(rot)
-    rotation = torch.stack(rots, dim=2)  # (3, 3, K + 1, B)
+    rotation = _prefix_products(rot_k)  # (3, 3, K + 1, B)
     # p_{k+1} = p_k + R_k p_step_k, all steps at once
     moves = matvec3(rotation[:, :, :-1], pos_k)  # (3, K, B)
     backbone = torch.cat([torch.zeros_like(moves[:, :1]), torch.cumsum(moves, dim=1)], dim=1)
     return backbone, rotation
+
+
+def _prefix_products(steps: torch.Tensor, block: int = 6) -> torch.Tensor:
+    """R_0 = I, R_{k+1} = R_k S_k for steps S ``(3, 3, K, B)``; returns ``(3, 3, K + 1, B)``.
+
+    Blocked scan: products inside blocks of ``block`` steps for all blocks at once, then the
+    block prefixes one after another, then one product of both.  That is about block + K / block
+    sequential 3 x 3 products instead of K (13 instead of 41 for the 42-point grid), so fewer and
+    larger graph nodes.
+    """
+    k = int(steps.shape[2])  # a fixed grid: a constant in the exported graph
+    blocks = math.ceil(k / block)
+    eye = torch.eye(3, dtype=steps.dtype)[:, :, None, None]
+    ones = torch.zeros_like(steps[:, :, :1]) + eye  # identities (3, 3, 1, B), broadcast (exports cleanly)
+    pad = blocks * block - k
+    if pad:
+        steps = torch.cat([steps] + [ones] * pad, dim=2)
+    steps = steps.reshape(3, 3, blocks, block, -1)
+    inner = [steps[:, :, :, 0]]  # prefix products inside each block, (3, 3, blocks, B) each
+    for j in range(1, block):
+        inner.append(matmul3(inner[-1], steps[:, :, :, j]))
+    outer = [ones[:, :, 0]]  # product of all earlier blocks, (3, 3, B) each
+    for i in range(1, blocks):
+        outer.append(matmul3(outer[-1], inner[-1][:, :, i - 1]))
+    full = matmul3(torch.stack(outer, dim=2)[:, :, :, None], torch.stack(inner, dim=3))  # (3, 3, blocks, block, B)
+    full = full.reshape(3, 3, blocks * block, -1)[:, :, :k]
+    return torch.cat([ones, full], dim=2)
 
 
 def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch.Tensor, sigma: torch.Tensor,
