@@ -39,7 +39,7 @@ def test_concurrent_requests_get_their_own_rows(tiny_models, name):
         alone = model.predict(f, s, pose=pose)
         assert set(results[i]) == set(alone)
         for k in alone:
-            np.testing.assert_allclose(results[i][k], alone[k], rtol=1e-5, atol=1e-7)
+            np.testing.assert_allclose(results[i][k], alone[k], rtol=1e-5, atol=2e-6)  # float32 graph, other blocking
 
 
 def test_a_failing_run_fails_only_its_requests(tiny_models):
