@@ -83,12 +83,12 @@ def format_ood(table: dict) -> str:
     names = list(next(iter(table.values())))
     lines = ["| bin (p of upper bound) | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
     for label, row in table.items():
-        lines.append(f"| {label} | " + " | ".join(f"{row[n]:.4f}" for n in names) + " |")
+        lines.append(f"| {label} | " + " | ".join(f"{row[n]:.3g}" for n in names) + " |")
     return "\n".join(lines)
 
 
 def format_table(results: dict) -> str:
     lines = ["| model | mean rel. l2 | median | p95 | test designs |", "|---|---:|---:|---:|---:|"]
     for name, r in results.items():
-        lines.append(f"| {name} | {r['mean']:.4f} | {r['median']:.4f} | {r['p95']:.4f} | {r['n']} |")
+        lines.append(f"| {name} | {r['mean']:.3g} | {r['median']:.3g} | {r['p95']:.3g} | {r['n']} |")
     return "\n".join(lines)
