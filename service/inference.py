@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -97,71 +99,86 @@ def _orthonormalize(rot: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
-def _session(path: Path, threads: int):
+def _session(path: Path):
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
+    opts.intra_op_num_threads = 1  # parallelism comes from running chunks side by side (Surrogate.run)
     opts.inter_op_num_threads = 1
-    # idle intra-op threads sleep instead of spinning: on a few cores, spinning threads steal the CPU
-    # from the event loop and from the other requests' threads
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
 @dataclass
 class Surrogate:
-    """One exported model: its manifest entry and two onnxruntime sessions, one for small batches
-    (one thread: no thread-pool hand-offs for a few designs) and one for large batches."""
+    """One exported model: its manifest entry and a single-threaded onnxruntime session.
+
+    Batches up to ``chunk`` designs run in one call (no thread-pool hand-offs for a few designs).
+    Larger batches run as chunks of ``chunk`` designs on ``workers`` threads side by side: the
+    graph is mostly elementwise work on small arrays, which onnxruntime parallelises poorly inside
+    one call, and chunks stay in cache (measured: 80,000 designs 1.5 s this way against 3.6-6.2 s
+    in one call on all cores, with chunks of 2048).
+    """
 
     name: str
     entry: dict
     session: object
-    small_session: object | None = None
-    small_batch: int = 64
+    workers: int = 1
+    chunk: int = 512
+    _pool: ThreadPoolExecutor | None = field(default=None, repr=False)
 
     @classmethod
     def load(cls, models_dir: str | Path, name: str, *, threads: int = 0, verify: bool = True,
-             small_batch: int = 64) -> Surrogate:
-        """``threads``: intra-op threads of the large-batch session (0: all cores); batches of at most
-        ``small_batch`` designs run on a single-threaded session."""
+             chunk: int = 512) -> Surrogate:
+        """``threads``: chunks run side by side for large batches (0: one per core)."""
         models_dir = Path(models_dir)
         entry = json.loads((models_dir / "manifest.json").read_text())["models"][name]
         path = models_dir / entry["file"]
         if verify and hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
             raise ValueError(f"{path}: sha256 does not match the manifest")
-        small = _session(path, 1) if small_batch > 0 and threads != 1 else None
-        return cls(name=name, entry=entry, session=_session(path, threads), small_session=small,
-                   small_batch=small_batch)
+        workers = threads or os.cpu_count() or 1
+        pool = ThreadPoolExecutor(workers, thread_name_prefix=f"onnx-{name}") if workers > 1 else None
+        return cls(name=name, entry=entry, session=_session(path), workers=workers, chunk=chunk, _pool=pool)
 
     @property
     def grid(self) -> np.ndarray | None:
         g = self.entry.get("grid")
         return None if g is None else np.asarray(g)
 
+    def _chunked(self, fn, features: np.ndarray) -> dict[str, np.ndarray]:
+        """``fn(chunk)`` over chunks of ``features`` side by side, outputs concatenated along B."""
+        if len(features) <= self.chunk or self._pool is None:
+            return fn(features)
+        parts = list(self._pool.map(fn, [features[i:i + self.chunk] for i in range(0, len(features), self.chunk)]))
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
     def run(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
         """Raw graph outputs at ``sigma`` (DeepONet) or on the grid (FNO), float32."""
+        return self._chunked(lambda f: self._run_one(f, sigma), features)
+
+    def _run_one(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
         feed = {"design": np.ascontiguousarray(features, dtype=np.float32)}
         if self.grid is None:
             feed["s"] = np.ascontiguousarray(sigma, dtype=np.float32)
-        session = self.small_session if self.small_session is not None and len(features) <= self.small_batch \
-            else self.session
-        names = [o.name for o in session.get_outputs()]
-        return dict(zip(names, session.run(names, feed), strict=True))
+        names = [o.name for o in self.session.get_outputs()]
+        return dict(zip(names, self.session.run(names, feed), strict=True))
 
     def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
 
         Graph outputs stay float32 (the networks' precision); the pose fit of tendon models and
-        the FNO interpolation compute in float64.
+        the FNO interpolation compute in float64.  Large batches run in chunks side by side.
 
         ``pose=False`` returns ``tendons`` only (saves the conversion and, off the FNO grid, the
         interpolation of the pose).
         """
         features = np.asarray(features, dtype=np.float64)
         sigma = np.asarray(sigma, dtype=np.float64)
+        return self._chunked(lambda f: self._predict_one(f, sigma, pose), features)
+
+    def _predict_one(self, features: np.ndarray, sigma: np.ndarray, pose: bool) -> dict[str, np.ndarray]:
         grid = self.grid
-        out = {k: v for k, v in self.run(features, sigma).items() if pose or k == "tendons"}
+        out = {k: v for k, v in self._run_one(features, sigma).items() if pose or k == "tendons"}
         if grid is not None and not (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9)):
             w = _cubic_weights(grid, sigma)
             out = {k: np.einsum("mn,bn...->bm...", w, v) for k, v in out.items()}

@@ -54,7 +54,7 @@ def load_models(state: ServiceState) -> None:
     for name in state.manifest.get("models", {}):
         try:
             model = Surrogate.load(state.settings.models_dir, name, threads=state.settings.onnx_threads,
-                                   small_batch=state.settings.onnx_small_batch)
+                                   chunk=state.settings.onnx_chunk)
             model.predict(warm, np.linspace(0.0, 1.0, 42))
         except Exception as exc:  # noqa: BLE001 - any failure makes the model unavailable, reported by /readyz
             state.problems.append(f"model {name}: {exc}")
