@@ -20,7 +20,7 @@ from service.metrics import Metrics
 from service.routers import exact, health, models, predict
 from service.schemas import PredictRequest
 from service.settings import Settings
-from service.state import ServiceState, load_models, start_pool
+from service.state import ServiceState, load_models, start_pool, stop_pool
 
 log = logging.getLogger("tdcr.service")
 VERSION = "0.1.0"
@@ -117,7 +117,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         for batcher in state.batchers.values():
             batcher.close()
         if state.pool is not None:
-            state.pool.shutdown(wait=False, cancel_futures=True)
+            stop_pool(state.pool)
 
     app = FastAPI(title="tdcr-surrogates", version=VERSION, lifespan=lifespan,
                   description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "

@@ -82,3 +82,15 @@ def start_pool(state: ServiceState) -> None:
     """Start the solver pool and the /exact admission slots (at startup)."""
     state.pool = new_pool(state.settings)
     state.exact_slots = asyncio.Semaphore(state.settings.exact_max_pending)
+
+
+def stop_pool(pool: ProcessPoolExecutor, grace_s: float = 5.0) -> None:
+    """Stop the solver processes: cancel queued work, give running work ``grace_s`` seconds, then
+    terminate whatever is left (a plain ``shutdown(wait=False)`` leaves them running after the
+    server exits)."""
+    processes = list(getattr(pool, "_processes", {}).values())  # no public handle on the workers
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        proc.join(timeout=grace_s)
+        if proc.is_alive():
+            proc.terminate()

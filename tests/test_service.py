@@ -273,3 +273,27 @@ def test_openapi_document_is_committed_and_current():
 
     committed = json.loads((ROOT / "openapi" / "openapi.json").read_text())
     assert committed == json.loads(json.dumps(create_app().openapi())), "run `tdcr openapi` and commit"
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.append(int(stat.parent.name))
+    return kids
+
+
+@pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc")
+def test_stopping_the_server_stops_its_solver_processes(tiny_models):
+    srv = Server(tiny_models[1])
+    kids = _children(srv.proc.pid)
+    assert kids, "the /exact solver pool should run in child processes"
+    srv.stop()  # SIGTERM, as docker stop and the process manager send
+    deadline = time.time() + 15
+    while time.time() < deadline and any(Path(f"/proc/{k}").exists() for k in kids):
+        time.sleep(0.2)
+    assert not [k for k in kids if Path(f"/proc/{k}").exists()]
