@@ -114,16 +114,14 @@ class Surrogate:
     """One exported model: its manifest entry and a single-threaded onnxruntime session.
 
     Batches up to ``chunk`` designs run in one call (no thread-pool hand-offs for a few designs).
-    Larger batches run as chunks of ``chunk`` designs on ``workers`` threads side by side: the
-    graph is mostly elementwise work on small arrays, which onnxruntime parallelises poorly inside
-    one call, and chunks stay in cache (measured: 80,000 designs 1.5 s this way against 3.6-6.2 s
-    in one call on all cores, with chunks of 2048).
+    Larger batches run as chunks of ``chunk`` designs side by side on a thread pool: the graph is
+    mostly elementwise work on small arrays, which onnxruntime parallelises poorly inside one call,
+    and chunks stay in cache (docs/results.md, "Inference").
     """
 
     name: str
     entry: dict
     session: object
-    workers: int = 1
     chunk: int = 512
     _pool: ThreadPoolExecutor | None = field(default=None, repr=False)
 
@@ -138,7 +136,7 @@ class Surrogate:
             raise ValueError(f"{path}: sha256 does not match the manifest")
         workers = threads or os.cpu_count() or 1
         pool = ThreadPoolExecutor(workers, thread_name_prefix=f"onnx-{name}") if workers > 1 else None
-        return cls(name=name, entry=entry, session=_session(path), workers=workers, chunk=chunk, _pool=pool)
+        return cls(name=name, entry=entry, session=_session(path), chunk=chunk, _pool=pool)
 
     @property
     def grid(self) -> np.ndarray | None:

@@ -67,6 +67,16 @@ def se3_exp(v: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return rot, v + b * wxv + c * cross3(w, wxv)
 
 
+def _magnus_step(xa: torch.Tensor, xm: torch.Tensor, xb: torch.Tensor, step: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One 4th-order Magnus step (eq. MAG) from body twists ``(6, ...)`` at its start, middle and
+    end over length ``step`` (m, broadcast against ``...``): ``(R (3, 3, ...), p (3, ...))``."""
+    wa, wb = xa[3:6], xb[3:6]
+    mean = (xa + 4.0 * xm + xb) * (step / 6.0)
+    h2 = step * step / 12.0
+    return se3_exp(mean[0:3] + h2 * (cross3(wa, xb[0:3]) - cross3(wb, xa[0:3])), mean[3:6] + h2 * cross3(wa, wb))
+
+
 def magnus_kinematics(xi_nodes: torch.Tensor, xi_mid: torch.Tensor, step: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
     """Integrate g' = g hat(xi) from g(0) = I over K equal steps (the solver's scheme, eq. MAG).
@@ -83,11 +93,7 @@ def magnus_kinematics(xi_nodes: torch.Tensor, xi_mid: torch.Tensor, step: torch.
     Returns:
         ``(backbone (3, K + 1, B) m, rotation (3, 3, K + 1, B))``.
     """
-    xa, xb = xi_nodes[:, :-1], xi_nodes[:, 1:]
-    va, wa, vb, wb = xa[0:3], xa[3:6], xb[0:3], xb[3:6]
-    mean = (xa + 4.0 * xi_mid + xb) * (step / 6.0)
-    h2 = step * step / 12.0
-    rot_k, pos_k = se3_exp(mean[0:3] + h2 * (cross3(wa, vb) - cross3(wb, va)), mean[3:6] + h2 * cross3(wa, wb))
+    rot_k, pos_k = _magnus_step(xi_nodes[:, :-1], xi_mid, xi_nodes[:, 1:], step)
     rotation = _prefix_products(rot_k)  # (3, 3, K + 1, B)
     # p_{k+1} = p_k + R_k p_step_k, all steps at once
     moves = matvec3(rotation[:, :, :-1], pos_k)  # (3, K, B)
@@ -140,11 +146,7 @@ def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch
     xa = strain_prior(features, s_k, base_angle)
     xm = strain_prior(features, 0.5 * (s_k + sigma), base_angle)
     xb = strain_prior(features, sigma, base_angle)
-    step = (sigma - s_k)[:, None] * features[:, 2]  # (m, B) m
-    va, wa, vb, wb = xa[0:3], xa[3:6], xb[0:3], xb[3:6]
-    mean = (xa + 4.0 * xm + xb) * (step / 6.0)
-    h2 = step * step / 12.0
-    rot_s, pos_s = se3_exp(mean[0:3] + h2 * (cross3(wa, vb) - cross3(wb, va)), mean[3:6] + h2 * cross3(wa, wb))
+    rot_s, pos_s = _magnus_step(xa, xm, xb, (sigma - s_k)[:, None] * features[:, 2])  # step (m, B) m
     rot_k, pos_k = rotation[:, :, k], backbone[:, k]
     return pos_k + matvec3(rot_k, pos_s), matmul3(rot_k, rot_s)
 

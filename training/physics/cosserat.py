@@ -284,10 +284,8 @@ def _first_order_strains(nodes: _Nodes) -> np.ndarray:
     nu = e3 - K_se^-1 sum_i tau_i t_i, kappa = -K_bt^-1 sum_i tau_i rho_i x t_i.  Exact to first
     order in the tensions."""
     x0 = _undeformed(nodes.rho.shape[0])
-    t, _ = _tendon_directions(x0, nodes)
-    nu = _E3 - (nodes.tau[..., None] * t).sum(axis=1) / nodes.kse
-    kappa = -(nodes.tau[..., None] * _cross(nodes.rho, t)).sum(axis=1) / nodes.kbt
-    return np.concatenate([nu, kappa], axis=1)
+    # (W1, W2) are K (x - x0) + tendon terms; with the tendon terms frozen at x0: x = x0 - K^-1 res(x0)
+    return x0 - _residual(x0, nodes) / np.concatenate([nodes.kse, nodes.kbt], axis=1)
 
 
 def _line_search(x: np.ndarray, step: np.ndarray, grad: np.ndarray, nodes: _Nodes) -> np.ndarray:
