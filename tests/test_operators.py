@@ -124,17 +124,23 @@ def test_onnx_matches_torch(tiny_models, name):
     root, models = tiny_models
     model, _ = load_trained(root / name / "model.pt")
     feats = design_space.sample_designs(64, seed=11).features()
-    sigma = np.linspace(0, 1, 42)
     surrogate = Surrogate.load(models, name)
-    raw = surrogate.run(feats, sigma)
-    with torch.no_grad():
-        ref = model(torch.as_tensor(feats, dtype=torch.float32), torch.as_tensor(sigma, dtype=torch.float32)) \
-            if model.__class__.__name__ == "DeepONet" else model(torch.as_tensor(feats, dtype=torch.float32))
-    ref = ref if isinstance(ref, tuple) else (ref,)
+    deeponet = model.__class__.__name__ == "DeepONet"
+    # DeepONet graphs switch (ONNX If) between the grid and the partial-step branch: test both,
+    # including 42 points that are not the grid
+    sigmas = [np.linspace(0, 1, 42), np.linspace(0, 0.9, 42), np.array([0.0, 0.33, 1.0])] if deeponet \
+        else [np.linspace(0, 1, 42)]
     names = ["tendons"] if model.kind == "tendons" else ["backbone", "rotation", "tendons"]
-    for got, want in zip([raw[k] for k in names], ref, strict=True):
-        rel = np.linalg.norm(got - want.numpy()) / np.linalg.norm(want.numpy())
-        assert rel <= 1e-5
+    for sigma in sigmas:
+        raw = surrogate.run(feats, sigma)
+        with torch.no_grad():
+            ref = model(torch.as_tensor(feats, dtype=torch.float32), torch.as_tensor(sigma, dtype=torch.float32)) \
+                if deeponet else model(torch.as_tensor(feats, dtype=torch.float32))
+        ref = ref if isinstance(ref, tuple) else (ref,)
+        for got, want in zip([raw[k] for k in names], ref, strict=True):
+            assert got.shape == want.shape
+            rel = np.linalg.norm(got - want.numpy()) / np.linalg.norm(want.numpy())
+            assert rel <= 1e-5
     manifest = json.loads((models / "manifest.json").read_text())["models"][name]
     assert manifest["parameters"] == count_parameters(model)
     assert manifest["hyperparameters"]["p" if "deeponet" in name else "width"] in (8, 16)

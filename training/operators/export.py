@@ -17,6 +17,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import onnx
 import torch
 
 from training import design_space
@@ -27,13 +28,15 @@ OPSET = 17
 
 
 class _FixedGrid(torch.nn.Module):
-    """FNO wrapper whose only input is the design."""
+    """Wrapper whose only input is the design: an FNO, or a DeepONet on its reference grid."""
 
     def __init__(self, model):
         super().__init__()
         self.model = model
 
     def forward(self, design):
+        if isinstance(self.model, DeepONet):
+            return self.model.outputs(design, self.model.reference_grid)
         return self.model(design)
 
 
@@ -43,29 +46,124 @@ def io_names(model) -> tuple[list[str], list[str]]:
     return inputs, outputs
 
 
-def export_onnx(model, path: str | Path) -> None:
-    """Write ``model`` to ``path`` (opset 17, dynamic batch; dynamic n for DeepONet)."""
-    inputs, outputs = io_names(model)
-    design = torch.as_tensor(design_space.sample_designs(2, seed=0).features(), dtype=torch.float32)
-    dyn = {"design": {0: "batch"}}
-    args: tuple
-    if isinstance(model, DeepONet):
-        args = (design, torch.linspace(0.0, 1.0, 42))
-        dyn["s"] = {0: "points"}
-        point_axis = "points"
-        module = model
-    else:
-        args = (design,)
-        point_axis = None
-        module = _FixedGrid(model)
-    for name in outputs:
-        dyn[name] = {0: "batch"} | ({1: point_axis} if point_axis else {})
-    tmp = Path(str(path) + ".tmp")
+def _trace(module, args, path: Path, inputs: list[str], outputs: list[str], dyn: dict) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(module.eval(), args, str(tmp), input_names=inputs, output_names=outputs,
+        torch.onnx.export(module.eval(), args, str(path), input_names=inputs, output_names=outputs,
                           dynamic_axes=dyn, opset_version=OPSET, dynamo=False)
+
+
+def export_onnx(model, path: str | Path) -> None:
+    """Write ``model`` to ``path`` (opset 17, dynamic batch; dynamic n for DeepONet).
+
+    A DeepONet graph holds two branches under an ONNX ``If``: when ``s`` is the reference grid
+    (the default 42 points), the reference robot on that grid; otherwise the grid plus one partial
+    Magnus step to each requested s (:func:`training.operators.kinematics.partial_step`), which
+    costs about as much again.
+    """
+    inputs, outputs = io_names(model)
+    design = torch.as_tensor(design_space.sample_designs(2, seed=0).features(), dtype=torch.float32)
+    path = Path(path)
+    tmp = Path(str(path) + ".tmp")
+    if not isinstance(model, DeepONet):
+        dyn = {"design": {0: "batch"}} | {name: {0: "batch"} for name in outputs}
+        _trace(_FixedGrid(model), (design,), tmp, ["design"], outputs, dyn)
+        os.replace(tmp, path)
+        return
+    dyn = {"design": {0: "batch"}, "s": {0: "points"}} | {name: {0: "batch", 1: "points"} for name in outputs}
+    any_s, on_grid = Path(str(path) + ".any.tmp"), Path(str(path) + ".grid.tmp")
+    try:
+        _trace(model, (design, torch.linspace(0.0, 1.0, 42)), any_s, inputs, outputs, dyn)
+        _trace(_FixedGrid(model), (design,), on_grid, ["design"], outputs,
+               {"design": {0: "batch"}} | {name: {0: "batch"} for name in outputs})
+        merged = _grid_switch(onnx.load(str(any_s)), onnx.load(str(on_grid)), model.reference_grid.shape[0])
+        onnx.save(merged, str(tmp))
+    finally:
+        any_s.unlink(missing_ok=True)
+        on_grid.unlink(missing_ok=True)
     os.replace(tmp, path)
+
+
+#: ``s`` within this of the reference grid (fractions of L) takes the grid branch
+GRID_TOLERANCE = 1e-6
+
+
+def _grid_switch(any_s, on_grid, points: int):
+    """One model from two traced graphs with the same outputs: ``If(s == grid, on_grid, any_s)``,
+    where grid is j / (points - 1), j < points.  Initializers live in the outer graph (shared by
+    both branches when equal); every other name gets its branch's prefix."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    shared = {init.name: init for init in any_s.graph.initializer}
+    renamed: dict[str, str] = {}
+    for init in on_grid.graph.initializer:
+        same = init.name in shared and numpy_helper.to_array(shared[init.name]).tobytes() == \
+            numpy_helper.to_array(init).tobytes()
+        if not same:
+            renamed[init.name] = "grid/" + init.name
+            copy = onnx.TensorProto()
+            copy.CopyFrom(init)
+            copy.name = renamed[init.name]
+            shared[copy.name] = copy
+    outer = {"design", "s"} | set(shared)
+
+    def branch(graph, prefix: str, mapping: dict[str, str]):
+        def name(x: str) -> str:
+            if x == "" or x in ("design", "s"):
+                return x
+            if x in mapping:
+                return mapping[x]
+            return x if x in outer else prefix + x
+        nodes = []
+        for node in graph.node:
+            copy = onnx.NodeProto()
+            copy.CopyFrom(node)
+            copy.name = prefix + node.name
+            copy.input[:] = [name(x) for x in node.input]
+            copy.output[:] = [name(x) for x in node.output]
+            nodes.append(copy)
+        outs = []
+        for out in graph.output:
+            info = onnx.ValueInfoProto()
+            info.CopyFrom(out)
+            info.name = name(out.name)
+            outs.append(info)
+        return helper.make_graph(nodes, prefix.rstrip("/"), [], outs)
+
+    grid_branch = branch(on_grid.graph, "grid/", renamed)
+    any_branch = branch(any_s.graph, "any/", {})
+    const = lambda name, value, dtype: helper.make_node(  # noqa: E731
+        "Constant", [], [name], value=helper.make_tensor(name, dtype, [len(value)] if isinstance(value, list) else [],
+                                                        value))
+    nodes = [
+        const("switch/points", [points], TensorProto.INT64),
+        const("switch/zero", 0, TensorProto.INT64),
+        const("switch/one", 1, TensorProto.INT64),
+        const("switch/intervals", float(points - 1), TensorProto.FLOAT),
+        const("switch/tolerance", GRID_TOLERANCE, TensorProto.FLOAT),
+        const("switch/pad", [0.0], TensorProto.FLOAT),
+        helper.make_node("Shape", ["s"], ["switch/n"]),
+        helper.make_node("Equal", ["switch/n", "switch/points"], ["switch/n_ok_1"]),
+        helper.make_node("Squeeze", ["switch/n_ok_1"], ["switch/n_ok"]),
+        helper.make_node("Squeeze", ["switch/n"], ["switch/n_scalar"]),
+        helper.make_node("Range", ["switch/zero", "switch/n_scalar", "switch/one"], ["switch/j"]),
+        helper.make_node("Cast", ["switch/j"], ["switch/j_float"], to=TensorProto.FLOAT),
+        helper.make_node("Div", ["switch/j_float", "switch/intervals"], ["switch/grid"]),
+        helper.make_node("Sub", ["s", "switch/grid"], ["switch/diff"]),
+        helper.make_node("Abs", ["switch/diff"], ["switch/abs"]),
+        helper.make_node("Concat", ["switch/abs", "switch/pad"], ["switch/abs_padded"], axis=0),
+        helper.make_node("ReduceMax", ["switch/abs_padded"], ["switch/max"], keepdims=0),
+        helper.make_node("Less", ["switch/max", "switch/tolerance"], ["switch/values_ok"]),
+        helper.make_node("And", ["switch/n_ok", "switch/values_ok"], ["switch/on_grid"]),
+        helper.make_node("If", ["switch/on_grid"], [o.name for o in any_s.graph.output],
+                         then_branch=grid_branch, else_branch=any_branch),
+    ]
+    graph = helper.make_graph(nodes, "tdcr_deeponet", list(any_s.graph.input), list(any_s.graph.output),
+                              initializer=list(shared.values()))
+    merged = helper.make_model(graph, opset_imports=list(any_s.opset_import), producer_name="tdcr-surrogates")
+    merged.ir_version = any_s.ir_version
+    onnx.checker.check_model(merged)
+    return merged
 
 
 def sha256(path: str | Path) -> str:

@@ -14,6 +14,7 @@ a mean relative l2 of about 4e-3 of the exact solution over Table I; the operato
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
@@ -53,9 +54,10 @@ def se3_exp(v: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     small = t2 < 0.01
     t2s = torch.where(small, torch.ones_like(t2), t2)
     t = torch.sqrt(t2s)
-    a = torch.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, torch.sin(t) / t)
+    sin_t = torch.sin(t)
+    a = torch.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, sin_t / t)
     b = torch.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - torch.cos(t)) / t2s)
-    c = torch.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (t - torch.sin(t)) / (t2s * t))
+    c = torch.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (t - sin_t) / (t2s * t))
     d = 1.0 - b * t2
     aw, bw = a * w, b * w
     rot = torch.stack([
@@ -128,6 +130,35 @@ def _prefix_products(steps: torch.Tensor, block: int = 6) -> torch.Tensor:
     return torch.cat([ones, full], dim=2)
 
 
+class ReferenceRobot(NamedTuple):
+    """Pose and tendon offsets of the reference robot, batch last."""
+
+    backbone: torch.Tensor  #: ``(3, n, B)`` m
+    rotation: torch.Tensor  #: ``(3, 3, n, B)``
+    rho: torch.Tensor  #: body-frame tendon offsets ``(2, N_t, n, B)`` m (x, y; z is 0)
+
+
+def linearized_reference(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Tensor,
+                         sigma: torch.Tensor | None = None) -> ReferenceRobot:
+    """The reference robot on the uniform ``grid`` ``(K + 1,)``, or at any ``sigma`` ``(m,)`` by one
+    partial Magnus step from the grid point below (:func:`partial_step`).
+
+    The strains of the grid's nodes and midpoints come from one evaluation on the interleaved
+    half grid, whose sines and cosines also give the tendon offsets.
+    """
+    half = torch.cat([torch.stack([grid[:-1], 0.5 * (grid[1:] + grid[:-1])], dim=1).reshape(-1), grid[-1:]])
+    trig = tendon_trig(features, half, base_angle)  # (N_t, 2K + 1, B)
+    xi = strain_prior(features, half, base_angle, trig)  # (6, 2K + 1, B)
+    xi_nodes = xi[:, 0::2]
+    backbone, rotation = magnus_kinematics(xi_nodes, xi[:, 1::2], features[:, 2] * (grid[1] - grid[0]))
+    if sigma is None:
+        rho = tendon_offsets(features, grid, base_angle, (trig[0][:, 0::2], trig[1][:, 0::2]))
+        return ReferenceRobot(backbone, rotation, rho)
+    trig_end = tendon_trig(features, sigma, base_angle)
+    backbone, rotation = _partial_step(backbone, rotation, xi_nodes, features, sigma, base_angle, trig_end)
+    return ReferenceRobot(backbone, rotation, tendon_offsets(features, sigma, base_angle, trig_end))
+
+
 def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch.Tensor, sigma: torch.Tensor,
                  base_angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Poses at any ``sigma`` ``(m,)`` from poses on the uniform grid of ``n`` points: from the grid
@@ -140,18 +171,48 @@ def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch
     Returns:
         ``(backbone (3, m, B) m, rotation (3, 3, m, B))``.
     """
+    grid = torch.linspace(0.0, 1.0, backbone.shape[1], dtype=sigma.dtype)
+    xi_nodes = strain_prior(features, grid, base_angle)
+    return _partial_step(backbone, rotation, xi_nodes, features, sigma, base_angle,
+                         tendon_trig(features, sigma, base_angle))
+
+
+def _partial_step(backbone: torch.Tensor, rotation: torch.Tensor, xi_nodes: torch.Tensor, features: torch.Tensor,
+                  sigma: torch.Tensor, base_angle: torch.Tensor, trig_end: tuple[torch.Tensor, torch.Tensor]
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`partial_step` given the grid strains ``xi_nodes`` ``(6, n, B)`` and the trig at ``sigma``."""
     intervals = backbone.shape[1] - 1
     k = torch.clamp(torch.floor(sigma * intervals), 0, intervals - 1).long()  # (m,)
     s_k = k.to(sigma.dtype) / intervals
-    xa = strain_prior(features, s_k, base_angle)
+    xa = xi_nodes[:, k]
     xm = strain_prior(features, 0.5 * (s_k + sigma), base_angle)
-    xb = strain_prior(features, sigma, base_angle)
+    xb = strain_prior(features, sigma, base_angle, trig_end)
     rot_s, pos_s = _magnus_step(xa, xm, xb, (sigma - s_k)[:, None] * features[:, 2])  # step (m, B) m
     rot_k, pos_k = rotation[:, :, k], backbone[:, k]
     return pos_k + matvec3(rot_k, pos_s), matmul3(rot_k, rot_s)
 
 
-def strain_prior(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor) -> torch.Tensor:
+def tendon_trig(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """sin and cos of the tendon angles phi_i(s) = 2 pi i / N_t + q_i s, each ``(N_t, n, B)``, for
+    ``sigma`` ``(n,)`` or ``(n, B)`` fractions of L (shared by the strains and the tendon offsets)."""
+    t = base_angle.shape[0]
+    f = features.T  # (F, B)
+    s = (sigma[:, None] if sigma.dim() == 1 else sigma) * f[2]  # (n, B) m
+    phi = base_angle[:, None, None] + f[3 + t:3 + 2 * t, None, :] * s  # (N_t, n, B) rad
+    return torch.sin(phi), torch.cos(phi)
+
+
+def _tendon_sum(x: torch.Tensor) -> torch.Tensor:
+    """Sum over the leading tendon axis, ``(N_t, ...) -> (...)``, as one MatMul with a row of ones
+    (onnxruntime's ReduceSum over a short leading axis is about 4x slower)."""
+    t = x.shape[0]
+    total = torch.matmul(torch.ones(1, t, dtype=x.dtype), x.reshape(t, -1))
+    return total.reshape(x.shape[1:])
+
+
+def strain_prior(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor,
+                 trig: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Body strains of the local equilibrium (W1, W2) with the tendon tangents of the undeformed rod.
 
     From K_se (nu - e3) + sum_i tau_i t_i = 0 and K_bt kappa + sum_i tau_i rho_i x t_i = 0 with
@@ -163,38 +224,36 @@ def strain_prior(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.
         features: raw SI designs ``(B, 3 + 3 N_t)``.
         sigma: arclength fractions ``(n,)`` or ``(n, B)``.
         base_angle: tendon angles 2 pi i / N_t, rad, ``(N_t,)``.
+        trig: :func:`tendon_trig` at ``sigma`` when already computed.
 
     Returns:
         ``(6, n, B)``: nu (1) and kappa (rad/m).
     """
     t = base_angle.shape[0]
+    sin, cos = tendon_trig(features, sigma, base_angle) if trig is None else trig
     f = features.T  # (F, B)
-    e, r, length = f[0], f[1], f[2]
+    e, r = f[0], f[1]
     offset, pitch, tension = f[3:3 + t, None, :], f[3 + t:3 + 2 * t, None, :], f[3 + 2 * t:, None, :]  # (N_t, 1, B)
-    s = (sigma[:, None] if sigma.dim() == 1 else sigma) * length  # (n, B) m
-    phi = base_angle[:, None, None] + pitch * s  # (N_t, n, B)
-    sin, cos = torch.sin(phi), torch.cos(phi)
     oq = offset * pitch
     w = tension / torch.sqrt(1.0 + oq * oq)  # tau_i / c_i
     g = e / (2.0 * (1.0 + POISSON_RATIO))
     area, inertia = math.pi * r * r, (math.pi / 4.0) * r**4
     ga, ea, ei, gj = g * area, e * area, e * inertia, 2.0 * g * inertia  # (B,)
-    ws, wc = w * sin, w * cos  # (N_t, n, B)
-    zero = torch.zeros_like(s)
-    return torch.stack([
-        (oq * ws).sum(0) / ga, -(oq * wc).sum(0) / ga, 1.0 - w.sum(0) / ea + zero,
-        -(offset * ws).sum(0) / ei, (offset * wc).sum(0) / ei, -(offset * oq * w).sum(0) / gj + zero,
-    ])
+    coef = torch.stack([oq * w / ga, -offset * w / ei], dim=1)  # (N_t, 2, 1, B): nu_x, kappa_x per sin phi_i
+    with_sin = _tendon_sum(coef * sin[:, None])  # (2, n, B): nu_x, kappa_x
+    with_cos = _tendon_sum(-coef * cos[:, None])  # nu_y, kappa_y
+    axial = torch.stack([1.0 - w.sum(0) / ea, -(offset * oq * w).sum(0) / gj]) + torch.zeros_like(with_sin)
+    return torch.stack([with_sin[0], with_cos[0], axial[0], with_sin[1], with_cos[1], axial[1]])
 
 
-def tendon_offsets(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor) -> torch.Tensor:
-    """Body-frame tendon offsets rho_i(s), m, ``(2, N_t, n, B)`` (x and y; z is 0)."""
+def tendon_offsets(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor,
+                   trig: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """Body-frame tendon offsets rho_i(s), m, ``(2, N_t, n, B)`` (x and y; z is 0).
+    ``trig``: :func:`tendon_trig` at ``sigma`` when already computed."""
     t = base_angle.shape[0]
-    f = features.T
-    offset, pitch = f[3:3 + t, None, :], f[3 + t:3 + 2 * t, None, :]
-    s = (sigma[:, None] if sigma.dim() == 1 else sigma) * f[2]
-    phi = base_angle[:, None, None] + pitch * s
-    return torch.stack([offset * torch.cos(phi), offset * torch.sin(phi)])
+    sin, cos = tendon_trig(features, sigma, base_angle) if trig is None else trig
+    offset = features.T[3:3 + t, None, :]  # (N_t, 1, B) m
+    return torch.stack([offset * cos, offset * sin])
 
 
 def tendon_positions(backbone: torch.Tensor, rotation: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
@@ -216,8 +275,14 @@ def linearized_pose(features: torch.Tensor, grid: torch.Tensor, base_angle: torc
                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """The reference robot on the uniform ``grid`` ``(n,)``: the prior strains integrated by
     :func:`magnus_kinematics`.  Returns ``(backbone (3, n, B) m, rotation (3, 3, n, B))``."""
-    mid = 0.5 * (grid[1:] + grid[:-1])
-    xi_nodes = strain_prior(features, grid, base_angle)
-    xi_mid = strain_prior(features, mid, base_angle)
-    step = features[:, 2] * (grid[1] - grid[0])
-    return magnus_kinematics(xi_nodes, xi_mid, step)
+    ref = linearized_reference(features, grid, base_angle)
+    return ref.backbone, ref.rotation
+
+
+def batch_first(x: torch.Tensor) -> torch.Tensor:
+    """Batch-last ``(D..., n, B)`` -> batch-first ``(B, n, D...)``.  The n axis moves to the front
+    with B kept innermost (rows of B move as blocks), then one 2-D transpose: in onnxruntime about
+    6x faster than the equivalent single N-D Transpose."""
+    d = x.dim()
+    lead = x.permute(d - 2, *range(d - 2), d - 1)  # (n, D..., B)
+    return lead.reshape(-1, x.shape[-1]).T.reshape(-1, *lead.shape[:-1])

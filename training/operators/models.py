@@ -92,14 +92,22 @@ class _OperatorBase(nn.Module):
     def n_inputs(self) -> int:
         return N_FEATURES + (2 * N_T + 3 if self.config.inputs == "physics" else 0)
 
-    def reference(self, features: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Pose of the linearised reference robot, batch last: backbone ``(3, n, B)`` m and rotation
-        ``(3, 3, n, B)``, on the model's grid or (DeepONet) at any ``sigma``."""
+    def reference(self, features: torch.Tensor, sigma: torch.Tensor) -> kinematics.ReferenceRobot:
+        """The linearised reference robot, batch last (:class:`kinematics.ReferenceRobot`), on the
+        model's grid or (DeepONet) at any ``sigma``: one Magnus step from the grid point below."""
         grid = self.reference_grid
-        p, r = kinematics.linearized_pose(features, grid, self.geometry.base_angle)
-        if sigma is not grid:  # a DeepONet asked for arbitrary s: one Magnus step from the grid point below
-            p, r = kinematics.partial_step(p, r, features, sigma, self.geometry.base_angle)
-        return p, r
+        return kinematics.linearized_reference(features, grid, self.geometry.base_angle,
+                                               None if sigma is grid else sigma)
+
+    def raw_batch_last(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """:meth:`raw` with the batch last, ``(C, n, B)``."""
+        return self.raw(features, sigma).permute(2, 1, 0)
+
+    def outputs(self, features: torch.Tensor, sigma: torch.Tensor, ref=None):
+        """Tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons) for pose models."""
+        if self.config.reference == "linearized":
+            return self._linearized_heads(features, sigma, self.raw_batch_last(features, sigma), ref)
+        return self.heads(features, sigma, self.raw(features, sigma), ref)
 
     def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor, ref=None):
         """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons).
@@ -127,24 +135,22 @@ class _OperatorBase(nn.Module):
         corrections in units of L / 100; tendon channels are ordered (tendon, coordinate)."""
         if ref is None:
             ref = self.reference(features, sigma)
-        ref_p, ref_r = ref
         scale = features[:, 2] * _LINEARIZED_SCALE  # (B,) m
         n, b = out.shape[1], out.shape[2]
-        rho = kinematics.tendon_offsets(features, sigma, self.geometry.base_angle)  # (2, N_t, n, B)
         if self.kind == "tendons":
-            tendons = kinematics.tendon_positions(ref_p, ref_r, rho) + scale * out.reshape(N_T, 3, n, b)
-            return tendons.permute(3, 2, 0, 1)
+            tendons = kinematics.tendon_positions(ref.backbone, ref.rotation, ref.rho) + scale * out.reshape(N_T, 3, n, b)
+            return kinematics.batch_first(tendons)
         e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)[:, None, None]
         e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)[:, None, None]
-        backbone = ref_p + scale * out[0:3]
+        backbone = ref.backbone + scale * out[0:3]
         correction = kinematics.gram_schmidt(e1 + _LINEARIZED_SCALE * out[3:6], e2 + _LINEARIZED_SCALE * out[6:9])
-        rotation = kinematics.matmul3(ref_r, correction)
-        tendons = kinematics.tendon_positions(backbone, rotation, rho)
-        return backbone.permute(2, 1, 0), rotation.permute(3, 2, 0, 1), tendons.permute(3, 2, 0, 1)
+        rotation = kinematics.matmul3(ref.rotation, correction)
+        tendons = kinematics.tendon_positions(backbone, rotation, ref.rho)
+        return tuple(kinematics.batch_first(x) for x in (backbone, rotation, tendons))
 
     def tendons(self, features: torch.Tensor, sigma: torch.Tensor, ref=None) -> torch.Tensor:
         """Predicted tendon positions ``(B, n, N_t, 3)`` m (what both losses compare)."""
-        out = self.heads(features, sigma, self.raw(features, sigma), ref)
+        out = self.outputs(features, sigma, ref)
         return out if self.kind == "tendons" else out[2]
 
 
@@ -169,8 +175,25 @@ class DeepONet(_OperatorBase):
         out = torch.matmul(b.permute(1, 0, 2), t.permute(1, 2, 0))  # (C, B, n)
         return out.permute(1, 2, 0) + self.bias
 
+    def raw_batch_last(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """:meth:`raw` as ``(C, n, B)``, with the trunk folded into the branch's last (linear) layer.
+
+        With branch(d)_c = W_c h(d) + b_c (W_c ``(p, width)``, h the last hidden layer),
+        out_c(d, s) = [trunk_c(s) W_c] h(d) + trunk_c(s) . b_c + bias_c: the bracket ``(n, width)``
+        depends on s only, so each design costs C n width multiply-adds instead of
+        C p (width + n) (32 k instead of 127 k for the paper's sizes), and no large transpose.
+        """
+        c, p = self.out_channels, self.config.p
+        hidden = self.branch[:-1](self.encode(features))  # (B, width)
+        last = self.branch[-1]
+        n = sigma.shape[0]
+        t = self.trunk(2.0 * sigma[:, None] - 1.0).reshape(-1, c, p).permute(1, 0, 2)  # (C, n, p)
+        folded = torch.matmul(t, last.weight.reshape(c, p, -1)).reshape(c * n, -1)  # (C n, width)
+        offset = torch.matmul(t, last.bias.reshape(c, p, 1)) + self.bias[:, None, None]  # (C, n, 1)
+        return (torch.matmul(folded, hidden.T) + offset.reshape(c * n, 1)).reshape(c, n, -1)
+
     def forward(self, features: torch.Tensor, sigma: torch.Tensor):
-        return self.heads(features, sigma, self.raw(features, sigma))
+        return self.outputs(features, sigma)
 
     @property
     def reference_grid(self) -> torch.Tensor:
@@ -207,10 +230,10 @@ class FNO(_OperatorBase):
         return self.project(x)  # (B, n, C)
 
     def forward(self, features: torch.Tensor):
-        return self.heads(features, self.grid, self.raw(features))
+        return self.outputs(features, self.grid)
 
     def tendons(self, features: torch.Tensor, sigma: torch.Tensor | None = None, ref=None) -> torch.Tensor:
-        out = self.heads(features, self.grid, self.raw(features), ref)
+        out = self.outputs(features, self.grid, ref)
         return out if self.kind == "tendons" else out[2]
 
     @property

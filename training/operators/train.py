@@ -114,13 +114,13 @@ def _load_split(data: str | Path, split: str, n: int | None, device) -> tuple[to
 
 def _reference(model, features: torch.Tensor, sigma: torch.Tensor, chunk: int = 4096):
     """The model's reference robot for every design (a fixed function of the design: computed once),
-    batch last: ``(backbone (3, n, B), rotation (3, 3, n, B))``, or ``None`` for the undeformed robot."""
+    batch last (:class:`~training.operators.kinematics.ReferenceRobot`), or ``None`` for the undeformed robot."""
     if model.config.reference == "undeformed":
         return None
     points = getattr(model, "grid", sigma)  # FNOs answer on their own grid
     with torch.no_grad():
         parts = [model.reference(features[i:i + chunk], points) for i in range(0, features.shape[0], chunk)]
-    return torch.cat([p for p, _ in parts], dim=-1), torch.cat([r for _, r in parts], dim=-1)
+    return type(parts[0])(*(torch.cat(field, dim=-1) for field in zip(*parts, strict=True)))
 
 
 def _save_atomic(obj, path: Path) -> None:
@@ -186,7 +186,7 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         total, count = 0.0, 0
         for i in range(0, n, cfg.batch_size):
             idx = perm[i:i + cfg.batch_size]
-            ref = None if ref_train is None else (ref_train[0][..., idx], ref_train[1][..., idx])
+            ref = None if ref_train is None else type(ref_train)(*(x[..., idx] for x in ref_train))
             loss = loss_fn(model.tendons(x_train[idx], sigma, ref), y_train[idx], cfg.loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
