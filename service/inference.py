@@ -151,40 +151,69 @@ class Surrogate:
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
     def run(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
-        """Raw graph outputs at ``sigma`` (DeepONet) or on the grid (FNO), float32."""
-        return self._chunked(lambda f: self._run_one(f, sigma), features)
+        """Raw graph outputs at ``sigma`` (DeepONet) or on the grid (FNO), float32, batch first.
 
-    def _run_one(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
-        feed = {"design": np.ascontiguousarray(features, dtype=np.float32)}
-        if self.grid is None:
-            feed["s"] = np.ascontiguousarray(sigma, dtype=np.float32)
-        names = [o.name for o in self.session.get_outputs()]
-        return dict(zip(names, self.session.run(names, feed), strict=True))
+        onnxruntime writes every chunk straight into its rows of preallocated outputs (I/O
+        binding): no per-chunk output allocation and no concatenation.
+        """
+        features = np.ascontiguousarray(features, dtype=np.float32)
+        sigma32 = np.ascontiguousarray(sigma, dtype=np.float32)
+        n_points = len(sigma32) if self.grid is None else self.grid.size
+        outputs = {name: np.empty((len(features), n_points, *shape[2:]), dtype=np.float32)
+                   for name, shape in self.entry["outputs"].items()}
+        if len(features) == 0:
+            return outputs
+
+        def run_rows(start: int) -> None:
+            rows = slice(start, start + self.chunk)
+            binding = self.session.io_binding()
+            binding.bind_cpu_input("design", features[rows])
+            if self.grid is None:
+                binding.bind_cpu_input("s", sigma32)
+            for name, array in outputs.items():
+                view = array[rows]  # contiguous: the batch axis is the leading one
+                binding.bind_output(name, "cpu", 0, np.float32, list(view.shape), view.ctypes.data)
+            self.session.run_with_iobinding(binding)
+
+        starts = range(0, len(features), self.chunk)
+        if len(starts) == 1 or self._pool is None:
+            for start in starts:
+                run_rows(start)
+        else:
+            list(self._pool.map(run_rows, starts))
+        return outputs
 
     def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
 
         Graph outputs stay float32 (the networks' precision); the pose fit of tendon models and
-        the FNO interpolation compute in float64.  Large batches run in chunks side by side.
+        the FNO interpolation compute in float64, in chunks side by side.
 
         ``pose=False`` returns ``tendons`` only (saves the conversion and, off the FNO grid, the
         interpolation of the pose).
         """
         features = np.asarray(features, dtype=np.float64)
         sigma = np.asarray(sigma, dtype=np.float64)
-        return self._chunked(lambda f: self._predict_one(f, sigma, pose), features)
-
-    def _predict_one(self, features: np.ndarray, sigma: np.ndarray, pose: bool) -> dict[str, np.ndarray]:
+        raw = {k: v for k, v in self.run(features, sigma).items() if pose or k == "tendons"}
         grid = self.grid
-        out = {k: v for k, v in self._run_one(features, sigma).items() if pose or k == "tendons"}
-        if grid is not None and not (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9)):
-            w = _cubic_weights(grid, sigma)
+        on_grid = grid is None or (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9))
+        if on_grid and (not pose or "rotation" in raw):
+            return raw  # nothing to post-process
+        rows = np.arange(len(features))
+        return self._chunked(lambda r: self._post(features[r], {k: v[r] for k, v in raw.items()}, sigma, pose,
+                                                  on_grid), rows)
+
+    def _post(self, features: np.ndarray, out: dict[str, np.ndarray], sigma: np.ndarray, pose: bool,
+              on_grid: bool) -> dict[str, np.ndarray]:
+        """Interpolation off the FNO grid and the pose fit of tendon models, for one chunk."""
+        if not on_grid:
+            w = _cubic_weights(self.grid, sigma)
             out = {k: np.einsum("mn,bn...->bm...", w, v) for k, v in out.items()}
             if "rotation" in out:
                 out["rotation"] = _orthonormalize(out["rotation"])
         if pose and "rotation" not in out:
             out["backbone"], out["rotation"] = rigid_fit(tendon_offsets(features, sigma), out["tendons"])
-        elif pose and grid is not None:  # keep tendons = p + R rho consistent after interpolation
+        elif pose and not on_grid:  # keep tendons = p + R rho consistent after interpolation
             rho = tendon_offsets(features, sigma)
             out["tendons"] = out["backbone"][:, :, None, :] + np.einsum("bnij,bntj->bnti", out["rotation"], rho)
         return out

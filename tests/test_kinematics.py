@@ -110,3 +110,14 @@ def test_solver_linearized_option_is_the_graph_reference():
     assert np.abs(sol.backbone - backbone).max() < 1e-10  # m, round-off of two summation orders
     assert np.abs(sol.rotation - rotation).max() < 1e-10
     assert sol.converged.all()
+
+
+@pytest.mark.parametrize("points", [42, 5, 2, 17])
+def test_grid_trig_by_angle_addition_equals_direct_evaluation(points):
+    feats = torch.as_tensor(design_space.sample_designs(20, seed=9).features())
+    grid = torch.linspace(0.0, 1.0, points, dtype=torch.float64)
+    sin, cos = K._grid_trig(feats, grid, BASE_ANGLE)
+    sin_ref, cos_ref = K.tendon_trig(feats, grid, BASE_ANGLE)
+    assert sin.shape == sin_ref.shape == (4, points, 20)
+    torch.testing.assert_close(sin, sin_ref, atol=1e-13, rtol=0)
+    torch.testing.assert_close(cos, cos_ref, atol=1e-13, rtol=0)

@@ -91,20 +91,26 @@ GRID_TOLERANCE = 1e-6
 def _grid_switch(any_s, on_grid, points: int):
     """One model from two traced graphs with the same outputs: ``If(s == grid, on_grid, any_s)``,
     where grid is j / (points - 1), j < points.  Initializers live in the outer graph (shared by
-    both branches when equal); every other name gets its branch's prefix."""
+    both branches when their contents are equal); every other name gets its branch's prefix."""
     from onnx import TensorProto, helper, numpy_helper
 
+    def content(init) -> tuple:
+        array = numpy_helper.to_array(init)
+        return array.dtype.str, array.shape, array.tobytes()
+
     shared = {init.name: init for init in any_s.graph.initializer}
+    by_content = {content(init): init.name for init in any_s.graph.initializer}
     renamed: dict[str, str] = {}
     for init in on_grid.graph.initializer:
-        same = init.name in shared and numpy_helper.to_array(shared[init.name]).tobytes() == \
-            numpy_helper.to_array(init).tobytes()
-        if not same:
-            renamed[init.name] = "grid/" + init.name
-            copy = onnx.TensorProto()
-            copy.CopyFrom(init)
-            copy.name = renamed[init.name]
-            shared[copy.name] = copy
+        key = content(init)
+        if key in by_content:  # the same weights under the other trace's name
+            renamed[init.name] = by_content[key]
+            continue
+        renamed[init.name] = "grid/" + init.name
+        copy = onnx.TensorProto()
+        copy.CopyFrom(init)
+        copy.name = renamed[init.name]
+        shared[copy.name] = copy
     outer = {"design", "s"} | set(shared)
 
     def branch(graph, prefix: str, mapping: dict[str, str]):

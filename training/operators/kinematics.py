@@ -23,9 +23,9 @@ from training.physics.cosserat import POISSON_RATIO
 
 def cross3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Cross product over the leading axis, ``(3, ...) x (3, ...) -> (3, ...)``."""
-    a0, a1, a2 = a.unbind(0)
-    b0, b1, b2 = b.unbind(0)
-    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+    a0, a1, a2 = a.split(1, dim=0)  # Split + Concat: no per-component Gather / Unsqueeze nodes
+    b0, b1, b2 = b.split(1, dim=0)
+    return torch.cat([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
 def matmul3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -38,9 +38,7 @@ def matmul3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def matvec3(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """``a @ v`` for ``(3, 3, ...)`` and ``(3, ...)``."""
-    a0, a1, a2 = a.unbind(1)
-    v0, v1, v2 = v.split(1, dim=0)
-    return a0 * v0 + a1 * v1 + a2 * v2
+    return matmul3(a, v[:, None])[:, 0]
 
 
 def se3_exp(v: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -50,7 +48,8 @@ def se3_exp(v: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     A = sin t / t, B = (1 - cos t) / t^2, C = (t - sin t) / t^3, t = |w|; below t = 0.1 their
     Taylor series (truncation < 1e-9) replace the float32-unstable quotients.
     """
-    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    w0, w1, w2 = w.split(1, dim=0)  # (1, ...) each
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
     small = t2 < 0.01
     t2s = torch.where(small, torch.ones_like(t2), t2)
     t = torch.sqrt(t2s)
@@ -59,24 +58,24 @@ def se3_exp(v: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     b = torch.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - torch.cos(t)) / t2s)
     c = torch.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (t - sin_t) / (t2s * t))
     d = 1.0 - b * t2
-    aw, bw = a * w, b * w
-    rot = torch.stack([
-        torch.stack([d + bw[0] * w[0], -aw[2] + bw[0] * w[1], aw[1] + bw[0] * w[2]]),
-        torch.stack([aw[2] + bw[1] * w[0], d + bw[1] * w[1], -aw[0] + bw[1] * w[2]]),
-        torch.stack([-aw[1] + bw[2] * w[0], aw[0] + bw[2] * w[1], d + bw[2] * w[2]]),
-    ])
+    aw0, aw1, aw2 = a * w0, a * w1, a * w2
+    bw0, bw1, bw2 = b * w0, b * w1, b * w2
+    rot = torch.cat([d + bw0 * w0, bw0 * w1 - aw2, bw0 * w2 + aw1,
+                     bw1 * w0 + aw2, d + bw1 * w1, bw1 * w2 - aw0,
+                     bw2 * w0 - aw1, bw2 * w1 + aw0, d + bw2 * w2])  # (9, ...), row-major
     wxv = cross3(w, v)
-    return rot, v + b * wxv + c * cross3(w, wxv)
+    return rot.reshape((3, 3) + tuple(w.shape[1:])), v + b * wxv + c * cross3(w, wxv)
 
 
 def _magnus_step(xa: torch.Tensor, xm: torch.Tensor, xb: torch.Tensor, step: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """One 4th-order Magnus step (eq. MAG) from body twists ``(6, ...)`` at its start, middle and
     end over length ``step`` (m, broadcast against ``...``): ``(R (3, 3, ...), p (3, ...))``."""
-    wa, wb = xa[3:6], xb[3:6]
-    mean = (xa + 4.0 * xm + xb) * (step / 6.0)
+    va, wa = xa.split(3, dim=0)
+    vb, wb = xb.split(3, dim=0)
+    mean_v, mean_w = ((xa + 4.0 * xm + xb) * (step / 6.0)).split(3, dim=0)
     h2 = step * step / 12.0
-    return se3_exp(mean[0:3] + h2 * (cross3(wa, xb[0:3]) - cross3(wb, xa[0:3])), mean[3:6] + h2 * cross3(wa, wb))
+    return se3_exp(mean_v + h2 * (cross3(wa, vb) - cross3(wb, va)), mean_w + h2 * cross3(wa, wb))
 
 
 def magnus_kinematics(xi_nodes: torch.Tensor, xi_mid: torch.Tensor, step: torch.Tensor
@@ -135,7 +134,12 @@ class ReferenceRobot(NamedTuple):
 
     backbone: torch.Tensor  #: ``(3, n, B)`` m
     rotation: torch.Tensor  #: ``(3, 3, n, B)``
-    rho: torch.Tensor  #: body-frame tendon offsets ``(2, N_t, n, B)`` m (x, y; z is 0)
+    rho_x: torch.Tensor  #: body-frame tendon offsets, x, ``(N_t, n, B)`` m
+    rho_y: torch.Tensor  #: and y (z is 0)
+
+    def tendons(self) -> torch.Tensor:
+        """p + R rho_i, m, ``(N_t, 3, n, B)``."""
+        return tendon_positions(self.backbone, self.rotation, (self.rho_x, self.rho_y))
 
 
 def linearized_reference(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Tensor,
@@ -143,20 +147,23 @@ def linearized_reference(features: torch.Tensor, grid: torch.Tensor, base_angle:
     """The reference robot on the uniform ``grid`` ``(K + 1,)``, or at any ``sigma`` ``(m,)`` by one
     partial Magnus step from the grid point below (:func:`partial_step`).
 
-    The strains of the grid's nodes and midpoints come from one evaluation on the interleaved
-    half grid, whose sines and cosines also give the tendon offsets.
+    The sines and cosines of the tendon angles at the grid nodes give the strains there, at the
+    midpoints (by angle addition) and the tendon offsets.
     """
-    half = torch.cat([torch.stack([grid[:-1], 0.5 * (grid[1:] + grid[:-1])], dim=1).reshape(-1), grid[-1:]])
-    trig = tendon_trig(features, half, base_angle)  # (N_t, 2K + 1, B)
-    xi = strain_prior(features, half, base_angle, trig)  # (6, 2K + 1, B)
-    xi_nodes = xi[:, 0::2]
-    backbone, rotation = magnus_kinematics(xi_nodes, xi[:, 1::2], features[:, 2] * (grid[1] - grid[0]))
+    t = base_angle.shape[0]
+    sin, cos = _grid_trig(features, grid, base_angle)  # (N_t, K + 1, B)
+    half_turn = features.T[3 + t:3 + 2 * t, None, :] * (0.5 * features[:, 2] * (grid[1] - grid[0]))  # (N_t, 1, B)
+    sin_h, cos_h = torch.sin(half_turn), torch.cos(half_turn)
+    # midpoints by angle addition: phi(s + h/2) = phi(s) + q h / 2
+    mid_trig = (sin[:, :-1] * cos_h + cos[:, :-1] * sin_h, cos[:, :-1] * cos_h - sin[:, :-1] * sin_h)
+    xi_nodes = strain_prior(features, grid, base_angle, (sin, cos))  # (6, K + 1, B)
+    xi_mid = strain_prior(features, grid[:-1], base_angle, mid_trig)
+    backbone, rotation = magnus_kinematics(xi_nodes, xi_mid, features[:, 2] * (grid[1] - grid[0]))
     if sigma is None:
-        rho = tendon_offsets(features, grid, base_angle, (trig[0][:, 0::2], trig[1][:, 0::2]))
-        return ReferenceRobot(backbone, rotation, rho)
+        return ReferenceRobot(backbone, rotation, *_offsets(features, (sin, cos)))
     trig_end = tendon_trig(features, sigma, base_angle)
     backbone, rotation = _partial_step(backbone, rotation, xi_nodes, features, sigma, base_angle, trig_end)
-    return ReferenceRobot(backbone, rotation, tendon_offsets(features, sigma, base_angle, trig_end))
+    return ReferenceRobot(backbone, rotation, *_offsets(features, trig_end))
 
 
 def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch.Tensor, sigma: torch.Tensor,
@@ -203,6 +210,28 @@ def tendon_trig(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.T
     return torch.sin(phi), torch.cos(phi)
 
 
+def _grid_trig(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`tendon_trig` on a uniform grid of n points with about 2 sqrt(n) sines and cosines per
+    tendon instead of n: with j = a m + b (m = ceil(sqrt n)), phi_j = phi_b + a m q h, and
+    sin / cos of the sum by angle addition (one complex product, round-off of a few ulp)."""
+    n = int(grid.shape[0])  # a fixed grid: constants in the exported graph
+    block = math.ceil(math.sqrt(n))
+    blocks = math.ceil(n / block)
+    t = base_angle.shape[0]
+    pitch_length = features.T[3 + t:3 + 2 * t, None, :] * features[:, 2]  # q_i L, (N_t, 1, B) rad
+    h = grid[1] - grid[0]
+    inner = base_angle[:, None, None] + pitch_length * (grid[0] + h * torch.arange(block, dtype=grid.dtype))[:, None]
+    outer = pitch_length * ((h * block) * torch.arange(blocks, dtype=grid.dtype))[:, None]  # (N_t, blocks, B)
+    s_in, c_in = torch.sin(inner)[:, None], torch.cos(inner)[:, None]  # (N_t, 1, block, B)
+    s_out, c_out = torch.sin(outer)[:, :, None], torch.cos(outer)[:, :, None]  # (N_t, blocks, 1, B)
+    sin = (s_in * c_out + c_in * s_out).reshape(t, blocks * block, -1)
+    cos = (c_in * c_out - s_in * s_out).reshape(t, blocks * block, -1)
+    if blocks * block != n:
+        sin, cos = sin[:, :n], cos[:, :n]
+    return sin, cos
+
+
 def _tendon_sum(x: torch.Tensor) -> torch.Tensor:
     """Sum over the leading tendon axis, ``(N_t, ...) -> (...)``, as one MatMul with a row of ones
     (onnxruntime's ReduceSum over a short leading axis is about 4x slower)."""
@@ -240,26 +269,30 @@ def strain_prior(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.
     area, inertia = math.pi * r * r, (math.pi / 4.0) * r**4
     ga, ea, ei, gj = g * area, e * area, e * inertia, 2.0 * g * inertia  # (B,)
     coef = torch.stack([oq * w / ga, -offset * w / ei], dim=1)  # (N_t, 2, 1, B): nu_x, kappa_x per sin phi_i
-    with_sin = _tendon_sum(coef * sin[:, None])  # (2, n, B): nu_x, kappa_x
-    with_cos = _tendon_sum(-coef * cos[:, None])  # nu_y, kappa_y
-    axial = torch.stack([1.0 - w.sum(0) / ea, -(offset * oq * w).sum(0) / gj]) + torch.zeros_like(with_sin)
-    return torch.stack([with_sin[0], with_cos[0], axial[0], with_sin[1], with_cos[1], axial[1]])
+    nu_x, kappa_x = _tendon_sum(coef * sin[:, None]).split(1, dim=0)  # (1, n, B) each
+    nu_y, kappa_y = _tendon_sum(-coef * cos[:, None]).split(1, dim=0)
+    nu_z = 1.0 - w.sum(0) / ea + torch.zeros_like(nu_x)  # (1, n, B)
+    kappa_z = -(offset * oq * w).sum(0) / gj + torch.zeros_like(nu_x)
+    return torch.cat([nu_x, nu_y, nu_z, kappa_x, kappa_y, kappa_z])
 
 
-def tendon_offsets(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor,
-                   trig: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-    """Body-frame tendon offsets rho_i(s), m, ``(2, N_t, n, B)`` (x and y; z is 0).
-    ``trig``: :func:`tendon_trig` at ``sigma`` when already computed."""
-    t = base_angle.shape[0]
-    sin, cos = tendon_trig(features, sigma, base_angle) if trig is None else trig
-    offset = features.T[3:3 + t, None, :]  # (N_t, 1, B) m
-    return torch.stack([offset * cos, offset * sin])
+def tendon_offsets(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor) -> torch.Tensor:
+    """Body-frame tendon offsets rho_i(s), m, ``(2, N_t, n, B)`` (x and y; z is 0)."""
+    return torch.stack(_offsets(features, tendon_trig(features, sigma, base_angle)))
 
 
-def tendon_positions(backbone: torch.Tensor, rotation: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
-    """p + R rho_i (paper eq. tend-path), m: ``(3, n, B)``, ``(3, 3, n, B)``, ``(2, N_t, n, B)`` -> ``(N_t, 3, n, B)``
-    (rho has no z component)."""
-    return backbone[None] + rotation[:, 0][None] * rho[0][:, None] + rotation[:, 1][None] * rho[1][:, None]
+def _offsets(features: torch.Tensor, trig: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """rho_i x and y, m, ``(N_t, n, B)`` each, from :func:`tendon_trig`."""
+    sin, cos = trig
+    offset = features.T[3:3 + sin.shape[0], None, :]  # (N_t, 1, B) m
+    return offset * cos, offset * sin
+
+
+def tendon_positions(backbone: torch.Tensor, rotation: torch.Tensor, rho) -> torch.Tensor:
+    """p + R rho_i (paper eq. tend-path), m: ``(3, n, B)``, ``(3, 3, n, B)`` and rho ``(2, N_t, n, B)``
+    (or its x and y parts) -> ``(N_t, 3, n, B)`` (rho has no z component)."""
+    rho_x, rho_y = rho[0], rho[1]
+    return backbone[None] + rotation[:, 0][None] * rho_x[:, None] + rotation[:, 1][None] * rho_y[:, None]
 
 
 def gram_schmidt(a1: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:

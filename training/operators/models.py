@@ -138,14 +138,14 @@ class _OperatorBase(nn.Module):
         scale = features[:, 2] * _LINEARIZED_SCALE  # (B,) m
         n, b = out.shape[1], out.shape[2]
         if self.kind == "tendons":
-            tendons = kinematics.tendon_positions(ref.backbone, ref.rotation, ref.rho) + scale * out.reshape(N_T, 3, n, b)
+            tendons = ref.tendons() + scale * out.reshape(N_T, 3, n, b)
             return kinematics.batch_first(tendons)
         e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)[:, None, None]
         e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)[:, None, None]
         backbone = ref.backbone + scale * out[0:3]
         correction = kinematics.gram_schmidt(e1 + _LINEARIZED_SCALE * out[3:6], e2 + _LINEARIZED_SCALE * out[6:9])
         rotation = kinematics.matmul3(ref.rotation, correction)
-        tendons = kinematics.tendon_positions(backbone, rotation, ref.rho)
+        tendons = kinematics.tendon_positions(backbone, rotation, (ref.rho_x, ref.rho_y))
         return tuple(kinematics.batch_first(x) for x in (backbone, rotation, tendons))
 
     def tendons(self, features: torch.Tensor, sigma: torch.Tensor, ref=None) -> torch.Tensor:
