@@ -59,3 +59,15 @@ def test_chunks_side_by_side_equal_one_call(tiny_models, name):
     chunked = Surrogate.load(tiny_models[1], name, threads=2, chunk=7).predict(feats, sigma)
     for k in whole:
         np.testing.assert_allclose(chunked[k], whole[k], rtol=1e-5, atol=2e-6)
+
+
+def test_a_lone_request_runs_in_its_own_thread(tiny_models):
+    """No hand-off to the worker when the model is idle; queued requests still go to the worker."""
+    threads: list[str] = []
+    batcher = Batcher(Surrogate.load(tiny_models[1], "deeponet"),
+                      on_run=lambda n: threads.append(threading.current_thread().name))
+    feats = design_space.sample_designs(3, seed=0).features()
+    out = batcher.predict(feats, np.linspace(0, 1, 5))
+    assert out["tendons"].shape == (3, 5, 4, 3)
+    assert threads == [threading.current_thread().name]
+    batcher.close()
