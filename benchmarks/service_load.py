@@ -50,27 +50,26 @@ def start_server(models_dir: str) -> tuple[subprocess.Popen, str]:
 
 
 async def main_async(url: str, soak: float, quick: bool) -> None:
-    limits = httpx.Limits(max_connections=64, max_keepalive_connections=64)
-    async with httpx.AsyncClient(base_url=url, timeout=120.0, limits=limits) as client:
+    async with httpx.AsyncClient(base_url=url, timeout=120.0) as client:
         for _ in range(50):  # warm-up
             await client.post("/predict", json={"designs": [{"E": 3e10, "r": 1e-3, "L": 0.2, "tendons": [
                 {"offset": 0.008, "tension": 1.0}] * 4}]})
         print("JSON requests, default model:\n\n" + HEADER)
         for batch in (1, 32, 1024):
             for c in (1, 4, 16, 64):
-                row = await run_cell(client, concurrency=c, batch=batch, model=None, binary=False,
+                row = await run_cell(url, concurrency=c, batch=batch, model=None, binary=False,
                                      max_requests=200 if quick else 2000, max_seconds=2 if quick else 10)
                 print(format_row(row), flush=True)
         print("\nBinary requests (.npy in, .npz out), deeponet:\n\n" + HEADER)
         for batch in (1024, 8192):
             for outputs in (None, "tendons"):
                 for c in (1, 2):
-                    row = await run_cell(client, concurrency=c, batch=batch, model="deeponet", binary=True,
+                    row = await run_cell(url, concurrency=c, batch=batch, model="deeponet", binary=True,
                                          outputs=outputs, max_requests=100 if quick else 400,
                                          max_seconds=2 if quick else 10)
                     print(format_row(row), flush=True)
         before = await server_rss(client)
-        row: Row = await run_cell(client, concurrency=64, batch=1, model=None, binary=False,
+        row: Row = await run_cell(url, concurrency=64, batch=1, model=None, binary=False,
                                   max_requests=10**7, max_seconds=soak)
         after = await server_rss(client)
         print(f"\nSoak: {soak:.0f} s at concurrency 64, one design per request (JSON):\n\n" + HEADER)

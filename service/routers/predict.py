@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import time
+import zipfile
 
 import numpy as np
 import orjson
@@ -117,6 +118,20 @@ def _resolve_model(name: str | None, state: ServiceState):
     return name, state.batchers[name]
 
 
+def _npz(arrays: dict[str, np.ndarray]) -> bytes:
+    """An uncompressed .npz (what ``np.savez`` writes; floats as float32), each member written in one
+    piece: about half the time of ``np.savez`` for large batches, whose chunked writes cost as much
+    as the graph run."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for key, value in arrays.items():
+            value = np.ascontiguousarray(value, dtype=np.float32 if value.dtype.kind == "f" else value.dtype)
+            header = io.BytesIO()
+            np.lib.format.write_array_header_2_0(header, np.lib.format.header_data_from_array_1_0(value))
+            archive.writestr(f"{key}.npy", b"".join([header.getvalue(), memoryview(value).cast("B")]))
+    return buf.getvalue()
+
+
 def _answer(body: bytes, content_type: str, accept: str, params, state: ServiceState) -> tuple[Response, str, int]:
     if content_type.startswith(NPY):
         name, feats, sigma = _parse_npy(body, params, state)
@@ -128,10 +143,8 @@ def _answer(body: bytes, content_type: str, accept: str, params, state: ServiceS
     warnings = _range_warnings(feats)
     s = feats[:, 2:3] * sigma[None, :]
     if NPZ in accept:
-        buf = io.BytesIO()
-        arrays = {k: out[k].astype(np.float32) for k in wanted}
-        np.savez(buf, s=s.astype(np.float32), in_distribution=np.array([not w for w in warnings]), **arrays)
-        return Response(buf.getvalue(), media_type=NPZ, headers={"X-TDCR-Model": name}), name, len(feats)
+        arrays = {"s": s, "in_distribution": np.array([not w for w in warnings])} | {k: out[k] for k in wanted}
+        return Response(_npz(arrays), media_type=NPZ, headers={"X-TDCR-Model": name}), name, len(feats)
     out = {k: np.ascontiguousarray(v) for k, v in out.items()}  # orjson serialises C-contiguous arrays
     s = np.ascontiguousarray(s)
     results = [{"s": s[j], "backbone": out["backbone"][j], "rotation": out["rotation"][j],
