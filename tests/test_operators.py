@@ -131,11 +131,12 @@ def test_onnx_matches_torch(tiny_models, name):
     sigmas = [np.linspace(0, 1, 42), np.linspace(0, 0.9, 42), np.array([0.0, 0.33, 1.0])] if deeponet \
         else [np.linspace(0, 1, 42)]
     names = ["tendons"] if model.kind == "tendons" else ["backbone", "rotation", "tendons"]
-    for sigma in sigmas:
-        raw = surrogate.run(feats, sigma)
+    # FNO graphs switch between a small-batch and a large-batch layout: 3 and 64 designs test both
+    for sigma, batch in [(sigma, batch) for sigma in sigmas for batch in (3, 64)]:
+        raw = surrogate.run(feats[:batch], sigma)
         with torch.no_grad():
-            ref = model(torch.as_tensor(feats, dtype=torch.float32), torch.as_tensor(sigma, dtype=torch.float32)) \
-                if deeponet else model(torch.as_tensor(feats, dtype=torch.float32))
+            x = torch.as_tensor(feats[:batch], dtype=torch.float32)
+            ref = model(x, torch.as_tensor(sigma, dtype=torch.float32)) if deeponet else model(x)
         ref = ref if isinstance(ref, tuple) else (ref,)
         for got, want in zip([raw[k] for k in names], ref, strict=True):
             assert got.shape == want.shape
@@ -179,3 +180,16 @@ def test_cli_predict_and_evaluate(tiny_models, tiny_data):
     entry = json.loads((models / "manifest.json").read_text())["models"]["fno"]
     assert entry["metrics"]["test_relative_l2"]["n"] == 30
     assert "out of distribution" in ev.stdout and len(entry["metrics"]["ood_mean_relative_l2"]) == 5
+
+
+@pytest.mark.parametrize("name", list(REGISTRY))
+def test_batch_last_network_equals_the_channels_last_one(name):
+    """The export's fast layouts (DeepONet trunk folded into the branch, FNO channels first) are
+    the same function as the networks written the paper's way."""
+    torch.manual_seed(0)
+    model = build_model(name, {**TINY[name], "inputs": "physics", "reference": "linearized"}).double().eval()
+    feats = torch.as_tensor(design_space.sample_designs(5, seed=3).features())
+    sigma = torch.linspace(0, 1, 42, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(model.raw_batch_last(feats, sigma), model.raw(feats, sigma).permute(2, 1, 0),
+                                   atol=1e-12, rtol=1e-10)

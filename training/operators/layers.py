@@ -80,6 +80,17 @@ class SpectralConv1d(nn.Module):
         y_im = torch.einsum("bmi,iom->bmo", x_re, self.weight_im) + torch.einsum("bmi,iom->bmo", x_im, self.weight_re)
         return self.inv_cos @ y_re + self.inv_sin @ y_im  # (B, n, C_out)
 
+    def forward_batch_last(self, x: torch.Tensor) -> torch.Tensor:
+        """The same map with channels first and the batch last, ``(C_in, n, B) -> (C_out, n, B)``
+        (``mixing='shared'``): the grid axis is contracted by MatMuls broadcast over channels and
+        the channels are mixed by one GEMM over all retained coefficients and designs."""
+        fwd = torch.cat([self.fwd_cos, self.fwd_sin])  # (2 modes, n): Re and Im rows
+        inv = torch.cat([self.inv_cos, self.inv_sin], dim=1)  # (n, 2 modes)
+        c_in, _, b = x.shape
+        coeffs = torch.matmul(fwd, x)  # (C_in, 2 modes, B)
+        mixed = torch.matmul(self.linear.weight, coeffs.reshape(c_in, -1)).reshape(-1, fwd.shape[0], b)
+        return torch.matmul(inv, mixed) + self.linear.bias[:, None, None]
+
 
 def gram_schmidt(a1: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:
     """Rotation matrices from two vectors ``(..., 3)``: columns b1, b2, b1 x b2 (Gram-Schmidt).  ``(..., 3, 3)``."""

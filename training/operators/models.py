@@ -229,6 +229,26 @@ class FNO(_OperatorBase):
                 x = self.dropout(torch.relu(x))
         return self.project(x)  # (B, n, C)
 
+    def raw_batch_last(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
+        """:meth:`raw` computed channels first and batch last, ``(C, n, B)``: every channel map is
+        one GEMM over all points and designs, with no transpose of the ``(B, n, W)`` activations.
+        The lift of [s, design] is the sum of its two parts (the design is constant along s)."""
+        if self.config.mixing != "shared":
+            return super().raw_batch_last(features, sigma)
+        n = self.config.n_points
+        d = self.encode(features)  # (B, F)
+        w_lift = self.lift.weight  # (W, 1 + F)
+        x = (w_lift[:, :1, None] * (2.0 * self.grid - 1.0)[None, :, None]  # (W, n, 1)
+             + torch.matmul(w_lift[:, 1:], d.T)[:, None, :] + self.lift.bias[:, None, None])  # (W, n, B)
+        for k, (spec, point) in enumerate(zip(self.spectral, self.pointwise, strict=True)):
+            flat = x.reshape(x.shape[0], -1)  # (W, n B)
+            pointwise = (torch.matmul(point.weight, flat) + point.bias[:, None]).reshape(-1, n, x.shape[2])
+            x = spec.forward_batch_last(x) + pointwise
+            if k < len(self.spectral) - 1:
+                x = self.dropout(torch.relu(x))
+        out = torch.matmul(self.project.weight, x.reshape(x.shape[0], -1)) + self.project.bias[:, None]
+        return out.reshape(-1, n, x.shape[2])  # (C, n, B)
+
     def forward(self, features: torch.Tensor):
         return self.outputs(features, self.grid)
 
