@@ -143,12 +143,16 @@ class Surrogate:
         g = self.entry.get("grid")
         return None if g is None else np.asarray(g)
 
-    def _chunked(self, fn, features: np.ndarray) -> dict[str, np.ndarray]:
-        """``fn(chunk)`` over chunks of ``features`` side by side, outputs concatenated along B."""
-        if len(features) <= self.chunk or self._pool is None:
-            return fn(features)
-        parts = list(self._pool.map(fn, [features[i:i + self.chunk] for i in range(0, len(features), self.chunk)]))
-        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    def _row_slices(self, n: int) -> list[slice]:
+        """Rows of a batch of ``n`` designs in chunks of at most ``chunk``."""
+        return [slice(i, i + self.chunk) for i in range(0, n, self.chunk)]
+
+    def _side_by_side(self, fn, n: int) -> list:
+        """``fn(rows)`` for every chunk of ``n`` rows, on the thread pool when there are several."""
+        chunks = self._row_slices(n)
+        if len(chunks) <= 1 or self._pool is None:
+            return [fn(rows) for rows in chunks]
+        return list(self._pool.map(fn, chunks))
 
     def run(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
         """Raw graph outputs at ``sigma`` (DeepONet) or on the grid (FNO), float32, batch first.
@@ -164,8 +168,7 @@ class Surrogate:
         if len(features) == 0:
             return outputs
 
-        def run_rows(start: int) -> None:
-            rows = slice(start, start + self.chunk)
+        def run_rows(rows: slice) -> None:
             binding = self.session.io_binding()
             binding.bind_cpu_input("design", features[rows])
             if self.grid is None:
@@ -175,12 +178,7 @@ class Surrogate:
                 binding.bind_output(name, "cpu", 0, np.float32, list(view.shape), view.ctypes.data)
             self.session.run_with_iobinding(binding)
 
-        starts = range(0, len(features), self.chunk)
-        if len(starts) == 1 or self._pool is None:
-            for start in starts:
-                run_rows(start)
-        else:
-            list(self._pool.map(run_rows, starts))
+        self._side_by_side(run_rows, len(features))
         return outputs
 
     def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
@@ -199,16 +197,19 @@ class Surrogate:
         on_grid = grid is None or (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9))
         if on_grid and (not pose or "rotation" in raw):
             return raw  # nothing to post-process
-        rows = np.arange(len(features))
-        return self._chunked(lambda r: self._post(features[r], {k: v[r] for k, v in raw.items()}, sigma, pose,
-                                                  on_grid), rows)
+        weights = None if on_grid else _cubic_weights(grid, sigma)
+        parts = self._side_by_side(
+            lambda rows: self._post(features[rows], {k: v[rows] for k, v in raw.items()}, sigma, pose, weights),
+            len(features))
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
     def _post(self, features: np.ndarray, out: dict[str, np.ndarray], sigma: np.ndarray, pose: bool,
-              on_grid: bool) -> dict[str, np.ndarray]:
-        """Interpolation off the FNO grid and the pose fit of tendon models, for one chunk."""
+              weights: np.ndarray | None) -> dict[str, np.ndarray]:
+        """For one chunk: cubic interpolation off the FNO grid (``weights`` ``(n, n_grid)``, None on
+        the grid) and the pose fit of tendon models."""
+        on_grid = weights is None
         if not on_grid:
-            w = _cubic_weights(self.grid, sigma)
-            out = {k: np.einsum("mn,bn...->bm...", w, v) for k, v in out.items()}
+            out = {k: np.einsum("mn,bn...->bm...", weights, v) for k, v in out.items()}
             if "rotation" in out:
                 out["rotation"] = _orthonormalize(out["rotation"])
         if pose and "rotation" not in out:

@@ -120,8 +120,7 @@ def _resolve_model(name: str | None, state: ServiceState):
 
 def _npz(arrays: dict[str, np.ndarray]) -> bytes:
     """An uncompressed .npz (what ``np.savez`` writes; floats as float32), each member written in one
-    piece: about half the time of ``np.savez`` for large batches, whose chunked writes cost as much
-    as the graph run."""
+    piece: 19-30 ms against 32 ms for ``np.savez``'s chunked writes of an 8192-design answer."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
         for key, value in arrays.items():
