@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.inference import Surrogate
-from training import design_space
+from tdcr import design_space
+from tdcr.runtime import Surrogate
 
 
 def best_time(fn, repeats: int) -> float:

@@ -16,37 +16,16 @@ import argparse
 import asyncio
 import os
 import platform
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
 
-from service.loadtest import Row, format_row, run_cell, server_rss
+from service.process import ServerProcess
+from tdcr.loadtest import Row, format_row, run_cell, server_rss
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADER = ("| encoding | batch | concurrency | requests | errors | p50 (ms) | p95 (ms) | p99 (ms) | requests/s "
           "| designs/s |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-
-
-def start_server(models_dir: str) -> tuple[subprocess.Popen, str]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {**os.environ, "TDCR_MODELS_DIR": models_dir}
-    proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port",
-                             str(port), "--log-level", "warning"], cwd=ROOT, env=env)  # log to our stderr
-    url = f"http://127.0.0.1:{port}"
-    for _ in range(600):
-        try:
-            if httpx.get(url + "/readyz", timeout=2).status_code == 200:
-                return proc, url
-        except httpx.HTTPError:
-            time.sleep(0.1)
-    proc.kill()
-    raise SystemExit("server did not become ready")
 
 
 async def main_async(url: str, soak: float, quick: bool) -> None:
@@ -85,12 +64,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="short cells (smoke run)")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; server and client on the same machine\n")
-    proc, url = start_server(args.models_dir)
-    try:
-        asyncio.run(main_async(url, args.soak, args.quick))
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
+    with ServerProcess(args.models_dir) as server:
+        asyncio.run(main_async(server.url, args.soak, args.quick))
 
 
 if __name__ == "__main__":

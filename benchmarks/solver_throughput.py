@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from training import design_space
-from training.designs import DesignBatch
-from training.physics import solve
+from tdcr import design_space
+from tdcr.designs import DesignBatch
+from tdcr.physics import solve
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -15,15 +15,15 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.errors import ApiError, unprocessable
+import tdcr
+from service.errors import ApiError
 from service.metrics import Metrics
 from service.routers import exact, health, models, predict
-from service.schemas import PredictRequest
 from service.settings import Settings
 from service.state import ServiceState, load_models, start_pool, stop_pool
+from tdcr.schemas import ExactRequest, PredictRequest
 
 log = logging.getLogger("tdcr.service")
-VERSION = "0.1.0"
 
 
 class BodyLimit:
@@ -94,9 +94,16 @@ async def _send_error(send, status: int, message: str) -> None:
     await send({"type": "http.response.body", "body": body})
 
 
+def _route_label(scope) -> str:
+    """The metric label of a request: its route's path template, or ``other`` (never the raw path)."""
+    route = scope.get("route")
+    path = getattr(route, "path", None)
+    return path if path in _PATHS else "other"
+
+
 def _error_response(request: Request, exc: ApiError) -> JSONResponse:
     state: ServiceState = request.app.state.service
-    state.metrics.errors.labels(request.url.path, exc.kind).inc()
+    state.metrics.errors.labels(_route_label(request.scope), exc.kind).inc()
     return JSONResponse({"message": exc.message, "detail": exc.detail}, status_code=exc.status)
 
 
@@ -119,7 +126,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if state.pool is not None:
             stop_pool(state.pool)
 
-    app = FastAPI(title="tdcr-surrogates", version=VERSION, lifespan=lifespan,
+    app = FastAPI(title="tdcr-surrogates", version=tdcr.__version__, lifespan=lifespan,
                   description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "
                               "and the Cosserat solver (/exact).  SI units throughout.")
     app.state.service = state
@@ -134,7 +141,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def validation_error(request: Request, exc: RequestValidationError):
         items = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", "invalid"), "type": e.get("type", "invalid")}
                  for e in exc.errors()]
-        return _error_response(request, unprocessable(items))
+        message = "; ".join(f"{'.'.join(map(str, i['loc']))}: {i['msg']}" for i in items)
+        return _error_response(request, ApiError(422, message, items, kind="validation"))
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
@@ -155,13 +163,14 @@ _PATHS = {"/predict", "/exact", "/models", "/healthz", "/readyz", "/metrics"}
 
 
 def _openapi(app: FastAPI) -> dict:
-    """FastAPI's document plus the JSON schema of PredictRequest (its body is parsed by hand)."""
+    """FastAPI's document plus the JSON schemas of the request bodies (parsed by tdcr.validation)."""
     if app.openapi_schema:
         return app.openapi_schema
     schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
     components = schema.setdefault("components", {}).setdefault("schemas", {})
-    js = PredictRequest.model_json_schema(ref_template="#/components/schemas/{model}")
-    components.update(js.pop("$defs", {}))
-    components["PredictRequest"] = js
+    for body in (PredictRequest, ExactRequest):
+        js = body.model_json_schema(ref_template="#/components/schemas/{model}")
+        components.update(js.pop("$defs", {}))
+        components[body.__name__] = js
     app.openapi_schema = schema
     return schema

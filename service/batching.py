@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.inference import Surrogate
+from tdcr.runtime import Surrogate
 
 
 @dataclass

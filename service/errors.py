@@ -1,14 +1,17 @@
-"""Errors with a status code and a clear message; JSON bodies follow ``schemas.ErrorResponse``."""
+"""Errors with a status code and a clear message; JSON bodies follow ``tdcr.schemas.ErrorResponse``."""
 
 from __future__ import annotations
 
-from pydantic import ValidationError
+from collections.abc import Collection
 
-from training.schemas import format_error_location
+from tdcr.validation import InvalidRequest
 
 
 class ApiError(Exception):
-    """An error answered with ``status`` and ``{"message": ..., "detail": ...}``."""
+    """An error answered with ``status`` and ``{"message": ..., "detail": ...}``.
+
+    ``kind`` labels the ``tdcr_errors_total`` metric (a fixed vocabulary, never user input).
+    """
 
     def __init__(self, status: int, message: str, detail=None, kind: str = "client"):
         super().__init__(message)
@@ -18,13 +21,10 @@ class ApiError(Exception):
         self.kind = kind
 
 
-def unprocessable(items: list[dict]) -> ApiError:
-    """422 from items ``{"loc": [...], "msg": ..., "type": ...}``; the message names every field."""
-    lines = [f"{format_error_location(tuple(i['loc'])) or 'body'}: {i['msg']}" for i in items]
-    return ApiError(422, "; ".join(lines), [{"loc": list(i["loc"]), "msg": i["msg"], "type": i["type"]} for i in items],
-                    kind="validation")
-
-
-def from_validation_error(exc: ValidationError, prefix: tuple = ("body",)) -> ApiError:
-    items = [{"loc": [*prefix, *e["loc"]], "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
-    return unprocessable(items)
+def from_invalid(exc: InvalidRequest, *, query: Collection[str] = ()) -> ApiError:
+    """422 (or 413 for sizes) naming every field; ``detail[].loc`` starts with where the field
+    came from, ``body`` or ``query`` (the names in ``query``), as FastAPI's own errors do."""
+    items = [{"loc": ["query" if p.loc and p.loc[0] in query else "body", *p.loc], "msg": p.msg, "type": p.type}
+             for p in exc.problems]
+    return ApiError(413 if exc.too_large else 422, exc.message, items,
+                    kind="too_large" if exc.too_large else "validation")

@@ -7,6 +7,9 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from tdcr.design_space import DEFAULT_POINTS, MAX_POINTS
+from tdcr.validation import Limits
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -18,7 +21,9 @@ class Settings(BaseSettings):
     models_dir: Path = Field(ROOT / "models", description="directory with manifest.json and the ONNX files")
     default_model: str | None = Field(None, description="model used when a request names none (default: best)")
     max_designs: int = Field(100_000, ge=1, description="designs per /predict request")
-    max_points: int = Field(1000, ge=2, description="arclengths per request")
+    max_points: int = Field(MAX_POINTS, ge=2, le=MAX_POINTS, description="arclengths per request")
+    max_design_points: int = Field(100_000 * DEFAULT_POINTS, ge=1,
+                                   description="designs x arclengths per request (bounds the memory of one request)")
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="request body limit, bytes")
     onnx_threads: int = Field(0, ge=0, description="chunks of a large batch run side by side (0: one per core)")
     batch_max_designs: int = Field(4096, ge=1, description="designs of concurrent /predict requests run together")
@@ -28,3 +33,13 @@ class Settings(BaseSettings):
     exact_max_pending: int = Field(8, ge=1, description="/exact requests queued or running before 503")
     exact_timeout_s: float = Field(30.0, gt=0, description="per-request deadline of /exact before 504")
     workers: int = Field(1, ge=1, description="uvicorn worker processes (scale out with replicas instead)")
+
+    def predict_limits(self) -> Limits:
+        """Size limits of one /predict request."""
+        return Limits(max_designs=self.max_designs, max_points=self.max_points,
+                      max_design_points=self.max_design_points)
+
+    def exact_limits(self) -> Limits:
+        """Size limits of one /exact request."""
+        return Limits(max_designs=self.exact_max_designs, max_points=self.max_points,
+                      max_design_points=self.max_design_points)

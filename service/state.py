@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import json
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -11,10 +10,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service.batching import Batcher
-from service.inference import Surrogate
+from service.dataplane import DataPlane
 from service.metrics import Metrics
 from service.settings import Settings
-from training import design_space
+from tdcr import design_space
+from tdcr.runtime import ManifestError, Surrogate, load_manifest
 
 
 @dataclass
@@ -25,6 +25,7 @@ class ServiceState:
     models: dict[str, Surrogate] = field(default_factory=dict)
     batchers: dict[str, Batcher] = field(default_factory=dict)
     default_model: str | None = None
+    dataplane: DataPlane | None = None
     pool: ProcessPoolExecutor | None = None
     exact_slots: asyncio.Semaphore | None = None
     ready: bool = False
@@ -44,33 +45,35 @@ def best_model(manifest: dict) -> str | None:
 
 def load_models(state: ServiceState) -> None:
     """Load every manifest model (checksum verified) and warm it up; record problems instead of raising."""
-    path = state.settings.models_dir / "manifest.json"
+    settings = state.settings
     try:
-        state.manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        state.problems.append(f"cannot read {path}: {exc}")
+        state.manifest = load_manifest(settings.models_dir)
+    except ManifestError as exc:
+        state.problems.append(str(exc))
+        state.dataplane = DataPlane({}, default_model=None, limits=settings.predict_limits())
         return
     warm = design_space.sample_designs(2, seed=0).features()
     for name in state.manifest.get("models", {}):
         try:
-            model = Surrogate.load(state.settings.models_dir, name, threads=state.settings.onnx_threads,
-                                   chunk=state.settings.onnx_chunk)
-            model.predict(warm, np.linspace(0.0, 1.0, 42))
+            model = Surrogate.load(settings.models_dir, name, threads=settings.onnx_threads,
+                                   chunk=settings.onnx_chunk, manifest=state.manifest)
+            model.predict(warm, np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS))
         except Exception as exc:  # noqa: BLE001 - any failure makes the model unavailable, reported by /readyz
-            state.problems.append(f"model {name}: {exc}")
+            state.problems.append(f"model {name}: {exc.__class__.__name__}: {exc}")
             continue
         state.models[name] = model
         state.batchers[name] = Batcher(model, max_designs=state.settings.batch_max_designs,
                                        on_run=state.metrics.batch.labels(name).observe)
-    default = state.settings.default_model or best_model(state.manifest)
+    default = settings.default_model or best_model(state.manifest)
     if default is not None and default not in state.models:
         state.problems.append(f"default model {default!r} is not loaded")
     state.default_model = default
+    state.dataplane = DataPlane(state.batchers, default_model=default, limits=settings.predict_limits())
 
 
 def new_pool(settings: Settings) -> ProcessPoolExecutor:
     """Solver processes behind /exact, started and warmed up (blocking: call outside the event loop)."""
-    from training.exact import warm_up
+    from tdcr.exact import warm_up
 
     pool = ProcessPoolExecutor(max_workers=settings.exact_workers, mp_context=multiprocessing.get_context("spawn"))
     for f in [pool.submit(warm_up) for _ in range(settings.exact_workers)]:

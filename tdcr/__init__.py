@@ -3,12 +3,22 @@
 Public API (everything else is private to its module)::
 
     from tdcr import DesignBatch, ExternalLoads, SolverOptions, RodSolution, solve
-    from tdcr import sample_designs, TABLE_I
+    from tdcr import sample_designs, TABLE_I, relative_l2
+
+Importing ``tdcr`` loads numpy only: no torch, FastAPI, uvicorn or onnxruntime.
 """
 
-from training.design_space import TABLE_I, sample_designs
-from training.designs import DesignBatch, ExternalLoads
-from training.physics import RodSolution, SolverOptions, solve
+from importlib.metadata import PackageNotFoundError, version
 
-__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "SolverOptions", "sample_designs", "solve"]
-__version__ = "0.1.0"
+from tdcr.design_space import TABLE_I, sample_designs
+from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.metrics import relative_l2
+from tdcr.physics import RodSolution, SolverOptions, solve
+
+__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "SolverOptions", "relative_l2",
+           "sample_designs", "solve"]
+
+try:
+    __version__ = version("tdcr-surrogates")
+except PackageNotFoundError:  # a source tree that was never installed
+    __version__ = "0+unknown"

@@ -7,37 +7,37 @@ import json
 import sys
 from pathlib import Path
 
+from tdcr.design_space import DEFAULT_POINTS
+
 
 class UsageError(Exception):
     """Bad input from the user: reported on stderr with exit code 2."""
 
 
-def _read_request(path: str):
-    from pydantic import ValidationError
+def _read_text(path: str) -> str:
+    try:
+        return sys.stdin.read() if path == "-" else Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UsageError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
 
-    from training.schemas import SolveRequest, format_error_location
 
-    try:
-        text = sys.stdin.read() if path == "-" else Path(path).read_text()
-    except OSError as exc:
-        raise UsageError(f"cannot read {path}: {exc.strerror}") from None
-    try:
-        raw = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise UsageError(f"{path}: not valid JSON: {exc}") from None
-    try:
-        return SolveRequest.model_validate(raw)
-    except ValidationError as exc:
-        lines = [f"{format_error_location(e['loc']) or 'request'}: {e['msg']}" for e in exc.errors()]
-        raise UsageError(f"{path}: invalid request:\n  " + "\n  ".join(lines)) from None
+def _invalid(path: str, exc) -> UsageError:
+    """A :class:`tdcr.validation.InvalidRequest` as a usage error, one problem per line."""
+    from tdcr.validation import format_location
+
+    lines = [f"{format_location(p.loc) or 'request'}: {p.msg}" for p in exc.problems]
+    return UsageError(f"{path}: invalid request:\n  " + "\n  ".join(lines))
 
 
 def _cmd_solve(args) -> int:
-    from training.exact import solve_designs
+    from tdcr.exact import solve_request
+    from tdcr.validation import InvalidRequest, validate_json
 
-    request = _read_request(args.request)
-    results = solve_designs(request.designs, request.fractions())
-    json.dump({"results": results}, sys.stdout)
+    try:
+        request = validate_json(_read_text(args.request), target="solver", limits=_unlimited())
+    except InvalidRequest as exc:
+        raise _invalid(args.request, exc) from None
+    json.dump({"results": solve_request(request)}, sys.stdout)
     sys.stdout.write("\n")
     return 0
 
@@ -144,30 +144,31 @@ def _cmd_params(args) -> int:
 
 
 def _cmd_predict(args) -> int:
-    import numpy as np
+    from service.dataplane import DataPlane, ModelNotFound
+    from tdcr.runtime import ManifestError, Surrogate
+    from tdcr.validation import InvalidRequest
 
-    from service.inference import Surrogate
-    from training.schemas import to_batch
-
-    request = _read_request(args.request)
-    if any(len(d.tendons) != 4 for d in request.designs):
-        bad = [i for i, d in enumerate(request.designs) if len(d.tendons) != 4]
-        raise UsageError(f"designs {bad}: the surrogates are trained for 4 tendons")
-    manifest_path = Path(args.models_dir) / "manifest.json"
-    if not manifest_path.exists():
-        raise UsageError(f"no manifest at {manifest_path}")
-    if args.model not in json.loads(manifest_path.read_text())["models"]:
-        raise UsageError(f"model {args.model!r} is not in {manifest_path}")
-    model = Surrogate.load(args.models_dir, args.model)
-    feats = to_batch(request.designs).features()
-    sigma = request.fractions()
-    out = model.predict(feats, sigma)
-    results = [{"s": (feats[j, 2] * sigma).tolist(), "backbone": out["backbone"][j].tolist(),
-                "rotation": out["rotation"][j].tolist(), "tendons": out["tendons"][j].tolist()}
-               for j in range(len(feats))]
-    json.dump({"model": args.model, "results": results}, sys.stdout, default=np.ndarray.tolist)
-    sys.stdout.write("\n")
+    text = _read_text(args.request)
+    try:
+        model = Surrogate.load(args.models_dir, args.model)
+    except ManifestError as exc:
+        raise UsageError(f"{args.models_dir}: {exc}") from None
+    plane = DataPlane({args.model: model}, default_model=args.model, limits=_unlimited())
+    try:
+        prediction = plane.run(plane.prepare_json(text))
+    except InvalidRequest as exc:
+        raise _invalid(args.request, exc) from None
+    except ModelNotFound as exc:  # the request names another model than --model
+        raise UsageError(f"{args.request}: {exc} (choose it with --model)") from None
+    sys.stdout.buffer.write(plane.encode_json(prediction) + b"\n")
     return 0
+
+
+def _unlimited():
+    """Size limits of local commands: only the hard limit of points (the machine is the user's)."""
+    from tdcr.validation import Limits
+
+    return Limits(max_designs=sys.maxsize, max_design_points=sys.maxsize)
 
 
 def _cmd_serve(args) -> int:
@@ -186,7 +187,7 @@ def _cmd_serve(args) -> int:
 def _cmd_loadtest(args) -> int:
     import asyncio
 
-    from service.loadtest import format_rows, sweep
+    from tdcr.loadtest import format_rows, sweep
 
     def ints(text):
         try:
@@ -229,7 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=int, required=True, help="number of designs")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output directory (resumes if it exists)")
-    p.add_argument("--points", type=int, default=42, help="equispaced arclengths per design")
+    p.add_argument("--points", type=int, default=DEFAULT_POINTS, help="equispaced arclengths per design")
     p.add_argument("--shard-size", type=int, default=1000)
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
     p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler")

@@ -1,4 +1,5 @@
-"""Shared fixtures: the independent C++ reference solutions and small design batches."""
+"""Shared fixtures: paths, the independent C++ reference solutions, design batches from JSON, and
+tiny trained models.  Test modules import nothing from each other: what they share is here."""
 
 from __future__ import annotations
 
@@ -6,43 +7,64 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from training.designs import DesignBatch
+from tdcr.validation import Limits, validate_json
 
 ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = Path(os.environ.get("TDCR_SHARED", ROOT.parent / "shared")) / "reference" / "cosserat_cases.json"
+SHARED = Path(os.environ.get("TDCR_SHARED", ROOT.parent / "shared"))
 
-
-def designs_from_json(designs: list[dict]) -> DesignBatch:
-    def col(key):
-        return [[t[key] for t in d["tendons"]] for d in designs]
-
-    return DesignBatch(
-        E=[d["E"] for d in designs], r=[d["r"] for d in designs], L=[d["L"] for d in designs],
-        offset=col("offset"), pitch=col("pitch"), tension=col("tension"),
-    )
-
-
-@pytest.fixture(scope="session")
-def reference_cases() -> list[dict]:
-    if not REFERENCE.exists():
-        pytest.fail(f"reference solutions not found at {REFERENCE} (set TDCR_SHARED)")
-    return json.loads(REFERENCE.read_text())["cases"]
-
-
-def relative_l2(pred: np.ndarray, truth: np.ndarray) -> float:
-    """Relative l2 error ||pred - truth|| / ||truth|| over all entries (paper eq. l2Error)."""
-    return float(np.linalg.norm(pred - truth) / np.linalg.norm(truth))
-
-
+#: Small hyperparameters that train in seconds, per model.
 TINY = {
     "deeponet": {"branch_width": 16, "trunk_width": 16, "p": 8},
     "deeponet_pose": {"branch_width": 16, "trunk_width": 16, "p": 8},
     "fno": {"width": 16},
     "fno_pose": {"width": 16},
 }
+
+
+@pytest.fixture(scope="session")
+def root() -> Path:
+    """The repository root."""
+    return ROOT
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    """The shared/ folder beside the checkout (or ``$TDCR_SHARED``)."""
+    if not SHARED.exists():
+        pytest.fail(f"shared/ not found at {SHARED} (set TDCR_SHARED)")
+    return SHARED
+
+
+@pytest.fixture(scope="session")
+def example_request(root) -> dict:
+    """examples/request.json: two designs at 5 points."""
+    return json.loads((root / "examples" / "request.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def reference_cases(shared) -> list[dict]:
+    """The independent solver's cases (there are 22; an empty file fails here, not silently later)."""
+    cases = json.loads((shared / "reference" / "cosserat_cases.json").read_text())["cases"]
+    assert len(cases) >= 20, f"expected the 22 reference cases, found {len(cases)}"
+    return cases
+
+
+@pytest.fixture(scope="session")
+def designs_from_json():
+    """``f(list of design dicts) -> DesignBatch`` through the one validation path (one tendon count)."""
+    def convert(designs: list[dict]):
+        request = validate_json({"designs": designs}, target="solver", limits=Limits(max_designs=10**6))
+        assert len(request.groups) == 1
+        return request.groups[0].designs
+
+    return convert
+
+
+@pytest.fixture(scope="session")
+def tiny_hyperparameters() -> dict:
+    return TINY
 
 
 @pytest.fixture(scope="session")

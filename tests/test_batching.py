@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from service.batching import Batcher
-from service.inference import Surrogate
-from training import design_space
+from tdcr import design_space
+from tdcr.runtime import Surrogate
 
 
 @pytest.mark.parametrize("name", ["deeponet", "fno_pose"])

@@ -3,7 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from training import design_space as ds
+from tdcr import design_space as ds
+from tdcr.validation import check_features, format_location
 
 
 def test_sampler_is_seeded_and_inside_table_i():
@@ -38,15 +39,41 @@ def test_out_of_range_names_every_offending_parameter():
     assert ds.out_of_range(f) == [[], ["E", "tension_3"]]
 
 
-def test_validation_names_design_and_field():
-    d = ds.sample_designs(3, seed=0)
-    f = d.features()
+def test_validation_names_design_field_and_bound():
+    f = ds.sample_designs(3, seed=0).features()
     f[0, 1] = -1e-3
     f[2, 5] = np.inf
     f[2, 12] = -0.5
-    msgs = ds.validate_design(type(d).from_features(f))
+    f[2, 0] = 5e-324  # E: positive but far below any material
+    msgs = [(format_location(p.loc), p.msg) for p in check_features(f)]
     assert msgs == [
-        "design 0: r must be positive, got -0.001",
-        "design 2: offset_2 must be finite, got inf",
-        "design 2: tension_1 must be non-negative, got -0.5",
+        ("designs[0].r", "must be in [1e-05, 0.1] m, got -0.001"),
+        ("designs[2].E", "must be in [100000, 1e+12] Pa, got 4.94066e-324"),
+        ("designs[2].tendons[2].offset", "must be a finite number, got inf"),
+        ("designs[2].tendons[1].tension", "must be in [0, 10000] N, got -0.5"),
     ]
+
+
+def test_table_i_lies_inside_the_admissible_bounds():
+    for p in ds.TABLE_I.values():
+        low, high = p.admissible
+        assert low <= p.low < p.high <= high, p.name
+    low, high, _ = ds.admissible_bounds()
+    f = ds.sample_designs(1000, seed=1).features()
+    assert check_features(f) == [] and (f >= low).all() and (f <= high).all()
+
+
+def test_range_warnings_name_value_unit_and_range():
+    f = ds.sample_designs(2, seed=0).features()
+    f[1, ds.LAYOUT.group("tension")] = [0.0, 0.0, 6.5, 0.0]
+    warnings = ds.range_warnings(f)
+    assert warnings == [[], ["tension_2 = 6.5 N is outside the trained range [0, 5]"]]
+
+
+def test_feature_layout_names_every_column():
+    layout = ds.LAYOUT
+    assert layout.width == ds.N_FEATURES == 15
+    assert layout.names[layout.group("pitch")] == ("pitch_0", "pitch_1", "pitch_2", "pitch_3")
+    f = ds.sample_designs(3, seed=5)
+    np.testing.assert_array_equal(f.features()[:, layout.group("tension")], f.tension)
+    np.testing.assert_array_equal(type(f).from_features(f.features()).features(), f.features())

@@ -8,14 +8,10 @@ import re
 import jsonschema
 import yaml
 
-from tests.conftest import REFERENCE, ROOT
 
-COMPOSE_SCHEMA = REFERENCE.parents[1] / "schemas" / "compose-spec.json"
-
-
-def test_compose_file_is_valid_and_limited():
-    compose = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
-    schema = json.loads(COMPOSE_SCHEMA.read_text())
+def test_compose_file_is_valid_and_limited(root, shared):
+    compose = yaml.safe_load((root / "docker" / "compose.yaml").read_text())
+    schema = json.loads((shared / "schemas" / "compose-spec.json").read_text())
     jsonschema.validate(compose, schema)
     svc = compose["services"]["tdcr"]
     assert "/readyz" in " ".join(svc["healthcheck"]["test"])
@@ -25,10 +21,10 @@ def test_compose_file_is_valid_and_limited():
     assert svc["ports"] == ["8000"]  # no fixed host port, so replicas can scale
 
 
-def test_invalid_compose_is_rejected_by_the_schema():
-    compose = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
+def test_invalid_compose_is_rejected_by_the_schema(root, shared):
+    compose = yaml.safe_load((root / "docker" / "compose.yaml").read_text())
     compose["services"]["tdcr"]["healthchek"] = compose["services"]["tdcr"].pop("healthcheck")  # a typo
-    schema = json.loads(COMPOSE_SCHEMA.read_text())
+    schema = json.loads((shared / "schemas" / "compose-spec.json").read_text())
     try:
         jsonschema.validate(compose, schema)
     except jsonschema.ValidationError:
@@ -36,21 +32,21 @@ def test_invalid_compose_is_rejected_by_the_schema():
     raise AssertionError("the schema accepted an unknown service key")
 
 
-def test_dockerfile_is_slim_nonroot_healthchecked_and_installs_like_the_readme():
-    text = (ROOT / "docker" / "Dockerfile").read_text()
+def test_dockerfile_is_slim_nonroot_healthchecked_and_installs_like_the_readme(root):
+    text = (root / "docker" / "Dockerfile").read_text()
     assert re.search(r"^FROM python:3\.\d+-slim", text, re.M)
     assert re.search(r"^USER (?!root)\w+", text, re.M)
     assert "HEALTHCHECK" in text and "/readyz" in text
     install = re.search(r"^RUN (scripts/setup\.sh \w[\w,]*)", text, re.M).group(1)
-    run_sh = (ROOT / "scripts" / "run.sh").read_text()
+    run_sh = (root / "scripts" / "run.sh").read_text()
     assert install in run_sh, "the image must install exactly as the README's run command does"
     code = "\n".join(line for line in text.splitlines() if not line.lstrip().startswith("#"))
     assert "train" not in install and "torch" not in code
 
 
-def test_serving_install_does_not_pull_torch():
+def test_serving_install_does_not_pull_torch(root):
     import tomllib
 
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
     serve = " ".join(project["optional-dependencies"]["serve"] + project["dependencies"])
     assert "torch" not in serve and "onnxruntime" in serve

@@ -5,19 +5,20 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import asdict
 
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 
-from service.inference import Surrogate, _cubic_weights, rigid_fit, tendon_offsets  # noqa: E402
-from tests.conftest import ROOT, TINY  # noqa: E402
-from training import design_space  # noqa: E402
+from tdcr import design_space  # noqa: E402
+from tdcr.physics import solve  # noqa: E402
+from tdcr.physics.geometry import cubic_weights, rigid_fit, tendon_offsets  # noqa: E402
+from tdcr.runtime import MANIFEST_FORMAT_VERSION, ManifestError, Surrogate  # noqa: E402
 from training.operators.layers import SpectralConv1d, gram_schmidt  # noqa: E402
 from training.operators.models import REGISTRY, build_model, count_parameters  # noqa: E402
 from training.operators.train import Schedule, make_config, train  # noqa: E402
-from training.physics import solve  # noqa: E402
 
 
 @pytest.mark.parametrize("mixing", ["full", "shared"])
@@ -44,8 +45,8 @@ def test_gram_schmidt_gives_rotations():
 
 def test_parameter_counts_against_the_paper():
     counts = {name: count_parameters(build_model(name)) for name in REGISTRY}
-    assert counts["fno"] == REGISTRY["fno"][3] == 168_844
-    assert counts["fno_pose"] == REGISTRY["fno_pose"][3] == 168_457
+    paper = {name: entry[3] for name, entry in REGISTRY.items()}  # Table "params" of the paper
+    assert counts["fno"] == paper["fno"] and counts["fno_pose"] == paper["fno_pose"]
     # DeepONet: branch 15-64-64-64-64-12p and trunk 1-128-128-128-128-12p with p = 100 (+12 biases)
     assert counts["deeponet"] == (15 * 64 + 64 + 3 * (64 * 64 + 64) + 64 * 1200 + 1200
                                   + 128 + 128 + 3 * (128 * 128 + 128) + 128 * 1200 + 1200 + 12)
@@ -59,11 +60,11 @@ def test_schedule_warms_up_and_anneals():
     assert s(1.0) == pytest.approx(5e-6, rel=1e-3)
 
 
-def test_zero_network_output_is_the_undeformed_robot():
+def test_zero_network_output_is_the_undeformed_robot(tiny_hyperparameters):
     feats = torch.as_tensor(design_space.sample_designs(4, seed=0).features(), dtype=torch.float32)
     sigma = torch.linspace(0, 1, 42)
     for name in REGISTRY:
-        model = build_model(name, TINY[name])
+        model = build_model(name, tiny_hyperparameters[name])
         out = torch.zeros(4, 42, model.out_channels)
         heads = model.heads(feats, sigma, out)
         tendons = heads if model.kind == "tendons" else heads[2]
@@ -96,15 +97,15 @@ def test_cubic_interpolation_off_the_fno_grid():
     grid = np.linspace(0, 1, 42)
     off = np.sort(np.random.default_rng(0).uniform(0, 1, 30))
     on_grid, exact = solve(d, grid), solve(d, off)
-    interp = np.einsum("mn,bntk->bmtk", _cubic_weights(grid, off), on_grid.tendons)
+    interp = np.einsum("mn,bntk->bmtk", cubic_weights(grid, off), on_grid.tendons)
     diff, ref = (interp - exact.tendons).reshape(50, -1), exact.tendons.reshape(50, -1)
     err = np.linalg.norm(diff, axis=1) / np.linalg.norm(ref, axis=1)
     assert err.max() < 1e-4
-    np.testing.assert_allclose(_cubic_weights(grid, grid), np.eye(42), atol=1e-12)
+    np.testing.assert_allclose(cubic_weights(grid, grid), np.eye(42), atol=1e-12)
 
 
-def test_training_is_deterministic_on_cpu(tiny_data, tmp_path):
-    cfg = make_config("deeponet", "tuned", epochs=2, batch_size=40, hyperparameters=TINY["deeponet"])
+def test_training_is_deterministic_on_cpu(tiny_hyperparameters, tiny_data, tmp_path):
+    cfg = make_config("deeponet", "tuned", epochs=2, batch_size=40, hyperparameters=tiny_hyperparameters["deeponet"])
     train(cfg, tiny_data, tmp_path / "a", progress=False, monitor_designs=20)
     train(cfg, tiny_data, tmp_path / "b", progress=False, monitor_designs=20)
     a = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["state_dict"]
@@ -144,7 +145,10 @@ def test_onnx_matches_torch(tiny_models, name):
             assert rel <= 1e-5
     manifest = json.loads((models / "manifest.json").read_text())["models"][name]
     assert manifest["parameters"] == count_parameters(model)
-    assert manifest["hyperparameters"]["p" if "deeponet" in name else "width"] in (8, 16)
+    # the manifest records the constructor arguments: they rebuild the same network
+    assert manifest["hyperparameters"] == asdict(model.config)
+    assert count_parameters(build_model(name, manifest["hyperparameters"])) == manifest["parameters"]
+    assert manifest["format_version"] == MANIFEST_FORMAT_VERSION
     out = surrogate.predict(feats[:3], np.array([0.0, 0.33, 1.0]))
     assert out["tendons"].shape == (3, 3, 4, 3) and out["rotation"].shape == (3, 3, 3, 3)
     R = out["rotation"]
@@ -158,23 +162,36 @@ def test_tampered_model_is_refused(tiny_models, tmp_path):
     copy = tmp_path / "m"
     shutil.copytree(models, copy)
     (copy / "fno.onnx").write_bytes((copy / "fno.onnx").read_bytes() + b"\0")
-    with pytest.raises(ValueError, match="sha256"):
+    with pytest.raises(ManifestError, match="sha256"):
         Surrogate.load(copy, "fno")
 
 
-def test_cli_predict_and_evaluate(tiny_models, tiny_data):
+def test_a_manifest_of_another_format_is_refused(tiny_models, tmp_path):
+    import shutil
+
+    _, models = tiny_models
+    copy = tmp_path / "m"
+    shutil.copytree(models, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["models"]["fno"]["format_version"] = MANIFEST_FORMAT_VERSION + 1
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ManifestError, match="format"):
+        Surrogate.load(copy, "deeponet")
+
+
+def test_cli_predict_and_evaluate(root, tiny_models, tiny_data):
     _, models = tiny_models
     cmd = [sys.executable, "-m", "tdcr.cli"]
     out = subprocess.run([*cmd, "predict", "examples/request.json", "--model", "deeponet_pose",
-                          "--models-dir", str(models)], capture_output=True, text=True, cwd=ROOT, timeout=120)
+                          "--models-dir", str(models)], capture_output=True, text=True, cwd=root, timeout=120)
     assert out.returncode == 0, out.stderr
     body = json.loads(out.stdout)
     assert body["model"] == "deeponet_pose" and np.array(body["results"][1]["tendons"]).shape == (5, 4, 3)
     bad = subprocess.run([*cmd, "predict", "examples/request.json", "--model", "nope", "--models-dir", str(models)],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+                         capture_output=True, text=True, cwd=root, timeout=120)
     assert bad.returncode == 2 and "nope" in bad.stderr
     ev = subprocess.run([*cmd, "evaluate", "--data", str(tiny_data), "--models-dir", str(models), "--ood", "20"],
-                        capture_output=True, text=True, cwd=ROOT, timeout=300)
+                        capture_output=True, text=True, cwd=root, timeout=300)
     assert ev.returncode == 0, ev.stderr
     assert "undeformed baseline" in ev.stdout and "fno_pose" in ev.stdout
     entry = json.loads((models / "manifest.json").read_text())["models"]["fno"]
@@ -183,11 +200,12 @@ def test_cli_predict_and_evaluate(tiny_models, tiny_data):
 
 
 @pytest.mark.parametrize("name", list(REGISTRY))
-def test_batch_last_network_equals_the_channels_last_one(name):
+def test_batch_last_network_equals_the_channels_last_one(tiny_hyperparameters, name):
     """The export's fast layouts (DeepONet trunk folded into the branch, FNO channels first) are
     the same function as the networks written the paper's way."""
     torch.manual_seed(0)
-    model = build_model(name, {**TINY[name], "inputs": "physics", "reference": "linearized"}).double().eval()
+    hyper = dict(tiny_hyperparameters[name], inputs="physics", reference="linearized")
+    model = build_model(name, hyper).double().eval()
     feats = torch.as_tensor(design_space.sample_designs(5, seed=3).features())
     sigma = torch.linspace(0, 1, 42, dtype=torch.float64)
     with torch.no_grad():

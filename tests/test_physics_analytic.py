@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from training import design_space
-from training.designs import DesignBatch, ExternalLoads
-from training.physics import SolverOptions, material, solve
-from training.physics import cosserat as _c
+from tdcr import design_space
+from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.physics import SolverOptions, material, solve
+from tdcr.physics import cosserat as _c
 
 S42 = np.linspace(0.0, 1.0, 42)
 
@@ -85,17 +85,26 @@ def test_pure_tip_moment_gives_a_circle_of_curvature_M_over_EI():
     assert np.linalg.norm(sol.backbone[0] - expected) / np.linalg.norm(expected) < 1e-8
 
 
+#: Tip loads and a coarse shooting step for the consistency tests below (they compare the solver
+#: with itself, so the step only has to be the same on both sides).
+TIP_LOADS = ExternalLoads(tip_force=np.array([[0.05, 0.0, -0.02]]), tip_moment=np.array([[0.0, 0.01, 0.0]]))
+COARSE = SolverOptions(max_step_loads=1 / 25)
+GRID5 = np.linspace(0, 1, 5)
+
+
+@pytest.fixture(scope="module")
+def tip_loaded_on_grid():
+    """One design under TIP_LOADS, solved once on GRID5 and shared."""
+    return solve(one(), GRID5, loads=TIP_LOADS, options=COARSE)
+
+
 @pytest.mark.parametrize("s", [[0.0], [0.0, 0.5], [0.25, 0.5, 1.0]])
-def test_loads_use_the_tip_condition_whatever_points_are_asked(s):
+def test_loads_use_the_tip_condition_whatever_points_are_asked(tip_loaded_on_grid, s):
     """Shooting always integrates to s = L: sub-sets of points agree with the full grid."""
-    d = one()
-    loads = ExternalLoads(tip_force=np.array([[0.05, 0.0, -0.02]]), tip_moment=np.array([[0.0, 0.01, 0.0]]))
-    grid = np.linspace(0, 1, 5)  # holds every tested s
-    full = solve(d, grid, loads=loads)
-    part = solve(d, np.array(s), loads=loads)
-    assert part.converged[0]
-    idx = [int(np.argmin(np.abs(grid - v))) for v in s]
-    np.testing.assert_allclose(part.backbone[0], full.backbone[0, idx], atol=1e-9)
+    part = solve(one(), np.array(s), loads=TIP_LOADS, options=COARSE)
+    assert part.converged[0] and tip_loaded_on_grid.converged[0]
+    idx = [int(np.argmin(np.abs(GRID5 - v))) for v in s]
+    np.testing.assert_allclose(part.backbone[0], tip_loaded_on_grid.backbone[0, idx], atol=1e-9)
 
 
 def test_only_the_base_point():
@@ -141,10 +150,10 @@ def test_wrench_invariant_holds_along_s(with_loads):
 
     t_i comes from finite differences of the returned tendon paths, so this checks the
     statics against the geometry.  The O(h^2) difference error sets the tolerance: 1e-5 of the
-    tendon load with 2001 points (tendons only), 1e-3 with 201 points (external loads, RK4).
+    tendon load with 2001 points (tendons only), 1e-3 with 101 points (external loads, RK4).
     """
     d = design_space.sample_designs(3, seed=7)
-    s = np.linspace(0, 1, 201 if with_loads else 2001)
+    s = np.linspace(0, 1, 101 if with_loads else 2001)
     tol = 1e-3 if with_loads else 1e-5
     loads = None
     F = np.zeros((3, 3))

@@ -5,40 +5,36 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import designs_from_json, relative_l2
-from training.physics import solve
+from tdcr import relative_l2
+from tdcr.physics import SolverOptions, solve
 
 TENDON_TOL = 1e-6  # max relative l2 error of tendon positions (issue #2)
 ORTHO_TOL = 1e-10  # |R^T R - I| and |det R - 1|
 
 
-def test_every_reference_case_matches(reference_cases):
-    worst = 0.0
+def test_every_reference_case_matches(reference_cases, designs_from_json):
     for case in reference_cases:
         designs = designs_from_json([case["design"]])
         sol = solve(designs, np.asarray(case["s"]) / case["design"]["L"])
         assert sol.converged[0], case["kind"]
-        err = relative_l2(sol.tendons[0], np.asarray(case["tendons"]))
-        worst = max(worst, err)
+        err = relative_l2(sol.tendons, np.asarray(case["tendons"])[None])[0]
         assert err <= TENDON_TOL, (case["kind"], err)
         np.testing.assert_allclose(sol.backbone[0], case["backbone"], atol=1e-6 * case["design"]["L"])
         np.testing.assert_allclose(sol.rotation[0], case["rotation"], atol=1e-5)
         np.testing.assert_allclose(sol.s[0], case["s"], rtol=1e-10, atol=1e-15)  # reference s has 12 digits
-    assert worst > 0.0  # the comparison really ran
 
 
-def test_reference_cases_as_one_batch(reference_cases):
+def test_reference_cases_as_one_batch(reference_cases, designs_from_json):
     cases = [c for c in reference_cases if len(c["s"]) == 42]
+    assert len(cases) >= 10
     designs = designs_from_json([c["design"] for c in cases])
     sol = solve(designs, np.linspace(0.0, 1.0, 42))
-    for j, case in enumerate(cases):
-        assert relative_l2(sol.tendons[j], np.asarray(case["tendons"])) <= TENDON_TOL
+    errors = relative_l2(sol.tendons, np.array([c["tendons"] for c in cases]))
+    assert errors.max() <= TENDON_TOL, errors
 
 
 @pytest.mark.parametrize("max_step", [1 / 41, 1 / 200])
-def test_rotations_are_orthonormal(reference_cases, max_step):
-    from training.physics import SolverOptions
-
+def test_rotations_are_orthonormal(reference_cases, designs_from_json, max_step):
     designs = designs_from_json([c["design"] for c in reference_cases])
     sol = solve(designs, np.linspace(0, 1, 42), options=SolverOptions(max_step=max_step))
     R = sol.rotation

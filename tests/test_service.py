@@ -5,11 +5,8 @@ from __future__ import annotations
 import asyncio
 import io
 import json
-import os
-import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -19,62 +16,17 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.client import AsyncClient, Client, TDCRError
-from tests.conftest import ROOT, designs_from_json, relative_l2
-from training import design_space
-from training.physics import solve
-
-EXAMPLE = json.loads((ROOT / "examples" / "request.json").read_text())
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Server:
-    def __init__(self, models: Path, **env):
-        self.port = _free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        extra = {f"TDCR_{k.upper()}": str(v) for k, v in env.items()}
-        environ = {**os.environ, "TDCR_MODELS_DIR": str(models), **extra}
-        # the server's log goes to a file: an unread pipe would fill up and block the server
-        self.log = tempfile.NamedTemporaryFile(prefix="tdcr-server-", suffix=".log", delete=False)
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port", str(self.port),
-             "--log-level", "warning"], cwd=ROOT, env=environ, stdout=self.log, stderr=subprocess.STDOUT)
-        deadline = time.time() + 90
-        while time.time() < deadline:
-            try:
-                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            if self.proc.poll() is not None:
-                break
-            time.sleep(0.2)
-        self.stop()
-        raise RuntimeError(f"server did not become ready: {self.log_text()[-3000:]}")
-
-    def log_text(self) -> str:
-        return Path(self.log.name).read_text(errors="replace")
-
-    def stop(self):
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        self.log.close()
-        assert "Exception in ASGI application" not in self.log_text(), self.log_text()[-5000:]
+from service.process import ServerProcess
+from tdcr import design_space, relative_l2
+from tdcr.client import AsyncClient, Client, TDCRError
+from tdcr.physics import solve
 
 
 @pytest.fixture(scope="module")
 def server(tiny_models):
     _, models = tiny_models
-    srv = Server(models, max_designs=3000, max_body_bytes=2_000_000, exact_max_designs=300, exact_max_pending=2,
-                 exact_timeout_s=60)
+    srv = ServerProcess(models, max_designs=3000, max_design_points=200_000, max_body_bytes=2_000_000,
+                        exact_max_designs=300, exact_max_pending=2, exact_timeout_s=60)
     yield srv
     srv.stop()
 
@@ -89,14 +41,14 @@ def test_health_ready_models(server):
 
 
 @pytest.mark.parametrize("model", ["deeponet", "deeponet_pose", "fno", "fno_pose"])
-def test_predict_json_matches_the_runtime(server, tiny_models, model):
-    from service.inference import Surrogate
+def test_predict_json_matches_the_runtime(example_request, designs_from_json, server, tiny_models, model):
+    from tdcr.runtime import Surrogate
 
-    r = httpx.post(server.url + "/predict", json={**EXAMPLE, "model": model})
+    r = httpx.post(server.url + "/predict", json={**example_request, "model": model})
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["model"] == model and len(body["results"]) == 2
-    feats = designs_from_json(EXAMPLE["designs"]).features()
+    feats = designs_from_json(example_request["designs"]).features()
     ref = Surrogate.load(tiny_models[1], model).predict(feats, np.linspace(0, 1, 5))
     for j, res in enumerate(body["results"]):
         np.testing.assert_allclose(res["tendons"], ref["tendons"][j], rtol=1e-6, atol=1e-9)
@@ -104,8 +56,8 @@ def test_predict_json_matches_the_runtime(server, tiny_models, model):
         assert res["in_distribution"] is True and res["warnings"] == []
 
 
-def test_out_of_range_designs_are_flagged(server):
-    design = json.loads(json.dumps(EXAMPLE["designs"][0]))
+def test_out_of_range_designs_are_flagged(example_request, server):
+    design = json.loads(json.dumps(example_request["designs"][0]))
     design["tendons"][2]["tension"] = 6.5
     design["E"] = 5e10
     r = httpx.post(server.url + "/predict", json={"designs": [design], "s": [0.0, 0.5, 1.0]})
@@ -128,65 +80,111 @@ def test_binary_request_and_response_equal_json(server):
     with Client(server.url) as c:
         only = c.predict(feats, model="deeponet", outputs=["tendons"])
         assert "rotation" not in only and only["tendons"].shape == (64, 42, 4, 3)
-        with pytest.raises(TDCRError, match="outputs must be"):
+        with pytest.raises(TDCRError, match="outputs: must be"):
             c.predict(feats, outputs=["everything"])
 
 
-def test_async_client_and_exact_endpoint(server):
+def test_async_client_and_exact_endpoint(example_request, designs_from_json, server):
     async def go():
         async with AsyncClient(server.url) as c:
-            return await c.exact(EXAMPLE), await c.predict(design_space.sample_designs(3, seed=0).features())
+            return await c.exact(example_request), await c.predict(design_space.sample_designs(3, seed=0).features())
 
     exact, pred = asyncio.run(go())
-    sol = solve(designs_from_json(EXAMPLE["designs"]), np.linspace(0, 1, 5))
+    sol = solve(designs_from_json(example_request["designs"]), np.linspace(0, 1, 5))
     for j, res in enumerate(exact["results"]):
         assert res["converged"] and res["residual"] < 1e-8
-        assert relative_l2(np.array(res["tendons"]), sol.tendons[j]) < 1e-12
+        assert relative_l2(np.array(res["tendons"])[None], sol.tendons[j][None])[0] < 1e-12
     assert pred["tendons"].shape == (3, 42, 4, 3)
 
 
+def _tendons(n: int) -> list[dict]:
+    return [{"offset": 0.01, "tension": 1.0}] * n
+
+
+#: (request from the example request, status, message): one case per class of mistake
 BAD = [
-    ({"designs": [{"E": -3e10, "r": 1e-3, "L": 0.2, "tendons": [{"offset": 0.01, "tension": 1}] * 4}]}, 422,
-     "designs[0].E: Input should be greater than 0"),
-    ({"designs": [EXAMPLE["designs"][0], {"E": 3e10, "r": 1e-3, "L": 0.2,
-                                           "tendons": [{"offset": 0.01, "tension": 1}] * 3}]}, 422,
+    (lambda ex: {"designs": [{"E": -3e10, "r": 1e-3, "L": 0.2, "tendons": _tendons(4)}]}, 422,
+     "designs[0].E: must be in [100000, 1e+12] Pa, got -3e+10"),
+    (lambda ex: {"designs": [ex["designs"][0], {"E": 3e10, "r": 1e-3, "L": 0.2, "tendons": _tendons(3)}]}, 422,
      "designs[1].tendons: the surrogates need 4 tendons, got 3"),
-    ({**EXAMPLE, "s": [0.1, 1.01], "points": None}, 422, "s[1] = 1.01 is not a fraction of L"),
-    ({**EXAMPLE, "points": 5000}, 422, "points: Input should be less than or equal to 1000"),
-    ({**EXAMPLE, "model": "gpt"}, 404, "unknown model 'gpt'"),
-    ({"designs": [EXAMPLE["designs"][0]] * 3001}, 413, "3001 designs exceed the limit of 3000"),
-    ({"designs": [{**EXAMPLE["designs"][0], "tip_force": [0, 0, 1]}]}, 422, "only supported by /exact"),
+    (lambda ex: {**ex, "s": [0.1, 1.01], "points": None}, 422, "s[1]: must be a fraction of L in [0, 1], got 1.01"),
+    (lambda ex: {**ex, "points": 5000}, 422, "points: must be an integer from 2 to 1000, got 5000"),
+    (lambda ex: {**ex, "points": 5, "s": [0.5]}, 422, "give either 'points' or 's', not both"),
+    (lambda ex: {**ex, "model": "gpt"}, 404, "unknown model 'gpt'"),
+    (lambda ex: {**ex, "model": ""}, 422, "model: String should have at least 1 character"),
+    (lambda ex: {"designs": [ex["designs"][0]] * 3001}, 413, "3001 designs exceed the limit of 3000"),
+    (lambda ex: {"designs": [ex["designs"][0]] * 1000, "points": 1000}, 413, "exceed the budget of"),
+    (lambda ex: {"designs": [{**ex["designs"][0], "tip_force": [0, 0, 1]}]}, 422,
+     "designs[0]: external loads are only supported by the physics solver"),
+    (lambda ex: {"designs": [{**ex["designs"][0], "E": True}]}, 422, "designs[0].E: Input should be a valid number"),
 ]
 
 
-@pytest.mark.parametrize("body, status, message", BAD)
-def test_bad_predict_requests(server, body, status, message):
-    r = httpx.post(server.url + "/predict", json=body)
-    assert r.status_code == status
+@pytest.mark.parametrize("make, status, message", BAD)
+def test_bad_predict_requests(example_request, server, make, status, message):
+    r = httpx.post(server.url + "/predict", json=make(example_request))
+    assert r.status_code == status, r.text
     assert message in r.json()["message"]
 
 
-def test_bad_bodies_and_limits(server):
-    r = httpx.post(server.url + "/predict", content=b"{nope", headers={"content-type": "application/json"})
-    assert r.status_code == 422 and "body" in r.json()["message"]
-    r = httpx.post(server.url + "/predict", content=b"not npy", headers={"content-type": "application/x-npy"})
-    assert r.status_code == 422 and "not a valid .npy" in r.json()["message"]
+def _npy(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
-    np.save(buf, np.full((2, 15), np.nan))
-    r = httpx.post(server.url + "/predict", content=buf.getvalue(), headers={"content-type": "application/x-npy"})
-    assert r.status_code == 422 and "design 0: E must be finite" in r.json()["message"]
+    np.save(buf, array)
+    return buf.getvalue()
+
+
+def test_bad_bodies_and_limits(example_request, server):
+    r = httpx.post(server.url + "/predict", content=b"{nope", headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "Invalid JSON" in r.json()["message"]
+    npy = {"content-type": "application/x-npy"}
+    r = httpx.post(server.url + "/predict", content=b"not npy", headers=npy)
+    assert r.status_code == 422 and "not a valid .npy" in r.json()["message"]
+    r = httpx.post(server.url + "/predict", content=_npy(np.full((2, 15), np.nan)), headers=npy)
+    assert r.status_code == 422 and "designs[0].E: must be a finite number, got nan" in r.json()["message"]
+    r = httpx.post(server.url + "/predict", params={"points": "-1"}, headers=npy,
+                   content=_npy(design_space.sample_designs(2, seed=0).features()))
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "points"]
+    assert "points: must be an integer from 2 to 1000, got -1" in r.json()["message"]
     big = b"[" + b" " * 2_100_000 + b"]"
     r = httpx.post(server.url + "/predict", content=big, headers={"content-type": "application/json"})
     assert r.status_code == 413
-    r = httpx.post(server.url + "/exact", json={"designs": [EXAMPLE["designs"][0]] * 301})
-    assert r.status_code == 413 and "/exact limit" in r.json()["message"]
+    r = httpx.post(server.url + "/exact", json={"designs": [example_request["designs"][0]] * 301})
+    assert r.status_code == 413 and "301 designs exceed the limit of 300" in r.json()["message"]
     r = httpx.post(server.url + "/exact", json={"designs": [{"E": "x"}]})
     assert r.status_code == 422 and "designs[0].E" in r.json()["message"]
     assert httpx.get(server.url + "/nowhere").status_code == 404
 
 
-def test_metrics_count_requests_designs_and_errors(server):
-    httpx.post(server.url + "/predict", json={**EXAMPLE, "model": "deeponet"})
+def test_one_validation_path_gives_one_message(root, server, tiny_models, tmp_path):
+    """The same bad designs sent to JSON /predict, .npy /predict, /exact, `tdcr solve` and
+    `tdcr predict` get the same problems, worded the same."""
+    features = design_space.sample_designs(2, seed=3).features()
+    features[1, 0] = -1.0  # E
+    features[1, design_space.LAYOUT.group("tension").start + 2] = -0.5
+    designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
+        {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in features.tolist()]
+    body = {"designs": designs}
+    (tmp_path / "bad.json").write_text(json.dumps(body))
+    answers = {
+        "json /predict": httpx.post(server.url + "/predict", json=body).json()["message"],
+        "npy /predict": httpx.post(server.url + "/predict", content=_npy(features),
+                                   headers={"content-type": "application/x-npy"}).json()["message"],
+        "/exact": httpx.post(server.url + "/exact", json=body).json()["message"],
+    }
+    for command in (["solve"], ["predict", "--models-dir", str(tiny_models[1]), "--model", "fno"]):
+        done = subprocess.run([sys.executable, "-m", "tdcr.cli", *command, str(tmp_path / "bad.json")],
+                              capture_output=True, text=True, cwd=root, timeout=120)
+        assert done.returncode == 2, done.stderr
+        answers[f"tdcr {command[0]}"] = done.stderr.split("invalid request:")[1]
+    expected = {"designs[1].E: must be in [100000, 1e+12] Pa, got -1",
+                "designs[1].tendons[2].tension: must be in [0, 10000] N, got -0.5"}
+    for where, text in answers.items():
+        lines = {line.strip() for line in text.replace(";", "\n").splitlines() if line.strip()}
+        assert lines == expected, where
+
+
+def test_metrics_count_requests_designs_and_errors(example_request, server):
+    httpx.post(server.url + "/predict", json={**example_request, "model": "deeponet"})
     assert httpx.post(server.url + "/predict", json={"designs": [{"E": -1}]}).status_code == 422
     text = httpx.get(server.url + "/metrics").text
     assert 'tdcr_requests_total{endpoint="/predict",status="200"}' in text
@@ -196,33 +194,23 @@ def test_metrics_count_requests_designs_and_errors(server):
     assert 'tdcr_graph_run_designs_count{model="deeponet"}' in text
 
 
-def test_exact_is_refused_when_saturated(tiny_models):
-    """Two slots: a third concurrent request gets 503 at once, the others finish."""
-    _, models = tiny_models
-    srv = Server(models, exact_max_pending=1, exact_timeout_s=60)
+def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_models):
+    """One slot and a 0.3 s deadline: a request that finds the slot taken gets 503 at once; the slow
+    one gets 504."""
+    srv = ServerProcess(tiny_models[1], exact_max_pending=1, exact_timeout_s=0.3)
     try:
-        slow = {"designs": [EXAMPLE["designs"][1]] * 400, "points": 400}
+        slow = {"designs": [example_request["designs"][1]] * 400, "points": 400}
 
         async def go():
             async with httpx.AsyncClient(base_url=srv.url, timeout=120) as c:
                 first = asyncio.create_task(c.post("/exact", json=slow))
-                await asyncio.sleep(0.5)
-                second = await c.post("/exact", json=EXAMPLE)
+                await asyncio.sleep(0.1)
+                second = await c.post("/exact", json=example_request)
                 return await first, second
 
         first, second = asyncio.run(go())
-        assert first.status_code == 200
         assert second.status_code == 503 and "saturated" in second.json()["message"]
-    finally:
-        srv.stop()
-
-
-def test_exact_deadline_gives_504(tiny_models):
-    _, models = tiny_models
-    srv = Server(models, exact_timeout_s=0.3)
-    try:
-        r = httpx.post(srv.url + "/exact", json={"designs": [EXAMPLE["designs"][1]] * 400, "points": 400}, timeout=60)
-        assert r.status_code == 504 and "did not finish within 0.3 s" in r.json()["message"]
+        assert first.status_code == 504 and "did not finish within 0.3 s" in first.json()["message"]
     finally:
         srv.stop()
 
@@ -232,14 +220,14 @@ def test_client_raises_with_the_server_message(server):
         c.predict(design_space.sample_designs(2, seed=0).features(), model="nope")
 
 
-def test_loadtest_cli_against_the_server(server):
+def test_loadtest_cli_against_the_server(root, server):
     out = subprocess.run([sys.executable, "-m", "tdcr.cli", "loadtest", "--url", server.url, "--concurrency", "1,4",
                           "--batch", "1,32", "--requests", "40", "--seconds", "5"],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+                         capture_output=True, text=True, cwd=root, timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
     assert out.stdout.count("| json |") == 4 and "server memory" in out.stdout
     bad = subprocess.run([sys.executable, "-m", "tdcr.cli", "loadtest", "--url", server.url, "--batch", "x"],
-                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+                         capture_output=True, text=True, cwd=root, timeout=60)
     assert bad.returncode == 2
 
 
@@ -268,10 +256,10 @@ def test_hypothesis_never_a_server_error(server, body):
             assert np.isfinite(np.array(res["tendons"])).all()
 
 
-def test_openapi_document_is_committed_and_current():
+def test_openapi_document_is_committed_and_current(root):
     from service.app import create_app
 
-    committed = json.loads((ROOT / "openapi" / "openapi.json").read_text())
+    committed = json.loads((root / "openapi" / "openapi.json").read_text())
     assert committed == json.loads(json.dumps(create_app().openapi())), "run `tdcr openapi` and commit"
 
 
@@ -289,7 +277,7 @@ def _children(pid: int) -> list[int]:
 
 @pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc")
 def test_stopping_the_server_stops_its_solver_processes(tiny_models):
-    srv = Server(tiny_models[1])
+    srv = ServerProcess(tiny_models[1])
     kids = _children(srv.proc.pid)
     assert kids, "the /exact solver pool should run in child processes"
     srv.stop()  # SIGTERM, as docker stop and the process manager send

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from training import design_space
-from training.designs import DesignBatch
-from training.physics import SolverOptions, solve
+from tdcr import design_space
+from tdcr.designs import DesignBatch
+from tdcr.physics import SolverOptions, solve
 
 FORMAT_VERSION = 1
 _ARRAYS = ("index", "features", "s", "tendons", "backbone", "rotation", "converged", "residual")
@@ -43,7 +43,7 @@ class GenerateConfig:
 
     n: int
     seed: int = 0
-    points: int = 42
+    points: int = design_space.DEFAULT_POINTS
     shard_size: int = 1000
     test_fraction: float = 0.2
 

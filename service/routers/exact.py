@@ -10,12 +10,21 @@ import orjson
 from fastapi import APIRouter, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from service.errors import ApiError
-from service.schemas import ErrorResponse, ExactRequest, ExactResponse
-from service.state import ServiceState, new_pool
-from training.exact import solve_request_dicts
+from service.deps import State
+from service.errors import ApiError, from_invalid
+from service.state import new_pool
+from tdcr.exact import solve_request
+from tdcr.schemas import ErrorResponse, ExactResponse
+from tdcr.validation import InvalidRequest, Limits, ShapeRequest, validate_json
 
 router = APIRouter(tags=["exact"])
+
+
+def _prepare(body: bytes, limits: Limits) -> ShapeRequest:
+    try:
+        return validate_json(body, target="solver", limits=limits)
+    except InvalidRequest as exc:
+        raise from_invalid(exc) from None
 
 
 @router.post(
@@ -24,24 +33,21 @@ router = APIRouter(tags=["exact"])
     response_model=ExactResponse,
     responses={413: {"model": ErrorResponse}, 422: {"model": ErrorResponse}, 503: {"model": ErrorResponse},
                504: {"model": ErrorResponse}},
+    openapi_extra={"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": "#/components/schemas/ExactRequest"}}}}},
 )
-async def exact(body: ExactRequest, request: Request) -> Response:
-    state: ServiceState = request.app.state.service
+async def exact(request: Request, state: State) -> Response:
     settings = state.settings
-    if len(body.designs) > settings.exact_max_designs:
-        raise ApiError(413, f"{len(body.designs)} designs exceed the /exact limit of {settings.exact_max_designs}")
-    sigma = body.fractions()
-    if sigma.size > settings.max_points:
-        raise ApiError(413, f"{sigma.size} points exceed the limit of {settings.max_points}")
     if state.pool is None or state.exact_slots is None:
         raise ApiError(503, "the solver pool is not running", kind="unavailable")
     if state.exact_slots.locked():
         raise ApiError(503, "the solver is saturated; retry later", kind="saturated")
-    designs = [d.model_dump() for d in body.designs]
+    body = await request.body()
+    shape_request = await run_in_threadpool(_prepare, body, settings.exact_limits())  # parsing off the loop
     started = time.perf_counter()
     async with state.exact_slots:
         loop = asyncio.get_running_loop()
-        future = loop.run_in_executor(state.pool, solve_request_dicts, designs, sigma.tolist())
+        future = loop.run_in_executor(state.pool, solve_request, shape_request)
         try:
             results = await asyncio.wait_for(future, timeout=settings.exact_timeout_s)
         except TimeoutError:
@@ -51,5 +57,5 @@ async def exact(body: ExactRequest, request: Request) -> Response:
             state.pool = await run_in_threadpool(new_pool, settings)  # never block the event loop
             raise ApiError(503, "a solver process died; the pool was restarted", kind="unavailable") from None
     state.metrics.latency.labels("/exact", "solver").observe(time.perf_counter() - started)
-    state.metrics.designs.labels("/exact", "solver").inc(len(designs))
+    state.metrics.designs.labels("/exact", "solver").inc(shape_request.n_designs)
     return Response(orjson.dumps({"results": results}), media_type="application/json")

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from service.deps import State
 
 router = APIRouter(tags=["health"])
 
@@ -16,13 +18,12 @@ def healthz() -> dict:
 
 @router.get("/readyz", summary="Readiness: every model loaded, checksum verified and warmed up",
             responses={503: {"description": "not ready"}})
-def readyz(request: Request):
-    state = request.app.state.service
+def readyz(state: State):
     body = {"ready": state.ready, "models": sorted(state.models), "default_model": state.default_model,
             "problems": state.problems}
     return JSONResponse(body, status_code=200 if state.ready else 503)
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response)
-def metrics(request: Request) -> Response:
-    return Response(generate_latest(request.app.state.service.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+def metrics(state: State) -> Response:
+    return Response(generate_latest(state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
+
+from service.deps import State
 
 router = APIRouter(tags=["models"])
 
 
 @router.get("/models", summary="The model manifest")
-def models(request: Request) -> dict:
-    state = request.app.state.service
+def models(state: State) -> dict:
     return {"default_model": state.default_model, "loaded": sorted(state.models),
             "models": state.manifest.get("models", {})}

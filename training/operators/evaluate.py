@@ -11,16 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from service.inference import Surrogate, tendon_offsets
-from training import dataset, design_space
-from training.designs import DesignBatch
-from training.physics import SolverOptions, solve
-
-
-def relative_l2(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Per-design relative l2 error, ``(B,)``, over all trailing axes."""
-    axes = tuple(range(1, truth.ndim))
-    return np.sqrt(((pred - truth) ** 2).sum(axis=axes) / (truth**2).sum(axis=axes))
+from tdcr import design_space
+from tdcr.designs import L_COLUMN, DesignBatch
+from tdcr.metrics import relative_l2
+from tdcr.physics import SolverOptions, solve
+from tdcr.physics.geometry import tendon_offsets
+from tdcr.runtime import Surrogate
+from training import dataset
 
 
 def summary(errors: np.ndarray) -> dict:
@@ -31,7 +28,7 @@ def summary(errors: np.ndarray) -> dict:
 def undeformed_tendons(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """The straight robot with the design's routing, m, ``(B, n, 4, 3)``."""
     rho = tendon_offsets(features, sigma)
-    rho[..., 2] += (features[:, 2:3] * sigma[None, :])[..., None]
+    rho[..., 2] += (features[:, L_COLUMN, None] * sigma[None, :])[..., None]
     return rho
 
 
@@ -63,7 +60,7 @@ def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batc
 def evaluate_ood(models_dir: str | Path, names: list[str], *, n: int = 1000, seed: int = 0) -> dict:
     """The paper's out-of-distribution test: for each bin, ``n`` designs with every parameter at
     high * (1 + p), p uniform in the bin, solved exactly; mean relative l2 per model and bin."""
-    sigma = np.linspace(0.0, 1.0, 42)
+    sigma = np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)
     models = {name: Surrogate.load(models_dir, name) for name in names}
     table: dict[str, dict[str, float]] = {}
     for k, bin_range in enumerate(design_space.OOD_BINS):

@@ -20,7 +20,8 @@ import numpy as np
 import onnx
 import torch
 
-from training import design_space
+from tdcr import design_space
+from tdcr.runtime import MANIFEST_FORMAT_VERSION, MANIFEST_NAME
 from training.operators.models import DeepONet, count_parameters
 from training.operators.train import load_trained
 
@@ -78,14 +79,14 @@ def export_onnx(model, path: str | Path) -> None:
     try:
         if model.config.reference != "linearized":  # the paper preset: one graph
             if isinstance(model, DeepONet):
-                _trace(model, (design, torch.linspace(0.0, 1.0, 42)), tmp, inputs, outputs,
+                _trace(model, (design, torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)), tmp, inputs, outputs,
                        {"design": {0: "batch"}, "s": {0: "points"}} | {k: {0: "batch", 1: "points"} for k in outputs})
             else:
                 _trace(_FixedGrid(model), (design,), tmp, inputs, outputs, fixed)
         elif isinstance(model, DeepONet):
             dyn = {"design": {0: "batch"}, "s": {0: "points"}} | {k: {0: "batch", 1: "points"} for k in outputs}
             _trace(_FixedGrid(model), (design,), first, ["design"], outputs, fixed)
-            _trace(model, (design, torch.linspace(0.0, 1.0, 42)), second, inputs, outputs, dyn)
+            _trace(model, (design, torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)), second, inputs, outputs, dyn)
             cond = _grid_condition(model.reference_grid.shape[0])
             onnx.save(_switch(onnx.load(str(first)), onnx.load(str(second)), cond, inputs), str(tmp))
         else:
@@ -203,9 +204,10 @@ def sha256(path: str | Path) -> str:
 def manifest_entry(model, record: dict, onnx_path: Path, *, metrics: dict | None, dataset_meta: dict | None) -> dict:
     inputs, outputs = io_names(model)
     n = "n" if isinstance(model, DeepONet) else model.config.n_points
-    shapes = {"design": ["B", 3 + 3 * design_space.N_TENDONS], "s": ["n"],
+    shapes = {"design": ["B", design_space.N_FEATURES], "s": ["n"],
               "tendons": ["B", n, design_space.N_TENDONS, 3], "backbone": ["B", n, 3], "rotation": ["B", n, 3, 3]}
     return {
+        "format_version": MANIFEST_FORMAT_VERSION,
         "name": record["name"],
         "file": onnx_path.name,
         "sha256": sha256(onnx_path),
@@ -240,8 +242,9 @@ def export_run(run_dir: str | Path, models_dir: str | Path, *, dataset_meta: dic
 
 
 def update_manifest(models_dir: Path, entry: dict) -> None:
-    path = models_dir / "manifest.json"
-    manifest = json.loads(path.read_text()) if path.exists() else {"format_version": 1, "models": {}}
+    path = models_dir / MANIFEST_NAME
+    empty = {"format_version": MANIFEST_FORMAT_VERSION, "models": {}}
+    manifest = json.loads(path.read_text()) if path.exists() else empty
     old = manifest["models"].get(entry["name"], {})
     if entry.get("metrics") is None and old.get("sha256") == entry["sha256"]:
         entry["metrics"] = old.get("metrics")

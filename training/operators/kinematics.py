@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import torch
 
-from training.physics.cosserat import POISSON_RATIO
+from tdcr.physics.cosserat import POISSON_RATIO
 
 
 def cross3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -13,7 +13,7 @@ ONNX graph).  The networks predict the deviation from a reference robot (``refer
                        tendons = p + R rho_i(s)    (paper eq. tend-path)
 
 ``forward`` returns ``tendons`` for tendon models and ``(backbone, rotation, tendons)`` for pose
-models; the runtime fits the pose of tendon models (``service.inference.rigid_fit``).
+models; the runtime fits the pose of tendon models (``tdcr.runtime.rigid_fit``).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from training import design_space
+from tdcr import design_space
 from training.operators import kinematics
 from training.operators.layers import DesignGeometry, SpectralConv1d, gram_schmidt, mlp
 
@@ -32,7 +32,7 @@ N_FEATURES = 3 + 3 * N_T
 #: ``reference='linearized'``: network outputs are corrections in units of this fraction of L
 _LINEARIZED_SCALE = 0.01
 #: grid of the linearised reference robot of DeepONets (FNOs use their own grid)
-_REFERENCE_POINTS = 42
+_REFERENCE_POINTS = design_space.DEFAULT_POINTS
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class FNOConfig:
     width: int = 128
     layers: int = 5
     modes: int = 5
-    n_points: int = 42
+    n_points: int = design_space.DEFAULT_POINTS
     dropout: float = 0.0
     mixing: str = "shared"
     inputs: str = "table"

@@ -22,6 +22,9 @@ import torch
 from training import dataset
 from training.operators.models import build_model, count_parameters
 
+#: Format of ``model.pt``, recorded in it; ``load_trained`` refuses others.
+CHECKPOINT_FORMAT_VERSION = 1
+
 
 @dataclass(frozen=True)
 class Schedule:
@@ -229,7 +232,8 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
     summary = {"model": cfg.model, "epochs": epoch, "train_seconds": round(elapsed, 1), "stop": stop_reason,
                "parameters": count_parameters(model), "n_train": n, "device": device.type,
                "final_train_loss": train_loss if epoch > start_epoch else None}
-    torch.save({"name": cfg.model, "hyperparameters": asdict(model.config), "config": _config_dict(cfg),
+    torch.save({"format_version": CHECKPOINT_FORMAT_VERSION, "name": cfg.model,
+                "hyperparameters": asdict(model.config), "config": _config_dict(cfg),
                 "state_dict": {k: v.cpu() for k, v in model.state_dict().items()}, "summary": summary},
                out / "model.pt")
     return summary
@@ -238,6 +242,9 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
 def load_trained(path: str | Path):
     """Rebuild a trained model from ``model.pt``; returns ``(model, record)``."""
     record = torch.load(Path(path), map_location="cpu", weights_only=False)
+    if record.get("format_version", CHECKPOINT_FORMAT_VERSION) != CHECKPOINT_FORMAT_VERSION:
+        raise ValueError(f"{path}: checkpoint format {record['format_version']} is not the supported "
+                         f"{CHECKPOINT_FORMAT_VERSION}")
     model = build_model(record["name"], record["hyperparameters"])
     model.load_state_dict(record["state_dict"])
     model.eval()

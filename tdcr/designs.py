@@ -8,8 +8,60 @@ pitch and a tension.  Tendon ``i`` runs in the body frame at
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+
+#: Columns of E, r and L in a feature matrix (the per-tendon groups follow, see :class:`FeatureLayout`).
+E_COLUMN, R_COLUMN, L_COLUMN = 0, 1, 2
+#: The per-tendon feature groups, in column order.
+TENDON_GROUPS = ("offset", "pitch", "tension")
+
+
+@dataclass(frozen=True)
+class FeatureLayout:
+    """Column layout of the raw SI feature matrix ``(B, 3 + 3 N_t)``:
+    ``[E, r, L, offset_0..offset_{N_t-1}, pitch_0.., tension_0..]``.
+
+    The one place that knows where each quantity sits; the dataset, the networks, the ONNX models
+    and the service all use this order.
+    """
+
+    n_tendons: int
+
+    @property
+    def width(self) -> int:
+        """Number of feature columns, ``3 + 3 N_t``."""
+        return 3 + 3 * self.n_tendons
+
+    def group(self, name: str) -> slice:
+        """Columns of one per-tendon group (``offset``, ``pitch`` or ``tension``)."""
+        start = 3 + TENDON_GROUPS.index(name) * self.n_tendons
+        return slice(start, start + self.n_tendons)
+
+    @cached_property
+    def names(self) -> tuple[str, ...]:
+        """Column names, e.g. ``('E', 'r', 'L', 'offset_0', ...)``."""
+        return ("E", "r", "L") + tuple(f"{g}_{i}" for g in TENDON_GROUPS for i in range(self.n_tendons))
+
+    @cached_property
+    def parameters(self) -> tuple[str, ...]:
+        """The design parameter (a key of Table I) of every column, e.g. ``('E', 'r', 'L', 'offset', ...)``."""
+        return ("E", "r", "L") + tuple(g for g in TENDON_GROUPS for _ in range(self.n_tendons))
+
+    @cached_property
+    def tendon_index(self) -> tuple[int | None, ...]:
+        """The tendon of every column (``None`` for E, r and L)."""
+        return (None, None, None) + tuple(i for _ in TENDON_GROUPS for i in range(self.n_tendons))
+
+    @classmethod
+    def of(cls, features: np.ndarray) -> FeatureLayout:
+        """The layout of a feature matrix ``(B, 3 + 3 N_t)`` (``ValueError`` if no layout fits)."""
+        features = np.asarray(features)
+        n_t = (features.shape[-1] - 3) // 3 if features.ndim == 2 else 0
+        if n_t < 1 or features.shape[-1] != 3 + 3 * n_t:
+            raise ValueError(f"features must have shape (B, 3 + 3 N_t) with N_t >= 1, got {features.shape}")
+        return cls(n_t)
 
 
 @dataclass(frozen=True)
@@ -72,13 +124,11 @@ class DesignBatch:
     def from_features(cls, features: np.ndarray) -> DesignBatch:
         """Inverse of :meth:`features` for ``(B, 3 + 3 N_t)`` arrays."""
         features = np.asarray(features, dtype=np.float64)
-        n_t = (features.shape[1] - 3) // 3
-        if features.ndim != 2 or features.shape[1] != 3 + 3 * n_t or n_t < 1:
-            raise ValueError("features must have shape (B, 3 + 3 N_t) with N_t >= 1")
+        layout = FeatureLayout.of(features)
         return cls(
-            E=features[:, 0], r=features[:, 1], L=features[:, 2],
-            offset=features[:, 3:3 + n_t], pitch=features[:, 3 + n_t:3 + 2 * n_t],
-            tension=features[:, 3 + 2 * n_t:],
+            E=features[:, E_COLUMN], r=features[:, R_COLUMN], L=features[:, L_COLUMN],
+            offset=features[:, layout.group("offset")], pitch=features[:, layout.group("pitch")],
+            tension=features[:, layout.group("tension")],
         )
 
     @classmethod

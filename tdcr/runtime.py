@@ -21,82 +21,30 @@ from pathlib import Path
 
 import numpy as np
 
-from training.designs import DesignBatch
-from training.physics import tendon_routing
+from tdcr.physics.geometry import cubic_weights, orthonormalize, rigid_fit, tendon_offsets
+
+#: Manifest (and manifest entry) format this runtime reads; training/operators/export.py writes it.
+MANIFEST_FORMAT_VERSION = 1
+MANIFEST_NAME = "manifest.json"
 
 
-def tendon_offsets(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for features ``(B, 3 + 3 N_t)``."""
-    return tendon_routing(DesignBatch.from_features(features), np.asarray(sigma, dtype=np.float64),
-                          derivative=False)[0]
+class ManifestError(ValueError):
+    """A models directory whose manifest is missing, unreadable, of another format, or lacks a model."""
 
 
-def rigid_fit(body: np.ndarray, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid transform world ~ p + R body (Kabsch) for body points in the plane z = 0.
-
-    The first two columns of R are the polar factor A (A^T A)^(-1/2) of the 3 x 2 cross-covariance
-    A = sum_i (w_i - w_bar)(b_i - b_bar)_{xy}^T, in closed form for the 2 x 2 matrix
-    (sqrt(S) = (S + sqrt(det S) I) / sqrt(tr S + 2 sqrt(det S))); the third column is their cross
-    product, so det R = +1.  Computed on contiguous per-component arrays.
-
-    Args:
-        body: body-frame points with z = 0, ``(..., N_t, 3)``; world: measured points ``(..., N_t, 3)``.
-
-    Returns:
-        ``(p (..., 3), R (..., 3, 3))``.
-    """
-    mean = np.full(body.shape[-2], 1.0 / body.shape[-2])  # sums over the short tendon axis as BLAS products
-    bx, by = (np.ascontiguousarray(body[..., k], dtype=np.float64) for k in (0, 1))
-    bx_c, by_c = bx - (bx @ mean)[..., None], by - (by @ mean)[..., None]
-    a0, a1, centre = [], [], []
-    for k in range(3):
-        w = np.ascontiguousarray(world[..., k], dtype=np.float64)
-        wm = w @ mean
-        w_c = w - wm[..., None]
-        a0.append((w_c * bx_c) @ mean)  # 1 / N_t times the sums: the scale cancels in the polar factor
-        a1.append((w_c * by_c) @ mean)
-        centre.append(wm)
-    s00 = a0[0] ** 2 + a0[1] ** 2 + a0[2] ** 2
-    s11 = a1[0] ** 2 + a1[1] ** 2 + a1[2] ** 2
-    s01 = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2]
-    root_det = np.sqrt(np.maximum(s00 * s11 - s01 * s01, 0.0))
-    t = np.sqrt(s00 + s11 + 2.0 * root_det)
-    r00, r11, r01 = (s00 + root_det) / t, (s11 + root_det) / t, s01 / t
-    det = r00 * r11 - r01 * r01
-    i00, i11, i01 = r11 / det, r00 / det, -r01 / det
-    c1 = np.stack([a0[k] * i00 + a1[k] * i01 for k in range(3)], axis=-1)
-    c2 = np.stack([a0[k] * i01 + a1[k] * i11 for k in range(3)], axis=-1)
-    rot = np.stack([c1, c2, np.cross(c1, c2)], axis=-1)
-    cb = np.stack([bx @ mean, by @ mean, np.zeros_like(bx[..., 0])], axis=-1)
-    p = np.stack(centre, axis=-1) - np.einsum("...ij,...j->...i", rot, cb)
-    return p, rot
-
-
-def _cubic_weights(grid: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """Matrix ``(n_out, n_grid)`` of natural-cubic-spline interpolation from ``grid`` to ``sigma``."""
-    n = grid.size
-    eye = np.eye(n)
-    # natural cubic spline of each unit vector, evaluated at sigma (small dense solve, once per request)
-    h = np.diff(grid)
-    a = np.zeros((n, n))
-    rhs = np.zeros((n, n))
-    a[0, 0] = a[-1, -1] = 1.0
-    for i in range(1, n - 1):
-        a[i, i - 1], a[i, i], a[i, i + 1] = h[i - 1], 2 * (h[i - 1] + h[i]), h[i]
-        rhs[i] = 6 * ((eye[i + 1] - eye[i]) / h[i] - (eye[i] - eye[i - 1]) / h[i - 1])
-    m = np.linalg.solve(a, rhs)  # second derivatives per unit vector, (n, n)
-    k = np.clip(np.searchsorted(grid, sigma, side="right") - 1, 0, n - 2)
-    t0, t1 = grid[k], grid[k + 1]
-    hk = t1 - t0
-    A, B = (t1 - sigma) / hk, (sigma - t0) / hk
-    w = A[:, None] * eye[k] + B[:, None] * eye[k + 1]
-    w += ((A**3 - A)[:, None] * m[k] + (B**3 - B)[:, None] * m[k + 1]) * (hk**2 / 6)[:, None]
-    return w
-
-
-def _orthonormalize(rot: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(rot)
-    return u @ vt
+def load_manifest(models_dir: str | Path) -> dict:
+    """``models_dir/manifest.json``, checked for its format version (top level and every entry)."""
+    path = Path(models_dir) / MANIFEST_NAME
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ManifestError(f"cannot read the manifest {MANIFEST_NAME}: {exc.__class__.__name__}") from None
+    versions = {manifest.get("format_version")} | {
+        e.get("format_version") for e in manifest.get("models", {}).values()}
+    if versions != {MANIFEST_FORMAT_VERSION}:
+        raise ManifestError(f"manifest format {sorted(map(str, versions))} is not the supported "
+                            f"{MANIFEST_FORMAT_VERSION}; re-export the models")
+    return manifest
 
 
 def _session(path: Path):
@@ -127,13 +75,20 @@ class Surrogate:
 
     @classmethod
     def load(cls, models_dir: str | Path, name: str, *, threads: int = 0, verify: bool = True,
-             chunk: int = 512) -> Surrogate:
-        """``threads``: chunks run side by side for large batches (0: one per core)."""
+             chunk: int = 512, manifest: dict | None = None) -> Surrogate:
+        """Load model ``name`` of ``models_dir`` (its manifest, or ``manifest`` if already read).
+
+        ``threads``: chunks run side by side for large batches (0: one per core).  ``verify``:
+        check the file's sha256 against the manifest (``ManifestError`` if it differs).
+        """
         models_dir = Path(models_dir)
-        entry = json.loads((models_dir / "manifest.json").read_text())["models"][name]
+        manifest = load_manifest(models_dir) if manifest is None else manifest
+        if name not in manifest.get("models", {}):
+            raise ManifestError(f"model {name!r} is not in the manifest; available: {sorted(manifest['models'])}")
+        entry = manifest["models"][name]
         path = models_dir / entry["file"]
         if verify and hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
-            raise ValueError(f"{path}: sha256 does not match the manifest")
+            raise ManifestError(f"{entry['file']}: sha256 does not match the manifest")
         workers = threads or os.cpu_count() or 1
         pool = ThreadPoolExecutor(workers, thread_name_prefix=f"onnx-{name}") if workers > 1 else None
         return cls(name=name, entry=entry, session=_session(path), chunk=chunk, _pool=pool)
@@ -197,7 +152,7 @@ class Surrogate:
         on_grid = grid is None or (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9))
         if on_grid and (not pose or "rotation" in raw):
             return raw  # nothing to post-process
-        weights = None if on_grid else _cubic_weights(grid, sigma)
+        weights = None if on_grid else cubic_weights(grid, sigma)
         parts = self._side_by_side(
             lambda rows: self._post(features[rows], {k: v[rows] for k, v in raw.items()}, sigma, pose, weights),
             len(features))
@@ -211,7 +166,7 @@ class Surrogate:
         if not on_grid:
             out = {k: np.einsum("mn,bn...->bm...", weights, v) for k, v in out.items()}
             if "rotation" in out:
-                out["rotation"] = _orthonormalize(out["rotation"])
+                out["rotation"] = orthonormalize(out["rotation"])
         if pose and "rotation" not in out:
             out["backbone"], out["rotation"] = rigid_fit(tendon_offsets(features, sigma), out["tendons"])
         elif pose and not on_grid:  # keep tendons = p + R rho consistent after interpolation

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training.designs import DesignBatch, ExternalLoads
-from training.physics._lie import hat, se3_bracket, se3_exp
+from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.physics._lie import hat, se3_bracket, se3_exp
 
 POISSON_RATIO = 0.3
 _E3 = np.array([0.0, 0.0, 1.0])

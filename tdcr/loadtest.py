@@ -20,8 +20,8 @@ import httpx
 import numpy as np
 import orjson
 
-from service.client import NPY, NPZ, _npy
-from training import design_space
+from tdcr import design_space
+from tdcr.client import NPY, NPZ, _npy
 
 
 @dataclass

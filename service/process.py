@@ -1,0 +1,81 @@
+"""A real server in its own process on a free loopback port: for tests, benchmarks and scripts.
+
+    with ServerProcess(models_dir, exact_timeout_s=5) as server:
+        httpx.get(server.url + "/readyz")
+
+Settings are passed as ``TDCR_*`` environment variables; the server's log goes to a file (an
+unread pipe would fill up and block the server).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: What ``stop`` finds in the log of a server that raised an unhandled exception.
+UNHANDLED = "Exception in ASGI application"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """``uvicorn --factory service.app:create_app`` with ``TDCR_<KEY>=value`` for each setting.
+
+    Blocks until ``/readyz`` answers 200 (``RuntimeError`` with the log's tail if it never does).
+    """
+
+    def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, **settings):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {**os.environ, "TDCR_MODELS_DIR": str(models_dir),
+               **{f"TDCR_{k.upper()}": str(v) for k, v in settings.items()}}
+        self.log_path = Path(tempfile.mkstemp(prefix="tdcr-server-", suffix=".log")[1])
+        with self.log_path.open("wb") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port", str(self.port),
+                 "--log-level", "warning"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + ready_timeout_s
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            try:
+                with urllib.request.urlopen(self.url + "/readyz", timeout=2) as r:
+                    if r.status == 200:
+                        return
+            except (urllib.error.URLError, ConnectionError, TimeoutError):
+                pass
+            time.sleep(0.2)
+        self.stop(check=False)
+        raise RuntimeError(f"server did not become ready: {self.log()[-3000:]}")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, *, check: bool = True) -> None:
+        """SIGTERM (as ``docker stop`` sends), SIGKILL after 20 s; with ``check``, fail on a log that
+        shows an unhandled exception."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if check and UNHANDLED in self.log():
+            raise AssertionError(self.log()[-5000:])
+
+    def __enter__(self) -> ServerProcess:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop(check=exc[0] is None)

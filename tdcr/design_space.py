@@ -1,0 +1,147 @@
+"""The design space: Table I (names, units, trained ranges), the admissible physical bounds of
+every input, sampling, OOD bins, normalisation, and range warnings.
+
+Feature order (shared by the dataset, the networks and the ONNX models), for N_t tendons:
+``[E, r, L, offset_0..offset_{N_t-1}, pitch_0.., tension_0..]``, shape ``(B, 3 + 3 N_t)``
+(:class:`tdcr.designs.FeatureLayout`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tdcr.designs import DesignBatch, FeatureLayout
+
+#: Tendons of the trained surrogates (the solver takes any number >= 1).
+N_TENDONS = 4
+#: The surrogates' feature layout and width, 3 + 3 N_TENDONS = 15.
+LAYOUT = FeatureLayout(N_TENDONS)
+N_FEATURES = LAYOUT.width
+#: Equispaced arclengths on [0, L] when a request gives neither ``points`` nor ``s`` (the paper's grid).
+DEFAULT_POINTS = 42
+#: Hard upper limit of arclengths per request (a service may set a lower one).
+MAX_POINTS = 1000
+#: Most tendons per design a request may carry.
+MAX_TENDONS = 64
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One design parameter: name, SI unit, Table I range [low, high] and admissible bounds.
+
+    ``low``/``high`` are the trained range (Table I); inputs outside it are answered with a range
+    warning.  ``admissible`` is the physically sane range, much wider but finite; inputs outside it
+    are refused.  ``exclusive_min``: the lower admissible bound itself is excluded.
+    """
+
+    name: str
+    unit: str
+    low: float
+    high: float
+    admissible: tuple[float, float]
+    exclusive_min: bool = False
+
+
+#: Table I of the paper (SI units), with the admissible bounds of each parameter.
+TABLE_I: dict[str, Parameter] = {
+    "E": Parameter("E", "Pa", 15.5e9, 45.5e9, (1e5, 1e12)),  # soft elastomers .. diamond
+    "r": Parameter("r", "m", 0.0005, 0.0015, (1e-5, 0.1)),
+    "L": Parameter("L", "m", 0.1, 0.35, (1e-3, 10.0)),
+    "offset": Parameter("offset", "m", 0.005, 0.01, (1e-5, 0.5)),
+    "pitch": Parameter("pitch", "rad/m", -20.0, 20.0, (-1000.0, 1000.0)),
+    "tension": Parameter("tension", "N", 0.0, 5.0, (0.0, 1e4)),
+}
+
+
+@dataclass(frozen=True)
+class LoadBound:
+    """Admissible range of an external load (each component of a vector load)."""
+
+    name: str
+    unit: str
+    admissible: tuple[float, float]
+    exclusive_min: bool = False
+
+
+#: Admissible external loads (physics solver only).
+LOADS: dict[str, LoadBound] = {
+    "gravity": LoadBound("gravity", "m/s^2", (-1000.0, 1000.0)),  # 100 g per component
+    "density": LoadBound("density", "kg/m^3", (0.0, 1e5), exclusive_min=True),
+    "tip_force": LoadBound("tip_force", "N", (-1e4, 1e4)),
+    "tip_moment": LoadBound("tip_moment", "N m", (-1e3, 1e3)),
+}
+
+#: The paper's out-of-distribution bins, as fractions p of the upper bound (x = high * (1 + p)).
+OOD_BINS: tuple[tuple[float, float], ...] = ((-0.05, 0.0), (0.0, 0.05), (0.05, 0.10), (0.10, 0.15), (0.15, 0.20))
+
+
+def feature_names(n_tendons: int = N_TENDONS) -> list[str]:
+    """Names of the feature columns, e.g. ``['E', 'r', 'L', 'offset_0', ...]``."""
+    return list(FeatureLayout(n_tendons).names)
+
+
+def feature_bounds(n_tendons: int = N_TENDONS) -> tuple[np.ndarray, np.ndarray]:
+    """Table I lower and upper bounds per feature column, each ``(3 + 3 N_t,)``."""
+    groups = FeatureLayout(n_tendons).parameters
+    return np.array([TABLE_I[g].low for g in groups]), np.array([TABLE_I[g].high for g in groups])
+
+
+def admissible_bounds(n_tendons: int = N_TENDONS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Admissible ``(low, high, exclusive_low)`` per feature column, each ``(3 + 3 N_t,)``."""
+    groups = FeatureLayout(n_tendons).parameters
+    return (np.array([TABLE_I[g].admissible[0] for g in groups]), np.array([TABLE_I[g].admissible[1] for g in groups]),
+            np.array([TABLE_I[g].exclusive_min for g in groups]))
+
+
+def sample_designs(n: int, *, seed: int, n_tendons: int = N_TENDONS) -> DesignBatch:
+    """``n`` designs with every parameter uniform in its Table I range (seeded)."""
+    rng = np.random.default_rng(seed)
+    low, high = feature_bounds(n_tendons)
+    return DesignBatch.from_features(rng.uniform(low, high, size=(n, low.size)))
+
+
+def sample_ood_designs(n: int, bin_range: tuple[float, float], *, seed: int, n_tendons: int = N_TENDONS) -> DesignBatch:
+    """The paper's OOD test: every parameter set to ``high * (1 + p)``, p uniform in ``bin_range``.
+
+    For tensions and offsets/lengths this extrapolates beyond the trained upper bound; pitches
+    move past +20 rad/m.
+    """
+    rng = np.random.default_rng(seed)
+    _, high = feature_bounds(n_tendons)
+    p = rng.uniform(bin_range[0], bin_range[1], size=(n, high.size))
+    return DesignBatch.from_features(high * (1.0 + p))
+
+
+def normalize(features: np.ndarray, n_tendons: int = N_TENDONS) -> np.ndarray:
+    """Map raw SI features ``(B, 3 + 3 N_t)`` affinely to [-1, 1] over the Table I ranges.
+
+    x_norm = 2 (x - low) / (high - low) - 1.  Values outside Table I map outside [-1, 1].
+    """
+    low, high = feature_bounds(n_tendons)
+    return 2.0 * (np.asarray(features) - low) / (high - low) - 1.0
+
+
+def out_of_range(features: np.ndarray, n_tendons: int = N_TENDONS) -> list[list[str]]:
+    """Per design, the names of features outside Table I, for ``(B, 3 + 3 N_t)`` features."""
+    low, high = feature_bounds(n_tendons)
+    names = FeatureLayout(n_tendons).names
+    bad = (features < low) | (features > high)
+    out: list[list[str]] = [[] for _ in range(len(features))]
+    for b, j in zip(*np.nonzero(bad), strict=True):  # only the offending entries are visited
+        out[b].append(names[j])
+    return out
+
+
+def range_warnings(features: np.ndarray) -> list[list[str]]:
+    """Per design, one line for each parameter outside Table I (the trained ranges), for
+    features ``(B, 3 + 3 N_t)``; e.g. ``tension_2 = 6.5 N is outside the trained range [0, 5]``."""
+    layout = FeatureLayout.of(features)
+    low, high = feature_bounds(layout.n_tendons)
+    out: list[list[str]] = [[] for _ in range(len(features))]
+    for b, j in zip(*np.nonzero((features < low) | (features > high)), strict=True):  # offenders only
+        unit = TABLE_I[layout.parameters[j]].unit
+        out[b].append(f"{layout.names[j]} = {features[b, j]:.6g} {unit} is outside the trained range "
+                      f"[{low[j]:.6g}, {high[j]:.6g}]")
+    return out

@@ -1,0 +1,130 @@
+"""JSON schemas of requests and answers (pydantic), shared by the CLI, the clients and the service.
+
+The schemas check *types and structure* only.  Every value check (finite, admissible physical
+bounds, arclengths, sizes) runs afterwards, vectorised, in :mod:`tdcr.validation`, the one
+validation path of every entry point; the bounds still appear in the JSON schema (and so in
+``openapi/openapi.json``), generated from :mod:`tdcr.design_space`.
+
+Units are SI: E in Pa, r, L and offsets in m, pitch in rad/m, tension in N, gravity in m/s^2,
+density in kg/m^3, tip force in N, tip moment in N m, arclengths ``s`` as fractions of L.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from tdcr.design_space import DEFAULT_POINTS, LOADS, MAX_POINTS, MAX_TENDONS, TABLE_I
+
+#: Longest model name a request may carry.
+MAX_MODEL_NAME = 64
+
+
+def _bounds(low: float, high: float, exclusive_min: bool) -> dict:
+    """JSON-schema bounds (documentation for clients and fuzzers; enforced by tdcr.validation)."""
+    return {"exclusiveMinimum" if exclusive_min else "minimum": low, "maximum": high}
+
+
+def _number(bound):
+    low, high = bound.admissible
+    return Annotated[float, Field(strict=True, json_schema_extra=_bounds(low, high, bound.exclusive_min))]
+
+
+def _vector3(bound):
+    low, high = bound.admissible
+    item = Annotated[float, Field(strict=True, json_schema_extra=_bounds(low, high, bound.exclusive_min))]
+    return Annotated[list[item], Field(min_length=3, max_length=3)]
+
+
+_Fraction = Annotated[float, Field(strict=True, json_schema_extra={"minimum": 0.0, "maximum": 1.0})]
+
+
+class Tendon(BaseModel):
+    """One tendon: radial offset (m), helical pitch (rad/m) and tension (N, >= 0)."""
+
+    model_config = ConfigDict(extra="forbid")
+    offset: _number(TABLE_I["offset"]) = Field(  # type: ignore[valid-type]
+        description="distance of the tendon from the backbone axis, m")
+    pitch: _number(TABLE_I["pitch"]) = Field(0.0, description="helical pitch of the routing, rad/m")  # type: ignore[valid-type]
+    tension: _number(TABLE_I["tension"]) = Field(description="tendon tension, N")  # type: ignore[valid-type]
+
+
+class Design(BaseModel):
+    """A TDCR design in SI units, with optional external loads for the physics solver."""
+
+    model_config = ConfigDict(extra="forbid")
+    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
+    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
+    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
+    tendons: list[Tendon] = Field(min_length=1, max_length=MAX_TENDONS)
+    gravity: _vector3(LOADS["gravity"]) | None = Field(  # type: ignore[valid-type]
+        None, description="gravitational acceleration, base frame, m/s^2")
+    density: _number(LOADS["density"]) | None = Field(  # type: ignore[valid-type]
+        None, description="backbone density, kg/m^3 (with gravity)")
+    tip_force: _vector3(LOADS["tip_force"]) | None = Field(None, description="tip force, base frame, N")  # type: ignore[valid-type]
+    tip_moment: _vector3(LOADS["tip_moment"]) | None = Field(  # type: ignore[valid-type]
+        None, description="tip moment, base frame, N m")
+
+
+class SolveRequest(BaseModel):
+    """A batch of designs and the arclengths wanted: ``points`` equispaced, or explicit ``s``."""
+
+    model_config = ConfigDict(extra="forbid")
+    designs: list[Design] = Field(min_length=1)
+    points: Annotated[int, Field(strict=True, json_schema_extra={"minimum": 2, "maximum": MAX_POINTS})] | None = Field(
+        None, description=f"number of equispaced arclengths on [0, L] (default {DEFAULT_POINTS})")
+    s: list[_Fraction] | None = Field(None, min_length=1, max_length=MAX_POINTS,
+                                      description="arclengths as fractions of L, each in [0, 1]")
+
+
+class PredictRequest(SolveRequest):
+    """Designs, arclengths and the surrogate to use (default: the most accurate in the manifest)."""
+
+    model_config = ConfigDict(extra="forbid")
+    model: str | None = Field(None, min_length=1, max_length=MAX_MODEL_NAME,
+                              description="deeponet, deeponet_pose, fno or fno_pose", examples=["deeponet"])
+
+
+class ExactRequest(SolveRequest):
+    """Designs (optionally with gravity and tip loads) and arclengths for the physics solver."""
+
+
+class PredictedShape(BaseModel):
+    s: list[float] = Field(description="arclengths, m")
+    backbone: list[list[float]] = Field(description="(n, 3) backbone positions, m")
+    rotation: list[list[list[float]]] = Field(description="(n, 3, 3) frames, body axes as columns")
+    tendons: list[list[list[float]]] = Field(description="(n, N_t, 3) tendon positions, m")
+    in_distribution: bool = Field(description="every parameter inside the trained ranges")
+    warnings: list[str] = Field(description="one line per parameter outside the trained ranges")
+
+
+class PredictResponse(BaseModel):
+    model: str
+    results: list[PredictedShape]
+
+
+class ExactShape(BaseModel):
+    s: list[float]
+    backbone: list[list[float]]
+    rotation: list[list[list[float]]]
+    tendons: list[list[list[float]]]
+    converged: bool
+    residual: float = Field(description="wrench-balance residual, N")
+
+
+class ExactResponse(BaseModel):
+    results: list[ExactShape]
+
+
+class ErrorItem(BaseModel):
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class ErrorResponse(BaseModel):
+    """Every 4xx/5xx body: a one-line ``message`` and, for 422, the items naming each bad field."""
+
+    message: str
+    detail: list[ErrorItem] | str

@@ -1,0 +1,342 @@
+"""The one validation path: every entry point turns its input into a :class:`ShapeRequest` here.
+
+JSON ``/predict`` and ``/exact`` bodies, ``.npy`` bodies with query parameters, ``tdcr solve`` and
+``tdcr predict`` all end in :func:`_checked`, so the same mistake gets the same message
+everywhere.  Order of the checks, so that nothing large is allocated for a bad request:
+
+1. structure and types (pydantic, for JSON; shape and dtype for arrays);
+2. sizes from the declared counts: designs, points, designs x points (:class:`Limits`);
+3. values, vectorised over the batch: finite, inside the admissible physical bounds of
+   :mod:`tdcr.design_space`, arclength fractions in [0, 1], density with gravity, and for the
+   surrogates 4 tendons and no external loads.
+
+Problems name the field as ``designs[3].tendons[1].tension`` and say why.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+from typing import Literal, NamedTuple
+
+import numpy as np
+from pydantic import ValidationError
+
+from tdcr.design_space import (
+    DEFAULT_POINTS,
+    LOADS,
+    MAX_POINTS,
+    N_TENDONS,
+    TABLE_I,
+    admissible_bounds,
+)
+from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.schemas import MAX_MODEL_NAME, PredictRequest, SolveRequest
+
+#: What a request is for: the surrogates (4 tendons, no loads) or the physics solver.
+Target = Literal["surrogate", "solver"]
+#: Arrays a surrogate can answer with; a request may ask for a subset.
+OUTPUTS = ("backbone", "rotation", "tendons")
+#: Problems quoted in one message (the rest are counted).
+MAX_LISTED_PROBLEMS = 20
+#: Characters of user input quoted in a message.
+MAX_QUOTED = 40
+
+
+class Problem(NamedTuple):
+    """One bad field: its location (e.g. ``("designs", 3, "E")``), the reason and a short type."""
+
+    loc: tuple[str | int, ...]
+    msg: str
+    type: str
+
+
+def format_location(loc: Sequence[str | int]) -> str:
+    """``("designs", 3, "tendons", 1, "tension")`` -> ``designs[3].tendons[1].tension``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else ("." if out else "") + str(part)
+    return out
+
+
+def quote(text: object) -> str:
+    """``repr`` of user input, cut to :data:`MAX_QUOTED` characters."""
+    text = repr(text)
+    return text if len(text) <= MAX_QUOTED else text[:MAX_QUOTED] + "...'"
+
+
+class InvalidRequest(ValueError):
+    """Bad input: ``problems`` name each field and reason.  ``too_large`` marks size limits (413)."""
+
+    def __init__(self, problems: Iterable[Problem], *, too_large: bool = False):
+        self.problems = list(problems)
+        self.too_large = too_large
+        super().__init__(self.message)
+
+    @property
+    def message(self) -> str:
+        """One line per problem (the first :data:`MAX_LISTED_PROBLEMS`): ``location: reason``."""
+        lines = [f"{format_location(p.loc) or 'request'}: {p.msg}" for p in self.problems[:MAX_LISTED_PROBLEMS]]
+        more = len(self.problems) - MAX_LISTED_PROBLEMS
+        return "; ".join(lines) + (f"; and {more} more" if more > 0 else "")
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Size limits of one request, checked before anything is allocated.
+
+    ``max_design_points`` bounds designs x points together (memory: about 1 kB of outputs and
+    intermediates per design-point in the surrogates).
+    """
+
+    max_designs: int = 100_000
+    max_points: int = MAX_POINTS
+    max_design_points: int = 100_000 * DEFAULT_POINTS
+
+
+@dataclass(frozen=True)
+class DesignGroup:
+    """Designs of a request that share one tendon count: request rows ``(b,)``, arrays, loads."""
+
+    rows: np.ndarray
+    designs: DesignBatch
+    loads: ExternalLoads | None
+
+
+@dataclass(frozen=True)
+class ShapeRequest:
+    """A validated request, whatever its transport.
+
+    ``groups``: the designs by tendon count (one group for surrogate requests); ``fractions``:
+    arclengths ``(n,)`` as fractions of L; ``model``: the surrogate named (None: the default);
+    ``outputs``: the arrays wanted.
+    """
+
+    groups: tuple[DesignGroup, ...]
+    fractions: np.ndarray
+    model: str | None = None
+    outputs: tuple[str, ...] = OUTPUTS
+
+    @property
+    def n_designs(self) -> int:
+        return sum(len(g.rows) for g in self.groups)
+
+    @property
+    def features(self) -> np.ndarray:
+        """Raw SI features ``(B, 3 + 3 N_t)`` of a request whose designs share one tendon count."""
+        if len(self.groups) != 1:
+            raise ValueError("the designs have different tendon counts")
+        return self.groups[0].designs.features()
+
+    @property
+    def pose(self) -> bool:
+        """Whether backbone or rotation are wanted (tendon models then fit a pose)."""
+        return self.outputs != ("tendons",)
+
+
+# -- value checks ------------------------------------------------------------------------------
+
+
+def _interval(low: float, high: float, exclusive_min: bool, unit: str) -> str:
+    return f"{'(' if exclusive_min else '['}{low:g}, {high:g}] {unit}"
+
+
+def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list[Problem]:
+    """Problems with raw SI designs ``(B, 3 + 3 N_t)``: not finite, or outside the admissible
+    bounds; ``rows`` ``(B,)`` are the designs' indices in the request (default ``0..B-1``)."""
+    layout = FeatureLayout.of(features)
+    low, high, exclusive = admissible_bounds(layout.n_tendons)
+    finite = np.isfinite(features)
+    with np.errstate(invalid="ignore"):
+        bad = ~finite | (features > high) | np.where(exclusive, features <= low, features < low)
+    rows = np.arange(len(features)) if rows is None else rows
+    problems = []
+    for b, j in zip(*np.nonzero(bad), strict=True):  # the offending entries only, by design then column
+        name = layout.parameters[j]
+        tendon = layout.tendon_index[j]
+        loc = ("designs", int(rows[b])) + ((name,) if tendon is None else ("tendons", tendon, name))
+        value = features[b, j]
+        if not finite[b, j]:
+            problems.append(Problem(loc, f"must be a finite number, got {value}", "finite_number"))
+        else:
+            p = TABLE_I[name]
+            problems.append(Problem(loc, f"must be in {_interval(*p.admissible, p.exclusive_min, p.unit)}, "
+                                         f"got {value:.6g}", "out_of_range"))
+    return problems
+
+
+def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
+    """Problems with external loads (arrays as in :class:`ExternalLoads`, NaN where absent):
+    not finite, outside the admissible bounds, or gravity without a density."""
+    problems = []
+    for name in ("gravity", "density", "tip_force", "tip_moment"):
+        values = getattr(loads, name)
+        if values is None:
+            continue
+        values = values.reshape(len(rows), -1)
+        bound = LOADS[name]
+        low, high = bound.admissible
+        given = ~np.isnan(values) if name == "density" else np.ones(values.shape, dtype=bool)
+        with np.errstate(invalid="ignore"):
+            bad = given & (~np.isfinite(values) | (values > high) | ((values <= low) if bound.exclusive_min
+                                                                     else (values < low)))
+        for b, k in zip(*np.nonzero(bad), strict=True):
+            loc = ("designs", int(rows[b]), name) + ((k,) if values.shape[1] > 1 else ())
+            value = values[b, k]
+            msg = (f"must be a finite number, got {value}" if not np.isfinite(value) else
+                   f"must be in {_interval(low, high, bound.exclusive_min, bound.unit)}, got {value:.6g}")
+            problems.append(Problem(loc, msg, "finite_number" if not np.isfinite(value) else "out_of_range"))
+    if loads.gravity is not None:
+        no_density = np.isnan(loads.density) & np.any(loads.gravity != 0, axis=1)
+        problems += [Problem(("designs", int(rows[b]), "density"), "gravity needs a density (kg/m^3)",
+                             "missing_density") for b in np.nonzero(no_density)[0]]
+    return problems
+
+
+def check_outputs(outputs: Iterable[str] | None) -> tuple[tuple[str, ...], list[Problem]]:
+    """The arrays wanted (sorted, a subset of :data:`OUTPUTS`; all when ``None``) and any problem."""
+    if outputs is None:
+        return OUTPUTS, []
+    wanted = tuple(sorted({w.strip() for w in outputs if w.strip()}))
+    if not wanted or any(w not in OUTPUTS for w in wanted):
+        return OUTPUTS, [Problem(("outputs",), f"must be a comma-separated subset of {list(OUTPUTS)}, got "
+                                 f"{quote(','.join(outputs))}", "value_error")]
+    return wanted, []
+
+
+def _check_model(model: str | None) -> list[Problem]:
+    if model is not None and not 1 <= len(model) <= MAX_MODEL_NAME:
+        return [Problem(("model",), f"must be 1 to {MAX_MODEL_NAME} characters", "string_length")]
+    return []
+
+
+def _fractions(points: int | None, s: Sequence[float] | np.ndarray | None,
+               limits: Limits) -> tuple[np.ndarray | None, list[Problem]]:
+    """Arclength fractions ``(n,)`` from ``points`` or ``s``; nothing is allocated for a bad count."""
+    if points is not None and s is not None:
+        return None, [Problem(("s",), "give either 'points' or 's', not both", "points_or_s")]
+    if s is None:
+        n = DEFAULT_POINTS if points is None else points
+        if not 2 <= n <= limits.max_points:
+            return None, [Problem(("points",), f"must be an integer from 2 to {limits.max_points}, got {n}",
+                                  "points")]
+        return np.linspace(0.0, 1.0, n), []
+    if not 1 <= len(s) <= limits.max_points:
+        return None, [Problem(("s",), f"must hold 1 to {limits.max_points} fractions, got {len(s)}", "points")]
+    fractions = np.asarray(s, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = np.nonzero(~((fractions >= 0.0) & (fractions <= 1.0)))[0]
+    return fractions, [Problem(("s", int(i)), f"must be a fraction of L in [0, 1], got {fractions[i]}", "fraction")
+                       for i in bad]
+
+
+def _check_sizes(n_designs: int, n_points: int, limits: Limits) -> None:
+    """413 before any allocation: too many designs, or designs x points over the budget."""
+    if n_designs > limits.max_designs:
+        raise InvalidRequest([Problem(("designs",), f"{n_designs} designs exceed the limit of {limits.max_designs} "
+                                      "per request", "too_many_designs")], too_large=True)
+    if n_designs * n_points > limits.max_design_points:
+        raise InvalidRequest([Problem(("designs",), f"{n_designs} designs x {n_points} points exceed the budget of "
+                                      f"{limits.max_design_points} design-points per request", "too_many_values")],
+                             too_large=True)
+
+
+def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: list[Problem], *,
+             target: Target, model: str | None, outputs: tuple[str, ...]) -> ShapeRequest:
+    """Every value check of every entry point; raises :class:`InvalidRequest` naming each field."""
+    value_problems = []
+    for g in groups:
+        value_problems += check_features(g.designs.features(), g.rows)
+        if g.loads is not None:
+            if target == "surrogate":
+                value_problems += [Problem(("designs", int(r)), "external loads are only supported by the physics "
+                                           "solver (/exact)", "loads") for r in g.rows[_loaded(g.loads)]]
+            else:
+                value_problems += check_loads(g.loads, g.rows)
+        if target == "surrogate" and g.designs.n_tendons != N_TENDONS:
+            value_problems += [Problem(("designs", int(r), "tendons"), f"the surrogates need {N_TENDONS} tendons, "
+                                       f"got {g.designs.n_tendons}", "tendon_count") for r in g.rows]
+    value_problems.sort(key=lambda p: p.loc[1])  # by design, stable within a design (column order)
+    problems = problems + value_problems
+    if problems:
+        raise InvalidRequest(problems)
+    groups = [g if g.loads is None else replace(g, loads=replace(g.loads, density=np.nan_to_num(g.loads.density)))
+              for g in groups]  # an absent density (NaN above) weighs nothing
+    return ShapeRequest(groups=tuple(groups), fractions=fractions, model=model, outputs=outputs)
+
+
+def _loaded(loads: ExternalLoads) -> np.ndarray:
+    """Per design ``(b,)``: any non-zero gravity, tip force or tip moment."""
+    return np.any(np.concatenate([loads.gravity, loads.tip_force, loads.tip_moment], axis=1) != 0, axis=1)
+
+
+# -- entry points ------------------------------------------------------------------------------
+
+
+def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = Limits(),
+                  outputs: Iterable[str] | None = None) -> ShapeRequest:
+    """A JSON request (``PredictRequest`` for the surrogates, ``SolveRequest`` for the solver).
+
+    ``body``: the raw JSON text, or already-decoded JSON.  Raises :class:`InvalidRequest`.
+    """
+    schema = PredictRequest if target == "surrogate" else SolveRequest
+    try:
+        request = (schema.model_validate(body) if isinstance(body, dict) else schema.model_validate_json(body))
+    except ValidationError as exc:
+        raise InvalidRequest(Problem(tuple(e["loc"]), e["msg"], e["type"]) for e in exc.errors()) from None
+    fractions, problems = _fractions(request.points, request.s, limits)
+    _check_sizes(len(request.designs), 0 if fractions is None else fractions.size, limits)
+    wanted, more = check_outputs(outputs)
+    problems += more + _check_model(getattr(request, "model", None))
+    by_count: dict[int, list[int]] = {}
+    for i, d in enumerate(request.designs):
+        by_count.setdefault(len(d.tendons), []).append(i)
+    groups = [_group_from_json([request.designs[i] for i in rows], np.asarray(rows))
+              for rows in by_count.values()]
+    return _checked(groups, fractions, problems, target=target, model=getattr(request, "model", None),
+                    outputs=wanted)
+
+
+def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
+    """Arrays of parsed designs that share a tendon count (loads: NaN density where absent)."""
+    batch = DesignBatch(
+        E=[d.E for d in designs], r=[d.r for d in designs], L=[d.L for d in designs],
+        offset=[[t.offset for t in d.tendons] for d in designs],
+        pitch=[[t.pitch for t in d.tendons] for d in designs],
+        tension=[[t.tension for t in d.tendons] for d in designs],
+    )
+    loads = None
+    if any(d.gravity is not None or d.tip_force is not None or d.tip_moment is not None for d in designs):
+        zero = (0.0, 0.0, 0.0)
+        loads = ExternalLoads(
+            gravity=np.array([d.gravity or zero for d in designs], dtype=np.float64),
+            density=np.array([np.nan if d.density is None else d.density for d in designs]),
+            tip_force=np.array([d.tip_force or zero for d in designs], dtype=np.float64),
+            tip_moment=np.array([d.tip_moment or zero for d in designs], dtype=np.float64),
+        )
+    return DesignGroup(rows=rows, designs=batch, loads=loads)
+
+
+def validate_features(features: np.ndarray, *, target: Target = "surrogate", points: int | None = None,
+                      s: Sequence[float] | np.ndarray | None = None, model: str | None = None,
+                      outputs: Iterable[str] | None = None, limits: Limits = Limits()) -> ShapeRequest:
+    """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body) with arclengths and options.
+
+    Raises :class:`InvalidRequest`.
+    """
+    features = np.asarray(features)
+    if features.dtype.kind not in "fiu" or features.ndim != 2 or features.shape[0] < 1 or (
+            target == "surrogate" and features.shape[1] != 3 + 3 * N_TENDONS):
+        expect = f"(B, {3 + 3 * N_TENDONS})" if target == "surrogate" else "(B, 3 + 3 N_t)"
+        raise InvalidRequest([Problem(("designs",), f"expected a numeric {expect} array [E, r, L, offsets, pitches, "
+                                      f"tensions] with B >= 1, got {features.dtype} {features.shape}", "array")])
+    try:
+        FeatureLayout.of(features)
+    except ValueError as exc:
+        raise InvalidRequest([Problem(("designs",), str(exc), "array")]) from None
+    fractions, problems = _fractions(points, s, limits)
+    _check_sizes(len(features), 0 if fractions is None else fractions.size, limits)
+    wanted, more = check_outputs(outputs)
+    problems += more + _check_model(model)
+    group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features), loads=None)
+    return _checked([group], fractions, problems, target=target, model=model, outputs=wanted)
