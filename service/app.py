@@ -5,6 +5,7 @@ Run with ``tdcr serve --port 8000`` or ``uvicorn --factory service.app:create_ap
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from contextlib import asynccontextmanager
@@ -20,7 +21,7 @@ from service.errors import ApiError
 from service.metrics import Metrics
 from service.routers import exact, health, models, predict
 from service.settings import Settings
-from service.state import ServiceState, load_models, start_pool, stop_pool
+from service.state import ServiceState, load_models, start_pool
 from tdcr.schemas import ExactRequest, PredictRequest
 
 log = logging.getLogger("tdcr.service")
@@ -120,11 +121,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.problems.append(f"solver pool: {exc}")
         state.ready = not state.problems and bool(state.models)
         log.info("ready=%s models=%s problems=%s", state.ready, sorted(state.models), state.problems)
+        watcher = asyncio.create_task(state.pool.watch()) if state.pool is not None else None
         yield
+        if watcher is not None:
+            watcher.cancel()
         for batcher in state.batchers.values():
             batcher.close()
         if state.pool is not None:
-            stop_pool(state.pool)
+            state.pool.close()
 
     app = FastAPI(title="tdcr-surrogates", version=tdcr.__version__, lifespan=lifespan,
                   description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -13,6 +11,7 @@ from service.batching import Batcher
 from service.dataplane import DataPlane
 from service.metrics import Metrics
 from service.settings import Settings
+from service.solver_pool import SolverPool
 from tdcr import design_space
 from tdcr.runtime import ManifestError, Surrogate, load_manifest
 
@@ -26,10 +25,14 @@ class ServiceState:
     batchers: dict[str, Batcher] = field(default_factory=dict)
     default_model: str | None = None
     dataplane: DataPlane | None = None
-    pool: ProcessPoolExecutor | None = None
+    pool: SolverPool | None = None
     exact_slots: asyncio.Semaphore | None = None
     ready: bool = False
     problems: list[str] = field(default_factory=list)
+
+    @property
+    def pool_healthy(self) -> bool:
+        return self.pool is not None and self.pool.healthy
 
 
 def best_model(manifest: dict) -> str | None:
@@ -71,29 +74,8 @@ def load_models(state: ServiceState) -> None:
     state.dataplane = DataPlane(state.batchers, default_model=default, limits=settings.predict_limits())
 
 
-def new_pool(settings: Settings) -> ProcessPoolExecutor:
-    """Solver processes behind /exact, started and warmed up (blocking: call outside the event loop)."""
-    from tdcr.exact import warm_up
-
-    pool = ProcessPoolExecutor(max_workers=settings.exact_workers, mp_context=multiprocessing.get_context("spawn"))
-    for f in [pool.submit(warm_up) for _ in range(settings.exact_workers)]:
-        f.result(timeout=120)
-    return pool
-
-
 def start_pool(state: ServiceState) -> None:
-    """Start the solver pool and the /exact admission slots (at startup)."""
-    state.pool = new_pool(state.settings)
+    """Start the solver processes and the /exact admission slots (at startup; blocks for the
+    processes' start, about a second each)."""
+    state.pool = SolverPool(state.settings.exact_workers)
     state.exact_slots = asyncio.Semaphore(state.settings.exact_max_pending)
-
-
-def stop_pool(pool: ProcessPoolExecutor, grace_s: float = 5.0) -> None:
-    """Stop the solver processes: cancel queued work, give running work ``grace_s`` seconds, then
-    terminate whatever is left (a plain ``shutdown(wait=False)`` leaves them running after the
-    server exits)."""
-    processes = list(getattr(pool, "_processes", {}).values())  # no public handle on the workers
-    pool.shutdown(wait=False, cancel_futures=True)
-    for proc in processes:
-        proc.join(timeout=grace_s)
-        if proc.is_alive():
-            proc.terminate()

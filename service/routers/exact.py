@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import asyncio
+import logging
 import time
-from concurrent.futures.process import BrokenProcessPool
 
 import orjson
 from fastapi import APIRouter, Request, Response
@@ -12,12 +11,13 @@ from starlette.concurrency import run_in_threadpool
 
 from service.deps import State
 from service.errors import ApiError, from_invalid
-from service.state import new_pool
+from service.solver_pool import WorkerDied
 from tdcr.exact import solve_request
 from tdcr.schemas import ErrorResponse, ExactResponse
 from tdcr.validation import InvalidRequest, Limits, ShapeRequest, validate_json
 
 router = APIRouter(tags=["exact"])
+log = logging.getLogger("tdcr.service")
 
 
 def _prepare(body: bytes, limits: Limits) -> ShapeRequest:
@@ -46,16 +46,16 @@ async def exact(request: Request, state: State) -> Response:
     shape_request = await run_in_threadpool(_prepare, body, settings.exact_limits())  # parsing off the loop
     started = time.perf_counter()
     async with state.exact_slots:
-        loop = asyncio.get_running_loop()
-        future = loop.run_in_executor(state.pool, solve_request, shape_request)
         try:
-            results = await asyncio.wait_for(future, timeout=settings.exact_timeout_s)
-        except TimeoutError:
+            results = await state.pool.run(solve_request, shape_request, timeout=settings.exact_timeout_s)
+        except TimeoutError:  # the worker was killed: its work stops with the deadline
             raise ApiError(504, f"the solver did not finish within {settings.exact_timeout_s} s",
                            kind="deadline") from None
-        except BrokenProcessPool:
-            state.pool = await run_in_threadpool(new_pool, settings)  # never block the event loop
-            raise ApiError(503, "a solver process died; the pool was restarted", kind="unavailable") from None
+        except WorkerDied as exc:
+            raise ApiError(503, str(exc), kind="unavailable") from None
+        except RuntimeError as exc:
+            log.error("solver failed: %s", exc)
+            raise ApiError(503, "the solver failed on this request", kind="solver") from None
     state.metrics.latency.labels("/exact", "solver").observe(time.perf_counter() - started)
     state.metrics.designs.labels("/exact", "solver").inc(shape_request.n_designs)
     return Response(orjson.dumps({"results": results}), media_type="application/json")

@@ -19,9 +19,11 @@ def healthz() -> dict:
 @router.get("/readyz", summary="Readiness: every model loaded, checksum verified and warmed up",
             responses={503: {"description": "not ready"}})
 def readyz(state: State):
-    body = {"ready": state.ready, "models": sorted(state.models), "default_model": state.default_model,
-            "problems": state.problems}
-    return JSONResponse(body, status_code=200 if state.ready else 503)
+    ready = state.ready and state.pool_healthy
+    problems = state.problems + ([] if state.pool_healthy else ["solver pool: a worker is being replaced"])
+    body = {"ready": ready, "models": sorted(state.models), "default_model": state.default_model,
+            "problems": problems}
+    return JSONResponse(body, status_code=200 if ready else 503)
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response)

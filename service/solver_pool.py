@@ -1,0 +1,174 @@
+"""The solver processes behind /exact: killable workers, so that a deadline really stops the work.
+
+Each worker is a spawned process that answers one request at a time over a pipe.  A request past
+its deadline (or whose client went away, which cancels the awaiting task) has its worker killed
+and replaced: the next request does not queue behind abandoned work.  A worker that dies is
+detected when its pipe closes and replaced the same way; ``healthy`` is False until it is back, so
+``/readyz`` reflects the pool.  Workers die with the server, even after a SIGKILL of the server:
+they ask Linux for a parent-death signal (``PR_SET_PDEATHSIG``) and also watch their parent's pid.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+from multiprocessing.connection import Connection
+
+from starlette.concurrency import run_in_threadpool
+
+_PR_SET_PDEATHSIG = 1
+
+
+class WorkerDied(RuntimeError):
+    """The worker process died while solving (it has been replaced)."""
+
+
+def _die_with_parent(parent: int) -> None:
+    """SIGKILL this process when the parent dies: the kernel's parent-death signal where there is
+    one (Linux), and a watchdog thread polling the parent pid everywhere."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def _serve(conn: Connection, parent: int) -> None:
+    """Worker loop: ``(fn, args)`` in, ``(ok, result or message)`` out."""
+    _die_with_parent(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server handles Ctrl-C and stops us
+    from tdcr.exact import warm_up
+
+    warm_up()
+    conn.send((True, "ready"))
+    while True:
+        try:
+            fn, args = conn.recv()
+        except EOFError:
+            return
+        try:
+            conn.send((True, fn(*args)))
+        except Exception as exc:  # noqa: BLE001 - reported to the server, which answers 500-free
+            conn.send((False, f"{exc.__class__.__name__}: {exc}"))
+
+
+class _Worker:
+    def __init__(self, ctx):
+        self.conn, child = ctx.Pipe()
+        self.process = ctx.Process(target=_serve, args=(child, os.getpid()), daemon=True, name="tdcr-solver")
+        self.process.start()
+        child.close()
+
+    def wait_ready(self, timeout: float) -> None:
+        if not self.conn.poll(timeout):
+            self.kill()
+            raise RuntimeError("a solver process did not start in time")
+        self.conn.recv()
+
+    def kill(self) -> None:
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join(timeout=5)
+        self.conn.close()
+
+
+class SolverPool:
+    """``workers`` solver processes; :meth:`run` solves on an idle one within a deadline."""
+
+    def __init__(self, workers: int, *, start_timeout_s: float = 120.0):
+        self._ctx = multiprocessing.get_context("spawn")
+        self._start_timeout_s = start_timeout_s
+        self.workers = [self._start() for _ in range(workers)]
+        self._idle: asyncio.Queue[_Worker] | None = None
+        self.replacing = 0  # workers being replaced (the pool is unhealthy meanwhile)
+
+    def _start(self) -> _Worker:
+        worker = _Worker(self._ctx)
+        worker.wait_ready(self._start_timeout_s)
+        return worker
+
+    @property
+    def healthy(self) -> bool:
+        return self.replacing == 0 and all(w.process.is_alive() for w in self.workers)
+
+    def _idle_queue(self) -> asyncio.Queue:
+        if self._idle is None:  # created on the event loop that uses it
+            self._idle = asyncio.Queue()
+            for w in self.workers:
+                self._idle.put_nowait(w)
+        return self._idle
+
+    async def run(self, fn, *args, timeout: float):
+        """``fn(*args)`` in a worker; ``TimeoutError`` past ``timeout`` s (the worker is killed and
+        replaced), :class:`WorkerDied` if it died, ``RuntimeError`` if ``fn`` raised."""
+        idle = self._idle_queue()
+        deadline = asyncio.get_running_loop().time() + timeout
+        worker = await asyncio.wait_for(idle.get(), timeout)
+        healthy = False
+        try:
+            worker.conn.send((fn, args))
+            remaining = max(deadline - asyncio.get_running_loop().time(), 0.0)
+            ok, result = await asyncio.wait_for(self._receive(worker), remaining)
+            healthy = True
+        except TimeoutError:  # a subclass of OSError: re-raised as it is
+            raise
+        except (EOFError, OSError):
+            raise WorkerDied("a solver process died; it is being replaced") from None
+        finally:
+            if healthy:
+                idle.put_nowait(worker)
+            else:  # past the deadline, cancelled (client gone) or dead: kill it, start another
+                asyncio.get_running_loop().create_task(self._replace(worker))
+        if not ok:
+            raise RuntimeError(result)
+        return result
+
+    @staticmethod
+    async def _receive(worker: _Worker):
+        loop = asyncio.get_running_loop()
+        ready = loop.create_future()
+        loop.add_reader(worker.conn.fileno(), lambda: ready.done() or ready.set_result(None))
+        try:
+            await ready
+        finally:
+            loop.remove_reader(worker.conn.fileno())
+        return worker.conn.recv()
+
+    async def _replace(self, worker: _Worker) -> None:
+        self.replacing += 1
+        try:
+            await run_in_threadpool(worker.kill)
+            fresh = await run_in_threadpool(self._start)
+            self.workers[self.workers.index(worker)] = fresh
+            self._idle_queue().put_nowait(fresh)
+        finally:
+            self.replacing -= 1
+
+    async def watch(self, interval_s: float = 0.5) -> None:
+        """Replace idle workers that died (e.g. killed from outside), until cancelled."""
+        while True:
+            await asyncio.sleep(interval_s)
+            idle = self._idle_queue()
+            for _ in range(idle.qsize()):
+                worker = idle.get_nowait()
+                if worker.process.is_alive():
+                    idle.put_nowait(worker)
+                else:
+                    await self._replace(worker)
+
+    def close(self) -> None:
+        for w in self.workers:
+            w.kill()

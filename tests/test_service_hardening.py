@@ -1,0 +1,102 @@
+"""Reliability of /exact's solver processes against a real server: deadlines stop the work, dead
+workers are replaced, and no solver process outlives the server."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.process import ServerProcess
+
+pytestmark = pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc")
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.append(int(stat.parent.name))
+    return kids
+
+
+def _solvers(pid: int) -> list[int]:
+    """The solver processes among the children (not multiprocessing's resource tracker)."""
+    out = []
+    for kid in _children(pid):
+        try:
+            if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
+                out.append(kid)
+        except OSError:
+            continue
+    return out
+
+
+def _alive(pids: list[int]) -> list[int]:
+    alive = []
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            alive.append(pid)
+    return alive
+
+
+def _wait(condition, timeout_s: float = 30.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.1)
+    return condition()
+
+
+@pytest.fixture(scope="module")
+def server(tiny_models):
+    srv = ServerProcess(tiny_models[1], exact_timeout_s=3, exact_workers=1, exact_max_pending=4)
+    yield srv
+    srv.stop()
+
+
+def test_a_timed_out_request_stops_its_work(server, example_request):
+    """The heavy request's worker is killed at the deadline, so a small request right after it is
+    answered by a fresh worker instead of queueing behind the abandoned work."""
+    heavy = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 300, "points": 200}
+    workers = _solvers(server.proc.pid)
+    assert workers
+    r = httpx.post(server.url + "/exact", json=heavy, timeout=60)
+    assert r.status_code == 504, r.text
+    assert _wait(lambda: not _alive(workers)), "the timed-out worker is still running"
+    small = httpx.post(server.url + "/exact", json=example_request, timeout=60)
+    assert small.status_code == 200, small.text
+
+
+def test_a_killed_worker_is_replaced(server, example_request):
+    before = _alive(_solvers(server.proc.pid))
+    assert before
+    for pid in before:
+        os.kill(pid, signal.SIGKILL)
+    assert _wait(lambda: httpx.get(server.url + "/readyz").status_code == 200
+                 and set(_alive(_solvers(server.proc.pid))) - set(before))
+    r = httpx.post(server.url + "/exact", json=example_request, timeout=60)
+    assert r.status_code == 200, r.text
+
+
+def test_solver_processes_die_with_a_killed_server(tiny_models):
+    srv = ServerProcess(tiny_models[1], exact_workers=2)
+    workers = _alive(_children(srv.proc.pid))  # the solvers and multiprocessing's resource tracker
+    assert len(_solvers(srv.proc.pid)) == 2
+    srv.proc.send_signal(signal.SIGKILL)
+    srv.proc.wait()
+    srv.stop(check=False)
+    assert _wait(lambda: not _alive(workers), 15), f"orphans: {_alive(workers)}"
