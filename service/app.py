@@ -6,12 +6,15 @@ Run with ``tdcr serve --port 8000`` or ``uvicorn --factory service.app:create_ap
 from __future__ import annotations
 
 import asyncio
+import hmac
+import json
 import logging
 import time
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -55,6 +58,27 @@ class BodyLimit:
             await _send_error(send, 413, f"request body over {self.limit} bytes")
 
 
+class ApiKeyAuth:
+    """ASGI middleware: 401 unless the request carries one of ``keys`` (``Authorization: Bearer KEY``
+    or ``X-API-Key: KEY``); health probes are open; /metrics takes ``metrics_key`` when set."""
+
+    OPEN = ("/healthz", "/readyz")
+
+    def __init__(self, app, keys: set[str], metrics_key: str | None):
+        self.app, self.keys, self.metrics_key = app, {k.encode() for k in keys}, metrics_key
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["path"] in self.OPEN:
+            return await self.app(scope, receive, send)
+        headers = dict(scope.get("headers") or [])
+        given = headers.get(b"x-api-key") or headers.get(b"authorization", b"").removeprefix(b"Bearer ").strip()
+        accepted = {self.metrics_key.encode()} if scope["path"] == "/metrics" and self.metrics_key else self.keys
+        if not any(hmac.compare_digest(given, key) for key in accepted):
+            return await _send_error(send, 401, "a valid API key is required (Authorization: Bearer KEY)",
+                                     extra=[(b"www-authenticate", b"Bearer")])
+        return await self.app(scope, receive, send)
+
+
 class RequestMetrics:
     """ASGI middleware: counts requests by endpoint and status; latency of the endpoints without a model."""
 
@@ -86,12 +110,11 @@ class _TooLarge(Exception):
     pass
 
 
-async def _send_error(send, status: int, message: str) -> None:
-    import json
-
+async def _send_error(send, status: int, message: str, extra: list[tuple[bytes, bytes]] = ()) -> None:
     body = json.dumps({"message": message, "detail": message}).encode()
     await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            *extra]})
     await send({"type": "http.response.body", "body": body})
 
 
@@ -130,7 +153,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if state.pool is not None:
             state.pool.close()
 
-    app = FastAPI(title="tdcr-surrogates", version=tdcr.__version__, lifespan=lifespan,
+    docs = {} if settings.docs else {"docs_url": None, "redoc_url": None, "openapi_url": None}
+    app = FastAPI(title="tdcr-surrogates", version=tdcr.__version__, lifespan=lifespan, **docs,
                   description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "
                               "and the Cosserat solver (/exact).  SI units throughout.")
     app.state.service = state
@@ -157,8 +181,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         log.exception("unexpected error on %s", request.url.path)
         return _error_response(request, ApiError(500, "internal error", kind="internal"))
 
-    app.add_middleware(RequestMetrics, metrics=state.metrics)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    if settings.api_keys or settings.metrics_api_key:
+        app.add_middleware(ApiKeyAuth, keys=settings.api_keys, metrics_key=settings.metrics_api_key)
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST"],
+                           allow_headers=["content-type", "authorization", "x-api-key"])
+    app.add_middleware(RequestMetrics, metrics=state.metrics)  # outermost: counts every answer
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

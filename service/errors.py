@@ -28,3 +28,16 @@ def from_invalid(exc: InvalidRequest, *, query: Collection[str] = ()) -> ApiErro
              for p in exc.problems]
     return ApiError(413 if exc.too_large else 422, exc.message, items,
                     kind="too_large" if exc.too_large else "validation")
+
+
+#: Media types of JSON bodies.
+JSON_TYPES = ("application/json",)
+
+
+def require_json(content_type: str) -> None:
+    """415 unless the body is declared JSON (``application/json`` or ``application/*+json``): a
+    browser sends ``text/plain`` cross-site without a preflight, so nothing else is parsed as JSON."""
+    media = content_type.split(";")[0].strip().lower()
+    if media not in JSON_TYPES and not (media.startswith("application/") and media.endswith("+json")):
+        raise ApiError(415, f"Content-Type must be application/json, got {media[:40] or 'none'!r}",
+                       kind="media_type")

@@ -33,6 +33,11 @@ class Settings(BaseSettings):
     exact_max_pending: int = Field(8, ge=1, description="/exact requests queued or running before 503")
     exact_timeout_s: float = Field(30.0, gt=0, description="per-request deadline of /exact before 504")
     workers: int = Field(1, ge=1, description="uvicorn worker processes (scale out with replicas instead)")
+    api_keys: set[str] = Field(set(), description='keys accepted on every route but /healthz and /readyz, as '
+                               '"Authorization: Bearer KEY" or "X-API-Key: KEY" (JSON list; empty: no authentication)')
+    metrics_api_key: str | None = Field(None, description="a key of its own for /metrics (else the api_keys)")
+    cors_origins: list[str] = Field([], description="origins allowed cross-site (JSON list; empty: CORS off)")
+    docs: bool = Field(True, description="serve /docs, /redoc and /openapi.json")
 
     def predict_limits(self) -> Limits:
         """Size limits of one /predict request."""

@@ -100,3 +100,38 @@ def test_solver_processes_die_with_a_killed_server(tiny_models):
     srv.proc.wait()
     srv.stop(check=False)
     assert _wait(lambda: not _alive(workers), 15), f"orphans: {_alive(workers)}"
+
+
+def test_access_controls(tiny_models, example_request):
+    """API keys on every route but health, a key of its own for /metrics, JSON only as JSON, docs off."""
+    srv = ServerProcess(tiny_models[1], api_keys='["k1", "k2"]', metrics_api_key="m", docs="false")
+    try:
+        url = srv.url
+        assert httpx.get(url + "/healthz").status_code == 200 and httpx.get(url + "/readyz").status_code == 200
+        assert httpx.post(url + "/predict", json=example_request).status_code == 401
+        assert httpx.post(url + "/predict", json=example_request, headers={"x-api-key": "nope"}).status_code == 401
+        for headers in ({"x-api-key": "k2"}, {"authorization": "Bearer k1"}):
+            assert httpx.post(url + "/predict", json=example_request, headers=headers).status_code == 200
+        assert httpx.get(url + "/metrics", headers={"x-api-key": "k1"}).status_code == 401
+        assert httpx.get(url + "/metrics", headers={"x-api-key": "m"}).status_code == 200
+        plain = httpx.post(url + "/predict", content=httpx.Request("POST", url, json=example_request).content,
+                           headers={"x-api-key": "k1", "content-type": "text/plain"})
+        assert plain.status_code == 415 and "application/json" in plain.json()["message"]
+        assert httpx.get(url + "/docs", headers={"x-api-key": "k1"}).status_code == 404
+        assert "access-control-allow-origin" not in httpx.options(
+            url + "/predict", headers={"origin": "http://evil.example", "access-control-request-method": "POST"}).headers
+    finally:
+        srv.stop()
+
+
+def test_metric_labels_never_hold_user_input(server):
+    for i in range(30):
+        assert httpx.get(f"{server.url}/no/such/path/{i}").status_code == 404
+    text = httpx.get(server.url + "/metrics").text
+    assert "/no/such/path" not in text
+    assert 'tdcr_errors_total{endpoint="other",kind="http_404"}' in text
+
+
+def test_readiness_shows_no_file_paths(server, tiny_models):
+    body = httpx.get(server.url + "/readyz").text
+    assert str(tiny_models[1]) not in body and "/tmp" not in body

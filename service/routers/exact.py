@@ -10,7 +10,7 @@ from fastapi import APIRouter, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from service.deps import State
-from service.errors import ApiError, from_invalid
+from service.errors import ApiError, from_invalid, require_json
 from service.solver_pool import WorkerDied
 from tdcr.exact import solve_request
 from tdcr.schemas import ErrorResponse, ExactResponse
@@ -31,7 +31,8 @@ def _prepare(body: bytes, limits: Limits) -> ShapeRequest:
     "/exact",
     summary="Exact equilibria from the Cosserat solver",
     response_model=ExactResponse,
-    responses={413: {"model": ErrorResponse}, 422: {"model": ErrorResponse}, 503: {"model": ErrorResponse},
+    responses={413: {"model": ErrorResponse}, 415: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
+               503: {"model": ErrorResponse},
                504: {"model": ErrorResponse}},
     openapi_extra={"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": "#/components/schemas/ExactRequest"}}}}},
@@ -42,6 +43,7 @@ async def exact(request: Request, state: State) -> Response:
         raise ApiError(503, "the solver pool is not running", kind="unavailable")
     if state.exact_slots.locked():
         raise ApiError(503, "the solver is saturated; retry later", kind="saturated")
+    require_json(request.headers.get("content-type", ""))
     body = await request.body()
     shape_request = await run_in_threadpool(_prepare, body, settings.exact_limits())  # parsing off the loop
     started = time.perf_counter()

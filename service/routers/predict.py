@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from service.dataplane import NPY, NPZ, QUERY_FIELDS, DataPlane, ModelNotFound
 from service.deps import Plane, State
-from service.errors import ApiError, from_invalid
+from service.errors import ApiError, from_invalid, require_json
 from tdcr.schemas import ErrorResponse, PredictResponse
 from tdcr.validation import InvalidRequest
 
@@ -22,6 +22,8 @@ router = APIRouter(tags=["predict"])
 def _answer(plane: DataPlane, body: bytes, content_type: str, accept: str, params: dict[str, list[str]]):
     """prepare -> run -> encode (blocking); ``(response, model, designs)``."""
     binary = content_type.startswith(NPY)
+    if not binary:
+        require_json(content_type)
     try:
         request = plane.prepare_npy(body, params) if binary else plane.prepare_json(body)
         prediction = plane.run(request)
@@ -48,7 +50,8 @@ def _answer(plane: DataPlane, body: bytes, content_type: str, accept: str, param
     ),
     responses={
         200: {"model": PredictResponse, "content": {NPZ: {"schema": {"type": "string", "format": "binary"}}}},
-        404: {"model": ErrorResponse}, 413: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
+        404: {"model": ErrorResponse}, 413: {"model": ErrorResponse}, 415: {"model": ErrorResponse},
+        422: {"model": ErrorResponse},
     },
     openapi_extra={"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": "#/components/schemas/PredictRequest"}},
@@ -60,7 +63,7 @@ async def predict(request: Request, state: State, plane: Plane) -> Response:
     params = {k: request.query_params.getlist(k) for k in request.query_params}
     started = time.perf_counter()
     response, name, n = await run_in_threadpool(
-        _answer, plane, body, request.headers.get("content-type", "application/json"),
+        _answer, plane, body, request.headers.get("content-type", ""),
         request.headers.get("accept", ""), params)
     state.metrics.latency.labels("/predict", name).observe(time.perf_counter() - started)
     state.metrics.designs.labels("/predict", name).inc(n)
