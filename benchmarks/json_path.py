@@ -22,7 +22,7 @@ import orjson
 
 from service.dataplane import DataPlane
 from service.process import ROOT, ServerProcess
-from tdcr.design_space import LAYOUT, sample_designs
+from tdcr.design_space import sample_designs
 from tdcr.runtime import Surrogate
 from tdcr.validation import Limits
 
@@ -30,12 +30,7 @@ MODEL = "deeponet_pose"
 
 
 def request_body(n: int) -> bytes:
-    f = sample_designs(n, seed=0).features()
-    offset, pitch, tension = (f[:, LAYOUT.group(g)] for g in ("offset", "pitch", "tension"))
-    designs = [{"E": float(f[j, 0]), "r": float(f[j, 1]), "L": float(f[j, 2]), "tendons": [
-        {"offset": float(offset[j, i]), "pitch": float(pitch[j, i]), "tension": float(tension[j, i])}
-        for i in range(LAYOUT.n_tendons)]} for j in range(n)]
-    return orjson.dumps({"designs": designs, "model": MODEL})
+    return orjson.dumps({"designs": sample_designs(n, seed=0).to_dicts(), "model": MODEL})
 
 
 def in_process(body: bytes, repeats: int) -> np.ndarray:

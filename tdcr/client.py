@@ -15,6 +15,8 @@ import io
 import httpx
 import numpy as np
 
+from tdcr.design_space import DEFAULT_POINTS
+
 NPY, NPZ = "application/x-npy", "application/x-npz"
 
 
@@ -71,7 +73,7 @@ class Client:
     def close(self) -> None:
         self._http.close()
 
-    def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = 42, s=None,
+    def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = DEFAULT_POINTS, s=None,
                 outputs=None) -> dict:
         """Binary request: features ``(B, 15)`` -> arrays s, backbone, rotation, tendons, in_distribution.
 
@@ -104,7 +106,7 @@ class AsyncClient:
     async def aclose(self) -> None:
         await self._http.aclose()
 
-    async def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = 42,
+    async def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = DEFAULT_POINTS,
                       s=None, outputs=None) -> dict:
         r = await self._http.post("/predict", content=_npy(features), params=_params(model, points, s, outputs),
                                   headers={"content-type": NPY, "accept": NPZ})

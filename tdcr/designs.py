@@ -131,6 +131,14 @@ class DesignBatch:
             tension=features[:, layout.group("tension")],
         )
 
+    def to_dicts(self) -> list[dict]:
+        """The designs as JSON-ready dicts of the request format (``tdcr.schemas.Design``), SI units."""
+        return [{"E": E, "r": r, "L": L, "tendons": [{"offset": o, "pitch": p, "tension": t}
+                                                     for o, p, t in zip(offset, pitch, tension, strict=True)]}
+                for E, r, L, offset, pitch, tension in zip(self.E.tolist(), self.r.tolist(), self.L.tolist(),
+                                                           self.offset.tolist(), self.pitch.tolist(),
+                                                           self.tension.tolist(), strict=True)]
+
     @classmethod
     def concatenate(cls, batches: list[DesignBatch]) -> DesignBatch:
         return cls.from_features(np.concatenate([b.features() for b in batches], axis=0))

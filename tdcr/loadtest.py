@@ -61,15 +61,14 @@ async def run_cell(url: str, *, concurrency: int, batch: int, model: str | None,
                    max_requests: int, max_seconds: float, seed: int = 0, outputs: str | None = None,
                    timeout: float = 120.0) -> Row:
     """One cell against the service at ``url``: ``concurrency`` clients of one connection each."""
-    feats = design_space.sample_designs(batch, seed=seed).features()
+    designs = design_space.sample_designs(batch, seed=seed)
+    feats = designs.features()
     if binary:
         params = ({"model": model} if model else {}) | ({"outputs": outputs} if outputs else {})
         body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ}, "params": params}
     else:
-        designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
-            {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in feats.tolist()]
         # serialised once, as load generators do: the client's CPU is shared with the server here
-        payload = orjson.dumps({"designs": designs, **({"model": model} if model else {})})
+        payload = orjson.dumps({"designs": designs.to_dicts(), **({"model": model} if model else {})})
         body = {"content": payload, "headers": {"content-type": "application/json"}}
     latencies: list[float] = []
     errors = 0

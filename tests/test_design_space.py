@@ -77,3 +77,8 @@ def test_feature_layout_names_every_column():
     f = ds.sample_designs(3, seed=5)
     np.testing.assert_array_equal(f.features()[:, layout.group("tension")], f.tension)
     np.testing.assert_array_equal(type(f).from_features(f.features()).features(), f.features())
+
+
+def test_designs_round_trip_through_the_request_format(designs_from_json):
+    d = ds.sample_designs(7, seed=9)
+    np.testing.assert_array_equal(designs_from_json(d.to_dicts()).features(), d.features())

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 from service.process import ServerProcess
 from tdcr import design_space, relative_l2
 from tdcr.client import AsyncClient, Client, TDCRError
+from tdcr.designs import DesignBatch
 from tdcr.physics import solve
 
 
@@ -71,9 +72,7 @@ def test_binary_request_and_response_equal_json(server):
     feats = design_space.sample_designs(64, seed=4).features()
     with Client(server.url) as c:
         out = c.predict(feats, model="fno_pose", points=42)
-        designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
-            {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in feats]
-        js = c.predict_json({"designs": designs, "model": "fno_pose"})
+        js = c.predict_json({"designs": DesignBatch.from_features(feats).to_dicts(), "model": "fno_pose"})
     assert out["model"] == "fno_pose" and out["tendons"].shape == (64, 42, 4, 3)
     np.testing.assert_allclose(out["tendons"], np.array([r["tendons"] for r in js["results"]]), rtol=1e-5, atol=1e-7)
     assert out["in_distribution"].all()
@@ -161,9 +160,7 @@ def test_one_validation_path_gives_one_message(root, server, tiny_models, tmp_pa
     features = design_space.sample_designs(2, seed=3).features()
     features[1, 0] = -1.0  # E
     features[1, design_space.LAYOUT.group("tension").start + 2] = -0.5
-    designs = [{"E": f[0], "r": f[1], "L": f[2], "tendons": [
-        {"offset": f[3 + i], "pitch": f[7 + i], "tension": f[11 + i]} for i in range(4)]} for f in features.tolist()]
-    body = {"designs": designs}
+    body = {"designs": DesignBatch.from_features(features).to_dicts()}
     (tmp_path / "bad.json").write_text(json.dumps(body))
     answers = {
         "json /predict": httpx.post(server.url + "/predict", json=body).json()["message"],

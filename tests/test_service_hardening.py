@@ -118,8 +118,8 @@ def test_access_controls(tiny_models, example_request):
                            headers={"x-api-key": "k1", "content-type": "text/plain"})
         assert plain.status_code == 415 and "application/json" in plain.json()["message"]
         assert httpx.get(url + "/docs", headers={"x-api-key": "k1"}).status_code == 404
-        assert "access-control-allow-origin" not in httpx.options(
-            url + "/predict", headers={"origin": "http://evil.example", "access-control-request-method": "POST"}).headers
+        preflight = {"origin": "http://evil.example", "access-control-request-method": "POST"}
+        assert "access-control-allow-origin" not in httpx.options(url + "/predict", headers=preflight).headers
     finally:
         srv.stop()
 
