@@ -174,7 +174,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
-        return _error_response(request, ApiError(exc.status_code, str(exc.detail), kind=f"http_{exc.status_code}"))
+        response = _error_response(request, ApiError(exc.status_code, str(exc.detail)[:200],
+                                                     kind=f"http_{exc.status_code}"))
+        response.headers.update(exc.headers or {})  # e.g. Allow on a 405
+        return response
 
     @app.exception_handler(Exception)
     async def unexpected(request: Request, exc: Exception):  # pragma: no cover - must never happen

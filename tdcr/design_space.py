@@ -46,12 +46,12 @@ class Parameter:
 
 #: Table I of the paper (SI units), with the admissible bounds of each parameter.
 TABLE_I: dict[str, Parameter] = {
-    "E": Parameter("E", "Pa", 15.5e9, 45.5e9, (1e5, 1e12)),  # soft elastomers .. diamond
-    "r": Parameter("r", "m", 0.0005, 0.0015, (1e-5, 0.1)),
-    "L": Parameter("L", "m", 0.1, 0.35, (1e-3, 10.0)),
-    "offset": Parameter("offset", "m", 0.005, 0.01, (1e-5, 0.5)),
-    "pitch": Parameter("pitch", "rad/m", -20.0, 20.0, (-1000.0, 1000.0)),
-    "tension": Parameter("tension", "N", 0.0, 5.0, (0.0, 1e4)),
+    "E": Parameter("E", "Pa", 15.5e9, 45.5e9, (1e6, 1e12)),  # soft rubber .. diamond
+    "r": Parameter("r", "m", 0.0005, 0.0015, (1e-4, 0.05)),
+    "L": Parameter("L", "m", 0.1, 0.35, (0.01, 5.0)),
+    "offset": Parameter("offset", "m", 0.005, 0.01, (1e-4, 0.1)),
+    "pitch": Parameter("pitch", "rad/m", -20.0, 20.0, (-200.0, 200.0)),
+    "tension": Parameter("tension", "N", 0.0, 5.0, (0.0, 1000.0)),
 }
 
 
@@ -67,10 +67,10 @@ class LoadBound:
 
 #: Admissible external loads (physics solver only).
 LOADS: dict[str, LoadBound] = {
-    "gravity": LoadBound("gravity", "m/s^2", (-1000.0, 1000.0)),  # 100 g per component
-    "density": LoadBound("density", "kg/m^3", (0.0, 1e5), exclusive_min=True),
-    "tip_force": LoadBound("tip_force", "N", (-1e4, 1e4)),
-    "tip_moment": LoadBound("tip_moment", "N m", (-1e3, 1e3)),
+    "gravity": LoadBound("gravity", "m/s^2", (-100.0, 100.0)),  # 10 g per component
+    "density": LoadBound("density", "kg/m^3", (0.0, 25_000.0), exclusive_min=True),  # osmium: 22,600
+    "tip_force": LoadBound("tip_force", "N", (-100.0, 100.0)),
+    "tip_moment": LoadBound("tip_moment", "N m", (-10.0, 10.0)),
 }
 
 #: The paper's out-of-distribution bins, as fractions p of the upper bound (x = high * (1 + p)).

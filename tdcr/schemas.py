@@ -97,6 +97,8 @@ class PredictedShape(BaseModel):
     tendons: list[list[list[float]]] = Field(description="(n, N_t, 3) tendon positions, m")
     in_distribution: bool = Field(description="every parameter inside the trained ranges")
     warnings: list[str] = Field(description="one line per parameter outside the trained ranges")
+    finite: bool = Field(True, description="the surrogate's answer is finite; when false (far outside the "
+                                           "trained ranges) the arrays hold zeros and must not be used")
 
 
 class PredictResponse(BaseModel):
@@ -109,8 +111,9 @@ class ExactShape(BaseModel):
     backbone: list[list[float]]
     rotation: list[list[list[float]]]
     tendons: list[list[list[float]]]
-    converged: bool
-    residual: float = Field(description="wrench-balance residual, N")
+    converged: bool = Field(description="the solver met its tolerances; false for a design it could not solve "
+                                        "(then non-finite coordinates are returned as 0)")
+    residual: float = Field(description="wrench-balance residual, N (1.8e308 when it is not finite)")
 
 
 class ExactResponse(BaseModel):

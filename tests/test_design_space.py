@@ -47,10 +47,10 @@ def test_validation_names_design_field_and_bound():
     f[2, 0] = 5e-324  # E: positive but far below any material
     msgs = [(format_location(p.loc), p.msg) for p in check_features(f)]
     assert msgs == [
-        ("designs[0].r", "must be in [1e-05, 0.1] m, got -0.001"),
-        ("designs[2].E", "must be in [100000, 1e+12] Pa, got 4.94066e-324"),
+        ("designs[0].r", "must be in [0.0001, 0.05] m, got -0.001"),
+        ("designs[2].E", "must be in [1e+06, 1e+12] Pa, got 4.94066e-324"),
         ("designs[2].tendons[2].offset", "must be a finite number, got inf"),
-        ("designs[2].tendons[1].tension", "must be in [0, 10000] N, got -0.5"),
+        ("designs[2].tendons[1].tension", "must be in [0, 1000] N, got -0.5"),
     ]
 
 

@@ -3,12 +3,14 @@ workers are replaced, and no solver process outlives the server."""
 
 from __future__ import annotations
 
+import io
 import os
 import signal
 import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from service.process import ServerProcess
@@ -63,7 +65,8 @@ def _wait(condition, timeout_s: float = 30.0) -> bool:
 
 @pytest.fixture(scope="module")
 def server(tiny_models):
-    srv = ServerProcess(tiny_models[1], exact_timeout_s=3, exact_workers=1, exact_max_pending=4)
+    srv = ServerProcess(tiny_models[1], exact_timeout_s=3, exact_workers=1, exact_max_pending=4,
+                        max_body_bytes=2_000_000)
     yield srv
     srv.stop()
 
@@ -135,3 +138,29 @@ def test_metric_labels_never_hold_user_input(server):
 def test_readiness_shows_no_file_paths(server, tiny_models):
     body = httpx.get(server.url + "/readyz").text
     assert str(tiny_models[1]) not in body and "/tmp" not in body
+
+
+def test_minor_protocol_details(server, example_request):
+    """405 names the allowed methods; bad UTF-8 is a documented 422; ?s= with ?points= is refused;
+    a 413 of a streamed body is counted as 413, not 500."""
+    r = httpx.get(server.url + "/predict")
+    assert r.status_code == 405 and r.headers["allow"] == "POST"
+    r = httpx.post(server.url + "/exact", content=b'{"designs": "\xff\xfe"}',
+                   headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "detail" in r.json()
+    features = np.zeros((1, 15))
+    buf = io.BytesIO()
+    np.save(buf, features)
+    r = httpx.post(server.url + "/predict", params=[("points", "5"), ("s", "0.5")], content=buf.getvalue(),
+                   headers={"content-type": "application/x-npy"})
+    assert r.status_code == 422 and "give either 'points' or 's'" in r.json()["message"]
+
+    def chunks():
+        for _ in range(40):
+            yield b" " * 100_000
+
+    r = httpx.post(server.url + "/predict", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 413
+    text = httpx.get(server.url + "/metrics").text
+    assert 'tdcr_requests_total{endpoint="/predict",status="413"}' in text
+    assert 'status="500"' not in text

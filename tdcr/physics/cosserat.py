@@ -240,11 +240,32 @@ def _residual_and_jacobian(x: np.ndarray, nodes: _Nodes) -> tuple[np.ndarray, np
     return res, jac
 
 
+def _solve_batched(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``x`` with ``a @ x = b`` for ``(P, k, k)`` systems and ``(P, k)`` right-hand sides; NaN rows
+    where a system is not finite or singular, so that one bad design never fails the batch."""
+    out = np.full(b.shape, np.nan)
+    good = np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=1)
+    if not good.any():
+        return out
+    try:
+        out[good] = np.linalg.solve(a[good], b[good][..., None])[..., 0]
+    except np.linalg.LinAlgError:  # a singular system among them: solve one by one (rare)
+        for i in np.nonzero(good)[0]:
+            try:
+                out[i] = np.linalg.solve(a[i], b[i])
+            except np.linalg.LinAlgError:
+                pass
+    return out
+
+
 def _solve_spd(jac: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve ``jac @ x = rhs`` for SPD ``(P, 6, 6)`` systems after symmetric Jacobi scaling."""
-    d = 1.0 / np.sqrt(np.einsum("pii->pi", jac))
+    """Solve ``jac @ x = rhs`` for SPD ``(P, 6, 6)`` systems after symmetric Jacobi scaling (NaN rows
+    where a system is not positive on its diagonal, not finite, or singular)."""
+    diag = np.einsum("pii->pi", jac)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.where(diag > 0, 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), np.nan)
     scaled = jac * d[:, :, None] * d[:, None, :]
-    return d * np.linalg.solve(scaled, (d * rhs)[..., None])[..., 0]
+    return d * _solve_batched(scaled, d * rhs)
 
 
 def _newton(x: np.ndarray, nodes: _Nodes, opts: SolverOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -536,12 +557,12 @@ def _shoot(prob: _ShootingProblem, y: np.ndarray, scale: np.ndarray, opts: Solve
         keep = ~done & ~bad
         if not keep.any():
             break
-        try:
-            delta = np.linalg.solve(jac[keep], -resid[0][keep][..., None])[..., 0]
-        except np.linalg.LinAlgError:
+        delta = _solve_batched(jac[keep], -resid[0][keep])  # NaN for a singular design: it stops alone
+        step_ok = np.isfinite(delta).all(axis=1)
+        y[active[keep][step_ok]] = ya[keep][step_ok] + delta[step_ok]
+        active = active[keep][step_ok]
+        if not active.size:
             break
-        y[active[keep]] = ya[keep] + delta
-        active = active[keep]
     return y, ok, iters
 
 

@@ -79,6 +79,10 @@ def cubic_weights(grid: np.ndarray, sigma: np.ndarray) -> np.ndarray:
 
 
 def orthonormalize(rot: np.ndarray) -> np.ndarray:
-    """The nearest rotation (polar factor by SVD) of each ``(..., 3, 3)`` matrix."""
-    u, _, vt = np.linalg.svd(rot)
-    return u @ vt
+    """The nearest rotation (polar factor by SVD) of each ``(..., 3, 3)`` matrix; NaN where a
+    matrix is not finite (SVD would fail on it)."""
+    finite = np.isfinite(rot).all(axis=(-2, -1))
+    u, _, vt = np.linalg.svd(np.where(finite[..., None, None], rot, np.eye(3)))
+    out = u @ vt
+    out[~finite] = np.nan
+    return out

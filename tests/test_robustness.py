@@ -1,0 +1,85 @@
+"""Any input inside the admissible bounds gets finite numbers or a per-design failure flag, never an
+exception and never a JSON null (issue: hardening, defects 5 and 6).  In process, through the same
+data plane and solver entry point the service uses."""
+
+from __future__ import annotations
+
+import numpy as np
+import orjson
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from service.dataplane import DataPlane
+from tdcr import design_space as ds
+from tdcr.exact import solve_request
+from tdcr.runtime import Surrogate
+from tdcr.validation import Limits, validate_features, validate_json
+
+LOW, HIGH, _ = ds.admissible_bounds()
+
+
+def _admissible(unit: np.ndarray) -> np.ndarray:
+    """Map ``(B, 15)`` numbers in [0, 1] into the admissible box: log-uniform for the positive
+    parameters, uniform for pitch and tension; 0 and 1 hit the bounds themselves."""
+    positive = LOW > 0
+    out = LOW + unit * (HIGH - LOW)
+    out[:, positive] = np.exp(np.log(LOW[positive]) + unit[:, positive] * np.log(HIGH[positive] / LOW[positive]))
+    return np.clip(out, LOW, HIGH)
+
+
+units = st.lists(st.lists(st.sampled_from([0.0, 1.0]) | st.floats(0, 1), min_size=15, max_size=15),
+                 min_size=1, max_size=8).map(np.array)
+
+
+@pytest.fixture(scope="module")
+def plane(tiny_models):
+    _, models = tiny_models
+    predictors = {name: Surrogate.load(models, name) for name in ("deeponet", "fno_pose")}
+    return DataPlane(predictors, default_model="fno_pose", limits=Limits())
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
+@given(unit=units, model=st.sampled_from(["deeponet", "fno_pose"]), off_grid=st.booleans())
+def test_surrogates_answer_numbers_or_flag_the_design(plane, unit, model, off_grid):
+    features = _admissible(unit)
+    request = validate_features(features, model=model, s=[0.0, 0.3, 1.0] if off_grid else None)
+    prediction = plane.run(request)
+    body = orjson.loads(plane.encode_json(prediction))
+    assert len(body["results"]) == len(features)
+    for result, finite in zip(body["results"], prediction.finite, strict=True):
+        assert result["finite"] == bool(finite)
+        for key in ("backbone", "rotation", "tendons"):
+            values = np.array(result[key], dtype=float)  # a null would make this an object array
+            assert np.isfinite(values).all()
+
+
+def _assert_numbers(results: list[dict]) -> None:
+    results = orjson.loads(orjson.dumps(results))  # what /exact sends
+    for result in results:
+        for key in ("backbone", "rotation", "tendons"):
+            assert np.isfinite(np.array(result[key], dtype=float)).all()  # a null would fail here
+        assert isinstance(result["residual"], float) and np.isfinite(result["residual"])
+        assert isinstance(result["converged"], bool)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
+@given(unit=units)
+def test_the_solver_answers_numbers_or_flags_the_design(unit):
+    designs = ds.DesignBatch.from_features(_admissible(unit)).to_dicts()
+    _assert_numbers(solve_request(validate_json({"designs": designs, "points": 5}, target="solver")))
+
+
+#: The extremes of the admissible loads.  (Some interior loaded designs take the shooting solver
+#: minutes; /exact's deadline kills such work, tests/test_service_hardening.py.)
+EXTREME_LOADS = [{"gravity": [100.0, -100.0, 100.0], "density": 25_000.0, "tip_force": [100.0, 0.0, -100.0],
+                  "tip_moment": [0.0, 10.0, 0.0]},
+                 {"gravity": [0.0, 0.0, -9.81], "density": 1.0, "tip_force": [0.0, 0.0, 0.0],
+                  "tip_moment": [0.0, 0.0, 0.0]}]
+
+
+@pytest.mark.parametrize("corner", [0.0, 1.0])
+@pytest.mark.parametrize("loads", EXTREME_LOADS)
+def test_the_loaded_solver_answers_numbers_or_flags_the_design(corner, loads):
+    designs = [{**d, **loads} for d in ds.DesignBatch.from_features(_admissible(np.full((1, 15), corner))).to_dicts()]
+    _assert_numbers(solve_request(validate_json({"designs": designs, "points": 5}, target="solver")))
