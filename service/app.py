@@ -18,6 +18,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 import tdcr
 from service.errors import ApiError
@@ -178,6 +179,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                      kind=f"http_{exc.status_code}"))
         response.headers.update(exc.headers or {})  # e.g. Allow on a 405
         return response
+
+    @app.exception_handler(ClientDisconnect)
+    async def disconnected(request: Request, exc: ClientDisconnect):  # nobody is left to read the answer
+        return _error_response(request, ApiError(400, "the client disconnected", kind="disconnected"))
 
     @app.exception_handler(Exception)
     async def unexpected(request: Request, exc: Exception):  # pragma: no cover - must never happen

@@ -31,7 +31,7 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """``uvicorn --factory service.app:create_app`` with ``TDCR_<KEY>=value`` for each setting.
+    """``tdcr serve`` (as the README runs it) with ``TDCR_<KEY>=value`` for each setting.
 
     Blocks until ``/readyz`` answers 200 (``RuntimeError`` with the log's tail if it never does).
     """
@@ -44,7 +44,7 @@ class ServerProcess:
         self.log_path = Path(tempfile.mkstemp(prefix="tdcr-server-", suffix=".log")[1])
         with self.log_path.open("wb") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port", str(self.port),
+                [sys.executable, "-m", "tdcr.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
                  "--log-level", "warning"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + ready_timeout_s
         while time.monotonic() < deadline and self.proc.poll() is None:

@@ -38,6 +38,11 @@ class Settings(BaseSettings):
     metrics_api_key: str | None = Field(None, description="a key of its own for /metrics (else the api_keys)")
     cors_origins: list[str] = Field([], description="origins allowed cross-site (JSON list; empty: CORS off)")
     docs: bool = Field(True, description="serve /docs, /redoc and /openapi.json")
+    header_timeout_s: float = Field(10.0, gt=0, description="a client's time to send a request's headers")
+    body_timeout_s: float = Field(60.0, gt=0, description="a client's time to send a request's body")
+    keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this")
+    max_connections: int = Field(1000, ge=1, description="open connections and requests before 503 (uvicorn's "
+                                                         "limit_concurrency; keep it below the process's file limit)")
 
     def predict_limits(self) -> Limits:
         """Size limits of one /predict request."""

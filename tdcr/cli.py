@@ -180,7 +180,9 @@ def _cmd_serve(args) -> int:
     if not (settings.models_dir / "manifest.json").exists():
         raise UsageError(f"no models at {settings.models_dir} (set TDCR_MODELS_DIR)")
     uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port,
-                workers=args.workers or settings.workers, log_level=args.log_level)
+                workers=args.workers or settings.workers, log_level=args.log_level,
+                http="service.http:GuardedHttpToolsProtocol", timeout_keep_alive=settings.keep_alive_s,
+                limit_concurrency=settings.max_connections)
     return 0
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import os
 import signal
+import socket
 import time
 from pathlib import Path
 
@@ -164,3 +165,54 @@ def test_minor_protocol_details(server, example_request):
     text = httpx.get(server.url + "/metrics").text
     assert 'tdcr_requests_total{endpoint="/predict",status="413"}' in text
     assert 'status="500"' not in text
+
+
+@pytest.fixture(scope="module")
+def strict_server(tiny_models):
+    srv = ServerProcess(tiny_models[1], header_timeout_s=1, body_timeout_s=1, max_connections=20)
+    yield srv
+    srv.stop()
+
+
+def _closed_by_server(sock: socket.socket, trickle: bytes) -> bool:
+    """Send ``trickle`` a byte every 0.2 s until the server closes the connection (True) or 15 s
+    pass (False)."""
+    sock.settimeout(0.2)
+    deadline = time.monotonic() + 15
+    i = 0
+    while time.monotonic() < deadline:
+        try:
+            if sock.recv(1024) == b"":
+                return True
+        except TimeoutError:
+            pass
+        except (ConnectionResetError, BrokenPipeError):
+            return True
+        try:
+            sock.send(trickle[i % len(trickle):i % len(trickle) + 1])
+        except (ConnectionResetError, BrokenPipeError):
+            return True
+        i += 1
+    return False
+
+
+def test_slow_headers_and_slow_bodies_are_disconnected(strict_server):
+    with socket.create_connection(("127.0.0.1", strict_server.port)) as sock:
+        sock.send(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        assert _closed_by_server(sock, b"X-Slow: 1\r\n")
+    with socket.create_connection(("127.0.0.1", strict_server.port)) as sock:
+        sock.send(b"POST /predict HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                  b"Content-Length: 100000\r\n\r\n")
+        assert _closed_by_server(sock, b" ")
+    assert httpx.get(strict_server.url + "/healthz").status_code == 200
+
+
+def test_the_connection_cap_refuses_then_recovers(strict_server):
+    idle = [socket.create_connection(("127.0.0.1", strict_server.port)) for _ in range(25)]
+    try:
+        r = httpx.get(strict_server.url + "/healthz")
+        assert r.status_code == 503
+    finally:
+        for sock in idle:
+            sock.close()
+    assert _wait(lambda: httpx.get(strict_server.url + "/healthz").status_code == 200, 15)
