@@ -32,6 +32,12 @@ class Settings(BaseSettings):
     exact_max_designs: int = Field(2000, ge=1, description="designs per /exact request")
     exact_max_pending: int = Field(8, ge=1, description="/exact requests queued or running before 503")
     exact_timeout_s: float = Field(30.0, gt=0, description="per-request deadline of /exact before 504")
+    exact_seconds_per_design: float = Field(
+        1e-3, gt=0, description="admission estimate of one tendon-loaded design at 42 points, s (measured: 0.7 ms)")
+    exact_seconds_per_loaded_design: float = Field(
+        0.4, gt=0, description="admission estimate of one design with gravity or tip loads, s (measured: 0.4 s)")
+    exact_admission_factor: float = Field(
+        3.0, gt=0, description="/exact refuses (413) work estimated at more than this times its deadline")
     workers: int = Field(1, ge=1, description="uvicorn worker processes (scale out with replicas instead)")
     api_keys: set[str] = Field(set(), description='keys accepted on every route but /healthz and /readyz, as '
                                '"Authorization: Bearer KEY" or "X-API-Key: KEY" (JSON list; empty: no authentication)')

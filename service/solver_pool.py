@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import multiprocessing
 import os
 import signal
@@ -21,6 +22,8 @@ import time
 from multiprocessing.connection import Connection
 
 from starlette.concurrency import run_in_threadpool
+
+log = logging.getLogger("tdcr.service")
 
 _PR_SET_PDEATHSIG = 1
 
@@ -93,7 +96,8 @@ class SolverPool:
         self._start_timeout_s = start_timeout_s
         self.workers = [self._start() for _ in range(workers)]
         self._idle: asyncio.Queue[_Worker] | None = None
-        self.replacing = 0  # workers being replaced (the pool is unhealthy meanwhile)
+        self._tasks: set[asyncio.Task] = set()  # replacements in progress (kept referenced)
+        self.down = 0  # workers that died unexpectedly and are being replaced (the pool is unhealthy)
 
     def _start(self) -> _Worker:
         worker = _Worker(self._ctx)
@@ -102,7 +106,8 @@ class SolverPool:
 
     @property
     def healthy(self) -> bool:
-        return self.replacing == 0 and all(w.process.is_alive() for w in self.workers)
+        """No worker is down.  (A worker killed at a deadline is routine and does not count.)"""
+        return self.down == 0
 
     def _idle_queue(self) -> asyncio.Queue:
         if self._idle is None:  # created on the event loop that uses it
@@ -117,7 +122,7 @@ class SolverPool:
         idle = self._idle_queue()
         deadline = asyncio.get_running_loop().time() + timeout
         worker = await asyncio.wait_for(idle.get(), timeout)
-        healthy = False
+        healthy, died = False, False
         try:
             worker.conn.send((fn, args))
             remaining = max(deadline - asyncio.get_running_loop().time(), 0.0)
@@ -126,12 +131,14 @@ class SolverPool:
         except TimeoutError:  # a subclass of OSError: re-raised as it is
             raise
         except (EOFError, OSError):
+            died = True
             raise WorkerDied("a solver process died; it is being replaced") from None
         finally:
             if healthy:
                 idle.put_nowait(worker)
             else:  # past the deadline, cancelled (client gone) or dead: kill it, start another
-                asyncio.get_running_loop().create_task(self._replace(worker))
+                self._tasks.add(task := asyncio.get_running_loop().create_task(self._replace(worker, died=died)))
+                task.add_done_callback(self._tasks.discard)
         if not ok:
             raise RuntimeError(result)
         return result
@@ -147,15 +154,23 @@ class SolverPool:
             loop.remove_reader(worker.conn.fileno())
         return worker.conn.recv()
 
-    async def _replace(self, worker: _Worker) -> None:
-        self.replacing += 1
+    async def _replace(self, worker: _Worker, *, died: bool = False) -> None:
+        """Kill ``worker`` and start another in its place, retrying until one starts.  ``died``: it
+        died unexpectedly, so the pool counts as down until the replacement is up."""
+        self.down += died
         try:
             await run_in_threadpool(worker.kill)
-            fresh = await run_in_threadpool(self._start)
+            while True:
+                try:
+                    fresh = await run_in_threadpool(self._start)
+                    break
+                except (EOFError, OSError, RuntimeError) as exc:  # e.g. killed while starting
+                    log.warning("a solver process failed to start (%s); retrying", exc)
+                    await asyncio.sleep(1.0)
             self.workers[self.workers.index(worker)] = fresh
             self._idle_queue().put_nowait(fresh)
         finally:
-            self.replacing -= 1
+            self.down -= died
 
     async def watch(self, interval_s: float = 0.5) -> None:
         """Replace idle workers that died (e.g. killed from outside), until cancelled."""
@@ -167,7 +182,7 @@ class SolverPool:
                 if worker.process.is_alive():
                     idle.put_nowait(worker)
                 else:
-                    await self._replace(worker)
+                    await self._replace(worker, died=True)
 
     def close(self) -> None:
         for w in self.workers:

@@ -129,6 +129,11 @@ class ShapeRequest:
         return self.groups[0].designs.features()
 
     @property
+    def n_loaded(self) -> int:
+        """Designs with non-zero gravity, tip force or tip moment (the solver then shoots)."""
+        return sum(int(_loaded(g.loads).sum()) for g in self.groups if g.loads is not None)
+
+    @property
     def pose(self) -> bool:
         """Whether backbone or rotation are wanted (tendon models then fit a pose)."""
         return self.outputs != ("tendons",)
@@ -181,7 +186,7 @@ def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
             bad = given & (~np.isfinite(values) | (values > high) | ((values <= low) if bound.exclusive_min
                                                                      else (values < low)))
         for b, k in zip(*np.nonzero(bad), strict=True):
-            loc = ("designs", int(rows[b]), name) + ((k,) if values.shape[1] > 1 else ())
+            loc = ("designs", int(rows[b]), name) + ((int(k),) if values.shape[1] > 1 else ())
             value = values[b, k]
             msg = (f"must be a finite number, got {value}" if not np.isfinite(value) else
                    f"must be in {_interval(low, high, bound.exclusive_min, bound.unit)}, got {value:.6g}")

@@ -194,7 +194,7 @@ def test_metrics_count_requests_designs_and_errors(example_request, server):
 def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_models):
     """One slot and a 0.3 s deadline: a request that finds the slot taken gets 503 at once; the slow
     one gets 504."""
-    srv = ServerProcess(tiny_models[1], exact_max_pending=1, exact_timeout_s=0.3)
+    srv = ServerProcess(tiny_models[1], exact_max_pending=1, exact_timeout_s=0.3, exact_seconds_per_design=1e-6)
     try:
         slow = {"designs": [example_request["designs"][1]] * 400, "points": 400}
 

@@ -66,8 +66,9 @@ def _wait(condition, timeout_s: float = 30.0) -> bool:
 
 @pytest.fixture(scope="module")
 def server(tiny_models):
+    # admission estimates made small, so that work past the deadline is admitted and killed
     srv = ServerProcess(tiny_models[1], exact_timeout_s=3, exact_workers=1, exact_max_pending=4,
-                        max_body_bytes=2_000_000)
+                        max_body_bytes=2_000_000, exact_seconds_per_loaded_design=0.001)
     yield srv
     srv.stop()
 
@@ -216,3 +217,15 @@ def test_the_connection_cap_refuses_then_recovers(strict_server):
         for sock in idle:
             sock.close()
     assert _wait(lambda: httpx.get(strict_server.url + "/healthz").status_code == 200, 15)
+
+
+def test_exact_refuses_work_its_deadline_cannot_cover(strict_server, example_request):
+    """Defaults: 0.4 s per loaded design, 30 s deadline, factor 3: 300 loaded designs are refused
+    after parsing, before any solver work; a bad load is a 422 naming the component."""
+    heavy = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 300}
+    r = httpx.post(strict_server.url + "/exact", json=heavy, timeout=60)
+    assert r.status_code == 413 and "would take the solver about 120 s" in r.json()["message"]
+    bad = {"designs": [{**example_request["designs"][0], "tip_force": [1e6, 0.0, 0.0]}]}
+    r = httpx.post(strict_server.url + "/exact", json=bad)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "designs", 0, "tip_force", 0]
+    assert "designs[0].tip_force[0]: must be in [-100, 100] N, got 1e+06" in r.json()["message"]

@@ -11,13 +11,24 @@ from starlette.concurrency import run_in_threadpool
 
 from service.deps import State
 from service.errors import ApiError, from_invalid, require_json
+from service.settings import Settings
 from service.solver_pool import WorkerDied
+from tdcr.design_space import DEFAULT_POINTS
 from tdcr.exact import solve_request
 from tdcr.schemas import ErrorResponse, ExactResponse
 from tdcr.validation import InvalidRequest, Limits, ShapeRequest, validate_json
 
 router = APIRouter(tags=["exact"])
 log = logging.getLogger("tdcr.service")
+
+
+def _estimated_seconds(request: ShapeRequest, settings: Settings) -> float:
+    """Solver time of a request on one process: tendon-only designs scale with the points, loaded
+    designs (shooting) with their count."""
+    tendon_only = request.n_designs - request.n_loaded
+    points = max(request.fractions.size, DEFAULT_POINTS) / DEFAULT_POINTS
+    return (tendon_only * points * settings.exact_seconds_per_design
+            + request.n_loaded * settings.exact_seconds_per_loaded_design)
 
 
 def _prepare(body: bytes, limits: Limits) -> ShapeRequest:
@@ -31,7 +42,8 @@ def _prepare(body: bytes, limits: Limits) -> ShapeRequest:
     "/exact",
     summary="Exact equilibria from the Cosserat solver",
     response_model=ExactResponse,
-    responses={413: {"model": ErrorResponse}, 415: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
+    responses={413: {"model": ErrorResponse, "description": "too many designs, or more work than the deadline allows"},
+               415: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
                503: {"model": ErrorResponse},
                504: {"model": ErrorResponse}},
     openapi_extra={"requestBody": {"required": True, "content": {
@@ -46,6 +58,11 @@ async def exact(request: Request, state: State) -> Response:
     require_json(request.headers.get("content-type", ""))
     body = await request.body()
     shape_request = await run_in_threadpool(_prepare, body, settings.exact_limits())  # parsing off the loop
+    estimate = _estimated_seconds(shape_request, settings)
+    if estimate > settings.exact_admission_factor * settings.exact_timeout_s:
+        raise ApiError(413, f"these designs would take the solver about {estimate:.3g} s, more than "
+                            f"{settings.exact_admission_factor:g} x its deadline of {settings.exact_timeout_s:g} s; "
+                            "send fewer designs or points", kind="too_much_work")
     started = time.perf_counter()
     async with state.exact_slots:
         try:
