@@ -129,7 +129,7 @@ def _route_label(scope) -> str:
 def _error_response(request: Request, exc: ApiError) -> JSONResponse:
     state: ServiceState = request.app.state.service
     state.metrics.errors.labels(_route_label(request.scope), exc.kind).inc()
-    return JSONResponse({"message": exc.message, "detail": exc.detail}, status_code=exc.status)
+    return JSONResponse({"message": exc.message, "detail": exc.detail}, status_code=exc.status, headers=exc.headers)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -13,12 +13,14 @@ class ApiError(Exception):
     ``kind`` labels the ``tdcr_errors_total`` metric (a fixed vocabulary, never user input).
     """
 
-    def __init__(self, status: int, message: str, detail=None, kind: str = "client"):
+    def __init__(self, status: int, message: str, detail=None, kind: str = "client",
+                 headers: dict[str, str] | None = None):
         super().__init__(message)
         self.status = status
         self.message = message
         self.detail = detail if detail is not None else message
         self.kind = kind
+        self.headers = headers or {}
 
 
 def from_invalid(exc: InvalidRequest, *, query: Collection[str] = ()) -> ApiError:

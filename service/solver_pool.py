@@ -50,7 +50,7 @@ def _die_with_parent(parent: int) -> None:
 
 
 def _serve(conn: Connection, parent: int) -> None:
-    """Worker loop: ``(fn, args)`` in, ``(ok, result or message)`` out."""
+    """Worker loop: ``(fn, args, kwargs, expected exception types)`` in, ``(ok, result or exception)`` out."""
     _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server handles Ctrl-C and stops us
     from tdcr.exact import warm_up
@@ -59,13 +59,15 @@ def _serve(conn: Connection, parent: int) -> None:
     conn.send((True, "ready"))
     while True:
         try:
-            fn, args = conn.recv()
+            fn, args, kwargs, expected = conn.recv()
         except EOFError:
             return
         try:
-            conn.send((True, fn(*args)))
+            conn.send((True, fn(*args, **kwargs)))
+        except expected as exc:  # the caller's errors (e.g. invalid requests) go back as they are
+            conn.send((False, exc))
         except Exception as exc:  # noqa: BLE001 - reported to the server, which answers 500-free
-            conn.send((False, f"{exc.__class__.__name__}: {exc}"))
+            conn.send((False, RuntimeError(f"{exc.__class__.__name__}: {exc}")))
 
 
 class _Worker:
@@ -116,15 +118,16 @@ class SolverPool:
                 self._idle.put_nowait(w)
         return self._idle
 
-    async def run(self, fn, *args, timeout: float):
-        """``fn(*args)`` in a worker; ``TimeoutError`` past ``timeout`` s (the worker is killed and
-        replaced), :class:`WorkerDied` if it died, ``RuntimeError`` if ``fn`` raised."""
+    async def run(self, fn, *args, timeout: float, expected: tuple[type[Exception], ...] = (), **kwargs):
+        """``fn(*args, **kwargs)`` in a worker; ``TimeoutError`` past ``timeout`` s (the worker is
+        killed and replaced), :class:`WorkerDied` if it died; an ``expected`` exception of ``fn`` is
+        raised as it is, any other as ``RuntimeError``."""
         idle = self._idle_queue()
         deadline = asyncio.get_running_loop().time() + timeout
         worker = await asyncio.wait_for(idle.get(), timeout)
         healthy, died = False, False
         try:
-            worker.conn.send((fn, args))
+            worker.conn.send((fn, args, kwargs, expected))
             remaining = max(deadline - asyncio.get_running_loop().time(), 0.0)
             ok, result = await asyncio.wait_for(self._receive(worker), remaining)
             healthy = True
@@ -140,7 +143,7 @@ class SolverPool:
                 self._tasks.add(task := asyncio.get_running_loop().create_task(self._replace(worker, died=died)))
                 task.add_done_callback(self._tasks.discard)
         if not ok:
-            raise RuntimeError(result)
+            raise result
         return result
 
     @staticmethod

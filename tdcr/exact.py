@@ -3,11 +3,54 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 
 import numpy as np
 
+from tdcr.design_space import DEFAULT_POINTS
 from tdcr.physics import RodSolution, SolverOptions, solve
-from tdcr.validation import ShapeRequest
+from tdcr.validation import Limits, ShapeRequest, validate_json
+
+
+@dataclass(frozen=True)
+class WorkBudget:
+    """Admission by estimated solver time on one process: tendon-only designs cost
+    ``seconds_per_design`` at 42 points (scaling with more points), loaded designs (shooting)
+    ``seconds_per_loaded_design``; a request estimated over ``max_seconds`` is refused."""
+
+    seconds_per_design: float
+    seconds_per_loaded_design: float
+    max_seconds: float
+
+    def estimate(self, request: ShapeRequest) -> float:
+        """Estimated seconds of ``request``."""
+        tendon_only = request.n_designs - request.n_loaded
+        points = max(request.fractions.size, DEFAULT_POINTS) / DEFAULT_POINTS
+        return tendon_only * points * self.seconds_per_design + request.n_loaded * self.seconds_per_loaded_design
+
+
+class TooMuchWork(ValueError):
+    """A request whose estimated solver time exceeds its :class:`WorkBudget`."""
+
+    def __init__(self, estimate: float, max_seconds: float):
+        self.estimate, self.max_seconds = estimate, max_seconds
+        super().__init__(f"these designs would take the solver about {estimate:.3g} s, more than the {max_seconds:g} s "
+                         "it admits; send fewer designs or points")
+
+    def __reduce__(self):
+        return (TooMuchWork, (self.estimate, self.max_seconds))
+
+
+def answer_json(body: bytes, *, limits: Limits, budget: WorkBudget | None = None) -> list[dict]:
+    """Validate a JSON ``SolveRequest`` and solve it: the whole of /exact's work, run in a solver
+    process so that parsing large bodies never costs the server's own interpreter.
+
+    Raises :class:`tdcr.validation.InvalidRequest` or :class:`TooMuchWork`.
+    """
+    request = validate_json(body, target="solver", limits=limits)
+    if budget is not None and (estimate := budget.estimate(request)) > budget.max_seconds:
+        raise TooMuchWork(estimate, budget.max_seconds)
+    return solve_request(request)
 
 
 def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None) -> list[dict]:

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from tdcr.design_space import DEFAULT_POINTS, LOADS, MAX_POINTS, MAX_TENDONS, TABLE_I
+from tdcr.design_space import DEFAULT_POINTS, LOADS, MAX_POINTS, MAX_TENDONS, N_TENDONS, TABLE_I
 
 #: Longest model name a request may carry.
 MAX_MODEL_NAME = 64
@@ -50,10 +50,23 @@ class Tendon(BaseModel):
     tension: _number(TABLE_I["tension"]) = Field(description="tendon tension, N")  # type: ignore[valid-type]
 
 
-class Design(BaseModel):
-    """A TDCR design in SI units, with optional external loads for the physics solver."""
+class SurrogateDesign(BaseModel):
+    """A TDCR design in SI units with the surrogates' 4 tendons (no external loads)."""
 
     model_config = ConfigDict(extra="forbid")
+    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
+    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
+    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
+    tendons: list[Tendon] = Field(min_length=N_TENDONS, max_length=N_TENDONS)
+
+
+class Design(BaseModel):
+    """A TDCR design in SI units, with optional external loads for the physics solver (a gravity
+    vector needs a density)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={
+        "if": {"properties": {"gravity": {"type": "array"}}, "required": ["gravity"]},
+        "then": {"properties": {"density": {"type": "number"}}, "required": ["density"]}})
     E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
     r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
     L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
@@ -67,21 +80,36 @@ class Design(BaseModel):
         None, description="tip moment, base frame, N m")
 
 
-class SolveRequest(BaseModel):
-    """A batch of designs and the arclengths wanted: ``points`` equispaced, or explicit ``s``."""
+def _integral_float(value):
+    """JSON Schema counts 2.0 as an integer: accept it as 2 (strings and booleans stay refused)."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
 
-    model_config = ConfigDict(extra="forbid")
-    designs: list[Design] = Field(min_length=1)
-    points: Annotated[int, Field(strict=True, json_schema_extra={"minimum": 2, "maximum": MAX_POINTS})] | None = Field(
+
+#: JSON schema: ``points`` and ``s`` are not both given (either may be null).
+_POINTS_OR_S = {"not": {"properties": {"points": {"type": "integer"}, "s": {"type": "array"}},
+                        "required": ["points", "s"]}}
+
+
+class _Arclengths(BaseModel):
+    points: Annotated[int, BeforeValidator(_integral_float), Field(
+        strict=True, json_schema_extra={"minimum": 2, "maximum": MAX_POINTS})] | None = Field(
         None, description=f"number of equispaced arclengths on [0, L] (default {DEFAULT_POINTS})")
     s: list[_Fraction] | None = Field(None, min_length=1, max_length=MAX_POINTS,
-                                      description="arclengths as fractions of L, each in [0, 1]")
+                                      description="arclengths as fractions of L, each in [0, 1] (instead of points)")
 
 
-class PredictRequest(SolveRequest):
+class SolveRequest(_Arclengths):
+    """A batch of designs and the arclengths wanted: ``points`` equispaced, or explicit ``s``."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S)
+    designs: list[Design] = Field(min_length=1)
+
+
+class PredictRequest(_Arclengths):
     """Designs, arclengths and the surrogate to use (default: the most accurate in the manifest)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S)
+    designs: list[SurrogateDesign] = Field(min_length=1)
     model: str | None = Field(None, min_length=1, max_length=MAX_MODEL_NAME,
                               description="deeponet, deeponet_pose, fno or fno_pose", examples=["deeponet"])
 

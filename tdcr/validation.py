@@ -26,7 +26,7 @@ from tdcr.design_space import (
     DEFAULT_POINTS,
     LOADS,
     MAX_POINTS,
-    N_TENDONS,
+    N_FEATURES,
     TABLE_I,
     admissible_bounds,
 )
@@ -73,12 +73,19 @@ class InvalidRequest(ValueError):
         self.too_large = too_large
         super().__init__(self.message)
 
+    def __reduce__(self):  # picklable with its problems (it crosses process boundaries)
+        return (_invalid_request, (self.problems, self.too_large))
+
     @property
     def message(self) -> str:
         """One line per problem (the first :data:`MAX_LISTED_PROBLEMS`): ``location: reason``."""
         lines = [f"{format_location(p.loc) or 'request'}: {p.msg}" for p in self.problems[:MAX_LISTED_PROBLEMS]]
         more = len(self.problems) - MAX_LISTED_PROBLEMS
         return "; ".join(lines) + (f"; and {more} more" if more > 0 else "")
+
+
+def _invalid_request(problems: list[Problem], too_large: bool) -> InvalidRequest:
+    return InvalidRequest(problems, too_large=too_large)
 
 
 @dataclass(frozen=True)
@@ -181,7 +188,7 @@ def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
         values = values.reshape(len(rows), -1)
         bound = LOADS[name]
         low, high = bound.admissible
-        given = ~np.isnan(values) if name == "density" else np.ones(values.shape, dtype=bool)
+        given = ~np.isnan(values) if name in ("gravity", "density") else np.ones(values.shape, dtype=bool)
         with np.errstate(invalid="ignore"):
             bad = given & (~np.isfinite(values) | (values > high) | ((values <= low) if bound.exclusive_min
                                                                      else (values < low)))
@@ -192,7 +199,7 @@ def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
                    f"must be in {_interval(low, high, bound.exclusive_min, bound.unit)}, got {value:.6g}")
             problems.append(Problem(loc, msg, "finite_number" if not np.isfinite(value) else "out_of_range"))
     if loads.gravity is not None:
-        no_density = np.isnan(loads.density) & np.any(loads.gravity != 0, axis=1)
+        no_density = np.isnan(loads.density) & ~np.isnan(loads.gravity).any(axis=1)
         problems += [Problem(("designs", int(rows[b]), "density"), "gravity needs a density (kg/m^3)",
                              "missing_density") for b in np.nonzero(no_density)[0]]
     return problems
@@ -250,28 +257,21 @@ def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: 
              target: Target, model: str | None, outputs: tuple[str, ...]) -> ShapeRequest:
     """Every value check of every entry point; raises :class:`InvalidRequest` naming each field."""
     value_problems = []
-    for g in groups:
+    for g in groups:  # (the surrogates' 4 tendons and no loads are structure: checked by the schema or shape)
         value_problems += check_features(g.designs.features(), g.rows)
         if g.loads is not None:
-            if target == "surrogate":
-                value_problems += [Problem(("designs", int(r)), "external loads are only supported by the physics "
-                                           "solver (/exact)", "loads") for r in g.rows[_loaded(g.loads)]]
-            else:
-                value_problems += check_loads(g.loads, g.rows)
-        if target == "surrogate" and g.designs.n_tendons != N_TENDONS:
-            value_problems += [Problem(("designs", int(r), "tendons"), f"the surrogates need {N_TENDONS} tendons, "
-                                       f"got {g.designs.n_tendons}", "tendon_count") for r in g.rows]
+            value_problems += check_loads(g.loads, g.rows)
     value_problems.sort(key=lambda p: p.loc[1])  # by design, stable within a design (column order)
     problems = problems + value_problems
     if problems:
         raise InvalidRequest(problems)
-    groups = [g if g.loads is None else replace(g, loads=replace(g.loads, density=np.nan_to_num(g.loads.density)))
-              for g in groups]  # an absent density (NaN above) weighs nothing
+    groups = [g if g.loads is None else replace(g, loads=replace(  # absent (NaN above): no weight
+        g.loads, gravity=np.nan_to_num(g.loads.gravity), density=np.nan_to_num(g.loads.density))) for g in groups]
     return ShapeRequest(groups=tuple(groups), fractions=fractions, model=model, outputs=outputs)
 
 
 def _loaded(loads: ExternalLoads) -> np.ndarray:
-    """Per design ``(b,)``: any non-zero gravity, tip force or tip moment."""
+    """Per design ``(b,)``: any non-zero gravity, tip force or tip moment (after the checks)."""
     return np.any(np.concatenate([loads.gravity, loads.tip_force, loads.tip_moment], axis=1) != 0, axis=1)
 
 
@@ -303,7 +303,7 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
 
 
 def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
-    """Arrays of parsed designs that share a tendon count (loads: NaN density where absent)."""
+    """Arrays of parsed designs that share a tendon count (loads: NaN gravity and density where absent)."""
     batch = DesignBatch(
         E=[d.E for d in designs], r=[d.r for d in designs], L=[d.L for d in designs],
         offset=[[t.offset for t in d.tendons] for d in designs],
@@ -311,10 +311,11 @@ def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
         tension=[[t.tension for t in d.tendons] for d in designs],
     )
     loads = None
-    if any(d.gravity is not None or d.tip_force is not None or d.tip_moment is not None for d in designs):
-        zero = (0.0, 0.0, 0.0)
+    if any(getattr(d, "gravity", None) is not None or getattr(d, "tip_force", None) is not None
+           or getattr(d, "tip_moment", None) is not None for d in designs):
+        zero, absent = (0.0, 0.0, 0.0), (np.nan, np.nan, np.nan)
         loads = ExternalLoads(
-            gravity=np.array([d.gravity or zero for d in designs], dtype=np.float64),
+            gravity=np.array([absent if d.gravity is None else d.gravity for d in designs], dtype=np.float64),
             density=np.array([np.nan if d.density is None else d.density for d in designs]),
             tip_force=np.array([d.tip_force or zero for d in designs], dtype=np.float64),
             tip_moment=np.array([d.tip_moment or zero for d in designs], dtype=np.float64),
@@ -331,8 +332,8 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     """
     features = np.asarray(features)
     if features.dtype.kind not in "fiu" or features.ndim != 2 or features.shape[0] < 1 or (
-            target == "surrogate" and features.shape[1] != 3 + 3 * N_TENDONS):
-        expect = f"(B, {3 + 3 * N_TENDONS})" if target == "surrogate" else "(B, 3 + 3 N_t)"
+            target == "surrogate" and features.shape[1] != N_FEATURES):
+        expect = f"(B, {N_FEATURES})" if target == "surrogate" else "(B, 3 + 3 N_t)"
         raise InvalidRequest([Problem(("designs",), f"expected a numeric {expect} array [E, r, L, offsets, pitches, "
                                       f"tensions] with B >= 1, got {features.dtype} {features.shape}", "array")])
     try:
