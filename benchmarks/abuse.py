@@ -201,8 +201,11 @@ def main() -> None:
         row("1", ".npy header claiming 1e12 designs", lambda: post(
             server, "/predict", content=lying_npy(feats, 10**12),
             headers={"content-type": "application/x-npy"}), server)
-        row("2", "/exact 2,000 loaded designs past its 5 s deadline", lambda: post(
+        row("2", "/exact 2,000 loaded designs (about 800 s of work)", lambda: post(
             server, "/exact", json={"designs": [{**d, **LOADED} for d in ONE] * 2000}), server)
+        row("2", "then /exact of 1 design", lambda: post(server, "/exact", json={"designs": ONE}), server)
+        row("2", "/exact 30 loaded designs (admitted, about 12 s of work)", lambda: post(
+            server, "/exact", json={"designs": [{**d, **LOADED} for d in ONE] * 30}), server)
         row("2", "then /exact of 1 design", lambda: post(server, "/exact", json={"designs": ONE}), server)
         row("3", "/exact flood (64 x 2,000 loaded designs, 10 s)",
             lambda: asyncio.run(predict_under_exact_flood(server)), server)

@@ -31,6 +31,23 @@ from tdcr.schemas import ExactRequest, PredictRequest
 log = logging.getLogger("tdcr.service")
 
 
+class ExactAdmission:
+    """ASGI middleware: /exact answers 503 at once while every solver slot is taken, before
+    routing, body or parsing, and closes the connection so the client stops uploading.  Under a
+    flood this is the cheapest refusal there is; the router checks again (a slot can go between)."""
+
+    def __init__(self, app, state: ServiceState):
+        self.app, self.state = app, state
+
+    async def __call__(self, scope, receive, send):
+        slots = self.state.exact_slots
+        if scope["type"] == "http" and scope["path"] == "/exact" and slots is not None and slots.locked():
+            self.state.metrics.errors.labels("/exact", "saturated").inc()
+            return await _send_error(send, 503, "the solver is saturated; retry later",
+                                     extra=[(b"connection", b"close"), (b"retry-after", b"1")])
+        return await self.app(scope, receive, send)
+
+
 class BodyLimit:
     """ASGI middleware: 413 for bodies over ``limit`` bytes (declared or streamed)."""
 
@@ -190,6 +207,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return _error_response(request, ApiError(500, "internal error", kind="internal"))
 
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    app.add_middleware(ExactAdmission, state=state)
     if settings.api_keys or settings.metrics_api_key:
         app.add_middleware(ApiKeyAuth, keys=settings.api_keys, metrics_key=settings.metrics_api_key)
     if settings.cors_origins:
