@@ -23,7 +23,7 @@ import httpx
 import numpy as np
 import orjson
 
-from service.process import ROOT, ServerProcess
+from service.process import ROOT, ServerProcess, solver_pids
 from tdcr.design_space import sample_designs
 
 ONE = sample_designs(1, seed=0).to_dicts()
@@ -36,18 +36,6 @@ def rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
-
-
-def solver_pids(pid: int) -> list[int]:
-    out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid and \
-                    b"spawn_main" in (stat.parent / "cmdline").read_bytes():
-                out.append(int(stat.parent.name))
-        except (OSError, ValueError):
-            continue
-    return out
 
 
 def row(defect: str, attack: str, fn, server: ServerProcess) -> None:

@@ -24,6 +24,30 @@ ROOT = Path(__file__).resolve().parents[1]
 UNHANDLED = "Exception in ASGI application"
 
 
+def child_pids(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (Linux ``/proc``)."""
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return kids
+
+
+def solver_pids(pid: int) -> list[int]:
+    """The /exact solver processes of the server ``pid`` (not multiprocessing's resource tracker)."""
+    out = []
+    for kid in child_pids(pid):
+        try:
+            if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
+                out.append(kid)
+        except OSError:
+            continue
+    return out
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.process import ServerProcess
+from service.process import ServerProcess, child_pids
 from tdcr import design_space, relative_l2
 from tdcr.client import AsyncClient, Client, TDCRError
 from tdcr.designs import DesignBatch
@@ -260,22 +260,10 @@ def test_openapi_document_is_committed_and_current(root):
     assert committed == json.loads(json.dumps(create_app().openapi())), "run `tdcr openapi` and commit"
 
 
-def _children(pid: int) -> list[int]:
-    kids = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            kids.append(int(stat.parent.name))
-    return kids
-
-
 @pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc")
 def test_stopping_the_server_stops_its_solver_processes(tiny_models):
     srv = ServerProcess(tiny_models[1])
-    kids = _children(srv.proc.pid)
+    kids = child_pids(srv.proc.pid)
     assert kids, "the /exact solver pool should run in child processes"
     srv.stop()  # SIGTERM, as docker stop and the process manager send
     deadline = time.time() + 15

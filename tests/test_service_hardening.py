@@ -14,33 +14,9 @@ import httpx
 import numpy as np
 import pytest
 
-from service.process import ServerProcess
+from service.process import ServerProcess, child_pids, solver_pids
 
 pytestmark = pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc")
-
-
-def _children(pid: int) -> list[int]:
-    kids = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            kids.append(int(stat.parent.name))
-    return kids
-
-
-def _solvers(pid: int) -> list[int]:
-    """The solver processes among the children (not multiprocessing's resource tracker)."""
-    out = []
-    for kid in _children(pid):
-        try:
-            if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
-                out.append(kid)
-        except OSError:
-            continue
-    return out
 
 
 def _alive(pids: list[int]) -> list[int]:
@@ -77,7 +53,7 @@ def test_a_timed_out_request_stops_its_work(server, example_request):
     """The heavy request's worker is killed at the deadline, so a small request right after it is
     answered by a fresh worker instead of queueing behind the abandoned work."""
     heavy = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 300, "points": 200}
-    workers = _solvers(server.proc.pid)
+    workers = solver_pids(server.proc.pid)
     assert workers
     r = httpx.post(server.url + "/exact", json=heavy, timeout=60)
     assert r.status_code == 504, r.text
@@ -87,20 +63,20 @@ def test_a_timed_out_request_stops_its_work(server, example_request):
 
 
 def test_a_killed_worker_is_replaced(server, example_request):
-    before = _alive(_solvers(server.proc.pid))
+    before = _alive(solver_pids(server.proc.pid))
     assert before
     for pid in before:
         os.kill(pid, signal.SIGKILL)
     assert _wait(lambda: httpx.get(server.url + "/readyz").status_code == 200
-                 and set(_alive(_solvers(server.proc.pid))) - set(before))
+                 and set(_alive(solver_pids(server.proc.pid))) - set(before))
     r = httpx.post(server.url + "/exact", json=example_request, timeout=60)
     assert r.status_code == 200, r.text
 
 
 def test_solver_processes_die_with_a_killed_server(tiny_models):
     srv = ServerProcess(tiny_models[1], exact_workers=2)
-    workers = _alive(_children(srv.proc.pid))  # the solvers and multiprocessing's resource tracker
-    assert len(_solvers(srv.proc.pid)) == 2
+    workers = _alive(child_pids(srv.proc.pid))  # the solvers and multiprocessing's resource tracker
+    assert len(solver_pids(srv.proc.pid)) == 2
     srv.proc.send_signal(signal.SIGKILL)
     srv.proc.wait()
     srv.stop(check=False)
