@@ -63,7 +63,7 @@ def _assert_numbers(results: list[dict]) -> None:
         assert isinstance(result["converged"], bool)
 
 
-@settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
 @given(unit=units)
 def test_the_solver_answers_numbers_or_flags_the_design(unit):
     designs = ds.DesignBatch.from_features(_admissible(unit)).to_dicts()

@@ -3,6 +3,7 @@ workers are replaced, and no solver process outlives the server."""
 
 from __future__ import annotations
 
+import asyncio
 import io
 import os
 import signal
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import orjson
 import pytest
 
 from service.process import ServerProcess, child_pids, solver_pids
@@ -205,3 +207,61 @@ def test_exact_refuses_work_its_deadline_cannot_cover(strict_server, example_req
     r = httpx.post(strict_server.url + "/exact", json=bad)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "designs", 0, "tip_force", 0]
     assert "designs[0].tip_force[0]: must be in [-100, 100] N, got 1e+06" in r.json()["message"]
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def test_oversized_requests_allocate_nothing(server):
+    """Defect 1: sizes are checked before allocating (points, a lying .npy header, designs x
+    points, a huge model name); the server's RSS stays put and the answers stay small."""
+    features = np.zeros((2, 15))
+    buf = io.BytesIO()
+    np.save(buf, features)
+    lying = io.BytesIO()
+    np.lib.format.write_array_header_1_0(lying, {"descr": "<f8", "fortran_order": False, "shape": (10**12, 15)})
+    npy = {"content-type": "application/x-npy"}
+    before = _rss_mb(server.proc.pid)
+    for points in ("1000000000", "10000000000"):
+        r = httpx.post(server.url + "/predict", params={"points": points}, content=buf.getvalue(), headers=npy)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "points"]
+    r = httpx.post(server.url + "/predict", content=lying.getvalue() + features.tobytes(), headers=npy)
+    assert r.status_code == 422 and "does not match" in r.json()["message"]
+    r = httpx.post(server.url + "/predict", content=b'{"designs": [], "model": "' + b"x" * 1_000_000 + b'"}',
+                   headers={"content-type": "application/json"})
+    assert r.status_code == 422 and len(r.content) < 2000
+    assert _rss_mb(server.proc.pid) - before < 50
+
+
+def test_predict_stays_live_during_an_exact_flood(server, example_request):
+    """Defect 3: while 32 clients flood /exact with large bodies, every /predict is answered (each
+    within the 10 s client timeout; it took 6 ms unloaded and hung past 10 s before the fix)."""
+    heavy = orjson.dumps({"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 2000})
+    light = orjson.dumps(example_request)
+    headers = {"content-type": "application/json"}
+    answers: list[int] = []
+
+    async def go():
+        stop = asyncio.get_running_loop().time() + 4.0
+
+        async def flood(client):
+            while asyncio.get_running_loop().time() < stop:
+                try:
+                    await client.post("/exact", content=heavy, headers=headers)
+                except httpx.TransportError:  # refused by closing the connection
+                    pass
+
+        async def probe(client):
+            while asyncio.get_running_loop().time() < stop:
+                answers.append((await client.post("/predict", content=light, headers=headers)).status_code)
+
+        async with httpx.AsyncClient(base_url=server.url, timeout=60, limits=httpx.Limits(max_connections=64)) as a, \
+                httpx.AsyncClient(base_url=server.url, timeout=10) as b:
+            await asyncio.gather(*[flood(a) for _ in range(32)], probe(b))
+
+    asyncio.run(go())
+    assert answers and set(answers) == {200}
