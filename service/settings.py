@@ -7,7 +7,7 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from tdcr.design_space import DEFAULT_POINTS, MAX_POINTS
+from tdcr.design_space import MAX_POINTS
 from tdcr.validation import Limits
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,8 +22,9 @@ class Settings(BaseSettings):
     default_model: str | None = Field(None, description="model used when a request names none (default: best)")
     max_designs: int = Field(100_000, ge=1, description="designs per /predict request")
     max_points: int = Field(MAX_POINTS, ge=2, le=MAX_POINTS, description="arclengths per request")
-    max_design_points: int = Field(100_000 * DEFAULT_POINTS, ge=1,
-                                   description="designs x arclengths per request (bounds the memory of one request)")
+    max_design_points: int = Field(
+        1_000_000, ge=1, description="designs x arclengths per request: the memory budget of one answer (a JSON "
+                                     "answer takes about 330 bytes per design-point, so 1,000,000 is ~330 MB)")
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="request body limit, bytes")
     onnx_threads: int = Field(0, ge=0, description="chunks of a large batch run side by side (0: one per core)")
     batch_max_designs: int = Field(4096, ge=1, description="designs of concurrent /predict requests run together")

@@ -92,13 +92,13 @@ def _invalid_request(problems: list[Problem], too_large: bool) -> InvalidRequest
 class Limits:
     """Size limits of one request, checked before anything is allocated.
 
-    ``max_design_points`` bounds designs x points together (memory: about 1 kB of outputs and
-    intermediates per design-point in the surrogates).
+    ``max_design_points`` bounds designs x points together: the memory of the answer (the
+    surrogates' float32 outputs take 96 bytes per design-point, their JSON text about 330).
     """
 
     max_designs: int = 100_000
     max_points: int = MAX_POINTS
-    max_design_points: int = 100_000 * DEFAULT_POINTS
+    max_design_points: int = 1_000_000
 
 
 @dataclass(frozen=True)
