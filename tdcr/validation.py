@@ -65,6 +65,11 @@ def quote(text: object) -> str:
     return text if len(text) <= MAX_QUOTED else text[:MAX_QUOTED] + "...'"
 
 
+def _short(part: str | int) -> str | int:
+    """A location part as given by the user (e.g. an unknown key), cut to :data:`MAX_QUOTED` characters."""
+    return part if isinstance(part, int) or len(part) <= MAX_QUOTED else part[:MAX_QUOTED] + "..."
+
+
 class InvalidRequest(ValueError):
     """Bad input: ``problems`` name each field and reason.  ``too_large`` marks size limits (413)."""
 
@@ -288,7 +293,8 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     try:
         request = (schema.model_validate(body) if isinstance(body, dict) else schema.model_validate_json(body))
     except ValidationError as exc:
-        raise InvalidRequest(Problem(tuple(e["loc"]), e["msg"], e["type"]) for e in exc.errors()) from None
+        raise InvalidRequest(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"])
+                             for e in exc.errors(include_input=False, include_url=False)) from None
     fractions, problems = _fractions(request.points, request.s, limits)
     _check_sizes(len(request.designs), 0 if fractions is None else fractions.size, limits)
     wanted, more = check_outputs(outputs)

@@ -234,6 +234,9 @@ def test_oversized_requests_allocate_nothing(server):
     r = httpx.post(server.url + "/predict", content=b'{"designs": [], "model": "' + b"x" * 1_000_000 + b'"}',
                    headers={"content-type": "application/json"})
     assert r.status_code == 422 and len(r.content) < 2000
+    r = httpx.post(server.url + "/predict", content=b'{"designs": [{"' + b"k" * 1_000_000 + b'": 1}]}',
+                   headers={"content-type": "application/json"})  # an unknown key is quoted, but short
+    assert r.status_code == 422 and len(r.content) < 2000 and "kkkk..." in r.json()["message"]
     assert _rss_mb(server.proc.pid) - before < 50
 
 
