@@ -1,4 +1,3 @@
-"""tdcr-surrogates: physics, design space, data and (with torch) the neural operators.
-
-Importing this package, ``tdcr.physics`` or ``tdcr.design_space`` never imports torch.
+"""Offline work of tdcr-surrogates (depends on ``tdcr``, never on ``service``): solver datasets
+(``training.dataset``, no torch) and, with torch, the neural operators (``training.operators``).
 """
