@@ -48,8 +48,9 @@ class ModelNotFound(LookupError):
 
 @dataclass(frozen=True)
 class Prediction:
-    """A surrogate's answer: ``model``; ``s`` ``(B, n)`` m; the wanted ``arrays`` (float32:
-    backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons ``(B, n, 4, 3)`` m); and per
+    """A surrogate's answer: ``model``; ``s`` ``(B, n)`` m; the wanted ``arrays`` (backbone
+    ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons ``(B, n, 4, 3)`` m; float32 from the graph,
+    float64 where post-processed: the pose fit of tendon models, FNO interpolation off the grid); and per
     design the range ``warnings`` (empty: in distribution) and whether its answer is ``finite``
     (far outside the trained ranges a network can overflow; such rows are zeros)."""
 
