@@ -172,6 +172,13 @@ class ExternalLoads:
         M = zeros if self.tip_moment is None else np.asarray(self.tip_moment, float).reshape(n_designs, 3)
         return f_g, F, M
 
+    def take(self, index) -> ExternalLoads:
+        """The loads of the designs selected by an integer index array or slice."""
+        def rows(a):
+            return None if a is None else np.asarray(a)[index]
+        return ExternalLoads(gravity=rows(self.gravity), density=rows(self.density),
+                             tip_force=rows(self.tip_force), tip_moment=rows(self.tip_moment))
+
     def is_zero(self) -> bool:
         def zero(a):
             return a is None or not np.any(np.asarray(a))

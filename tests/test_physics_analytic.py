@@ -216,3 +216,17 @@ def test_local_equation_has_one_root(seed, start):
     x, ok, _ = _c._newton(x0, nodes, opts)
     assert ok_ref.all() and ok.all()
     np.testing.assert_allclose(x, x_ref, rtol=1e-9, atol=1e-9)
+
+
+def test_a_batch_split_over_processes_equals_one_process():
+    d = design_space.sample_designs(1000, seed=12)
+    s = np.linspace(0, 1, 9)
+    one = solve(d, s)
+    two = solve(d, s, workers=2)
+    for field in ("tendons", "rotation", "force", "residual"):
+        np.testing.assert_allclose(getattr(two, field), getattr(one, field), rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(two.converged, one.converged)
+    loads = ExternalLoads(tip_force=np.tile([0.0, 0.0, -1e-3], (1000, 1)))
+    small = solve(d.take(slice(0, 3)), s, loads=loads.take(slice(0, 3)), workers=2)  # too few: solved here
+    np.testing.assert_allclose(small.tendons, solve(d.take(slice(0, 3)), s, loads=loads.take(slice(0, 3))).tendons,
+                               rtol=0, atol=0)

@@ -33,6 +33,9 @@ continuation from the tendon-only solution.
 
 from __future__ import annotations
 
+import dataclasses
+import multiprocessing
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -364,12 +367,17 @@ def _undeformed(p: int) -> np.ndarray:
 # --------------------------------------------------------------------------- public entry
 
 
+#: Fewest designs per process worth a process of :func:`solve` (a spawned worker costs ~1 s).
+MIN_DESIGNS_PER_WORKER = 500
+
+
 def solve(
     designs: DesignBatch,
     s_fraction: np.ndarray,
     *,
     loads: ExternalLoads | None = None,
     options: SolverOptions | None = None,
+    workers: int = 1,
 ) -> RodSolution:
     """Equilibrium shapes of a batch of designs.
 
@@ -378,11 +386,17 @@ def solve(
         s_fraction: requested arclengths as fractions of L in [0, 1], ``(n,)``, any order.
         loads: optional gravity and tip loads; ``None`` means tendon loads only.
         options: numerical settings.
+        workers: processes to split the batch over (0: one per core).  Designs are independent,
+            so the result equals ``workers=1`` (to round-off); a batch smaller than
+            ``MIN_DESIGNS_PER_WORKER`` per process is solved here.
 
     Returns:
         A :class:`RodSolution`.  A design that fails is flagged in ``converged``;
         it never fails the batch.
     """
+    workers = min(workers or os.cpu_count() or 1, designs.n_designs // MIN_DESIGNS_PER_WORKER)
+    if workers > 1:
+        return _solve_in_processes(designs, s_fraction, loads, options, workers)
     opts = options or SolverOptions()
     sigma_out = np.asarray(s_fraction, dtype=np.float64).reshape(-1)
     if sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -1e-9 or sigma_out.max() > 1 + 1e-9:
@@ -394,6 +408,24 @@ def solve(
     if loads is None or loads.is_zero():
         return base
     return _solve_with_loads(designs, sigma_out, loads, opts, base)
+
+
+def _solve_in_processes(designs: DesignBatch, s_fraction: np.ndarray, loads: ExternalLoads | None,
+                        options: SolverOptions | None, workers: int) -> RodSolution:
+    """:func:`solve` on contiguous chunks of the batch in ``workers`` spawned processes."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    chunks = np.array_split(np.arange(designs.n_designs), workers)
+    jobs = [(designs.take(rows), s_fraction, None if loads is None else loads.take(rows), options) for rows in chunks]
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        parts = list(pool.map(_solve_job, jobs))
+    return RodSolution(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                          for f in dataclasses.fields(RodSolution)})
+
+
+def _solve_job(job) -> RodSolution:
+    designs, s_fraction, loads, options = job
+    return solve(designs, s_fraction, loads=loads, options=options)
 
 
 def body_strains(designs: DesignBatch, s_fraction: np.ndarray, *, options: SolverOptions | None = None
