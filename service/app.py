@@ -23,7 +23,8 @@ from starlette.requests import ClientDisconnect
 import tdcr
 from service.errors import ApiError
 from service.metrics import Metrics
-from service.routers import exact, health, models, predict
+from service.oip import InferenceRequest
+from service.routers import exact, health, models, predict, v2
 from service.settings import Settings
 from service.state import ServiceState, load_models, start_pool
 from tdcr.schemas import ExactRequest, PredictRequest
@@ -80,7 +81,7 @@ class ApiKeyAuth:
     """ASGI middleware: 401 unless the request carries one of ``keys`` (``Authorization: Bearer KEY``
     or ``X-API-Key: KEY``); health probes are open; /metrics takes ``metrics_key`` when set."""
 
-    OPEN = ("/healthz", "/readyz")
+    OPEN = ("/healthz", "/readyz", "/v2/health/live", "/v2/health/ready")
 
     def __init__(self, app, keys: set[str], metrics_key: str | None):
         self.app, self.keys, self.metrics_key = app, {k.encode() for k in keys}, metrics_key
@@ -107,7 +108,6 @@ class RequestMetrics:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         started = time.perf_counter()
-        path = scope["path"] if scope["path"] in _PATHS else "other"
         status = 500
 
         async def send_status(message):
@@ -119,8 +119,10 @@ class RequestMetrics:
         try:
             await self.app(scope, receive, send_status)
         finally:
+            path = _route_label(scope)  # the router has put the matched route into the scope
             self.metrics.requests.labels(path, str(status)).inc()
-            if path not in ("/predict", "/exact"):
+            if path not in ("/predict", "/exact", "/v2/models/{model}/infer",
+                            "/v2/models/{model}/versions/{version}/infer"):
                 self.metrics.latency.labels(path, "").observe(time.perf_counter() - started)
 
 
@@ -137,10 +139,9 @@ async def _send_error(send, status: int, message: str, extra: list[tuple[bytes, 
 
 
 def _route_label(scope) -> str:
-    """The metric label of a request: its route's path template, or ``other`` (never the raw path)."""
-    route = scope.get("route")
-    path = getattr(route, "path", None)
-    return path if path in _PATHS else "other"
+    """The metric label of a request: its route's path template (a fixed set), or ``other``
+    (never the raw path)."""
+    return getattr(scope.get("route"), "path", None) or "other"
 
 
 def _error_response(request: Request, exc: ApiError) -> JSONResponse:
@@ -176,7 +177,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "
                               "and the Cosserat solver (/exact).  SI units throughout.")
     app.state.service = state
-    for router in (predict.router, exact.router, models.router, health.router):
+    for router in (predict.router, exact.router, models.router, health.router, v2.router):
         app.include_router(router)
 
     @app.exception_handler(ApiError)
@@ -218,7 +219,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
-_PATHS = {"/predict", "/exact", "/models", "/healthz", "/readyz", "/metrics"}
 
 
 def _openapi(app: FastAPI) -> dict:
@@ -227,7 +227,7 @@ def _openapi(app: FastAPI) -> dict:
         return app.openapi_schema
     schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
     components = schema.setdefault("components", {}).setdefault("schemas", {})
-    for body in (PredictRequest, ExactRequest):
+    for body in (PredictRequest, ExactRequest, InferenceRequest):
         js = body.model_json_schema(ref_template="#/components/schemas/{model}")
         components.update(js.pop("$defs", {}))
         components[body.__name__] = js

@@ -21,6 +21,7 @@ import threading
 import time
 from multiprocessing.connection import Connection
 
+import anyio
 from starlette.concurrency import run_in_threadpool
 
 log = logging.getLogger("tdcr.service")
@@ -90,6 +91,16 @@ class _Worker:
         self.conn.close()
 
 
+def _exchange(worker: _Worker, message, timeout: float):
+    """Send ``message`` to ``worker`` and wait up to ``timeout`` s for its answer (blocking pipe I/O:
+    the fd is made blocking again, since an event loop that polled it may have left it not)."""
+    os.set_blocking(worker.conn.fileno(), True)
+    worker.conn.send(message)
+    if not worker.conn.poll(timeout):
+        raise TimeoutError
+    return worker.conn.recv()
+
+
 class SolverPool:
     """``workers`` solver processes; :meth:`run` solves on an idle one within a deadline."""
 
@@ -127,9 +138,11 @@ class SolverPool:
         worker = await asyncio.wait_for(idle.get(), timeout)
         healthy, died = False, False
         try:
-            worker.conn.send((fn, args, kwargs, expected))
             remaining = max(deadline - asyncio.get_running_loop().time(), 0.0)
-            ok, result = await asyncio.wait_for(self._receive(worker), remaining)
+            # the blocking pipe I/O runs in a thread; a cancelled request abandons it (the worker is
+            # then killed, which ends the thread's wait)
+            ok, result = await anyio.to_thread.run_sync(_exchange, worker, (fn, args, kwargs, expected), remaining,
+                                                        abandon_on_cancel=True)
             healthy = True
         except TimeoutError:  # a subclass of OSError: re-raised as it is
             raise
@@ -145,17 +158,6 @@ class SolverPool:
         if not ok:
             raise result
         return result
-
-    @staticmethod
-    async def _receive(worker: _Worker):
-        loop = asyncio.get_running_loop()
-        ready = loop.create_future()
-        loop.add_reader(worker.conn.fileno(), lambda: ready.done() or ready.set_result(None))
-        try:
-            await ready
-        finally:
-            loop.remove_reader(worker.conn.fileno())
-        return worker.conn.recv()
 
     async def _replace(self, worker: _Worker, *, died: bool = False) -> None:
         """Kill ``worker`` and start another in its place, retrying until one starts.  ``died``: it

@@ -64,6 +64,17 @@ def test_a_timed_out_request_stops_its_work(server, example_request):
     assert small.status_code == 200, small.text
 
 
+def test_one_worker_serves_request_after_request(server, example_request):
+    """The pipe to a worker stays usable across requests and pauses (an event loop that polled
+    its fd once left it non-blocking, and the next exchange failed as if the worker had died)."""
+    workers = _alive(solver_pids(server.proc.pid))
+    for _ in range(4):
+        r = httpx.post(server.url + "/exact", json={"designs": example_request["designs"] * 20}, timeout=60)
+        assert r.status_code == 200, r.text
+        time.sleep(0.5)
+    assert _alive(solver_pids(server.proc.pid)) == workers
+
+
 def test_a_killed_worker_is_replaced(server, example_request):
     before = _alive(solver_pids(server.proc.pid))
     assert before

@@ -1,0 +1,183 @@
+"""The Open Inference Protocol v2 (KServe V2 / Triton) over REST: tensors in, tensors out.
+
+Specification: kserve/open-inference-protocol, ``specification/protocol/inference_rest.md``; the
+binary tensor extension: triton-inference-server/server, ``docs/protocol/extension_binary_data.md``.
+
+Models (every manifest operator, and the physics solver as ``exact``):
+
+* inputs: ``design`` FP64 or FP32 ``[-1, 15]`` (raw SI designs in the README's feature order) and
+  optionally ``s`` FP64 ``[-1]`` (fractions of L; default the 42-point grid); ``exact`` also takes
+  ``gravity`` ``[-1, 3]``, ``density`` ``[-1]``, ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``;
+* outputs (metres): ``backbone`` FP32 ``[-1, n, 3]``, ``rotation`` FP32 ``[-1, n, 3, 3]``, ``tendons``
+  FP32 ``[-1, n, 4, 3]``, ``in_distribution`` BOOL ``[-1]``; ``exact`` also ``converged`` BOOL and
+  ``residual`` FP64 ``[-1]``.
+
+Decoded tensors go through the one validation path (:mod:`tdcr.validation`); errors are
+:class:`OipError` with a status and a message that names the tensor and the reason.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import orjson
+from pydantic import BaseModel, Field
+
+from tdcr.design_space import N_FEATURES, N_TENDONS
+from tdcr.validation import quote
+
+#: OIP datatypes and their little-endian numpy types.
+DATATYPES: dict[str, np.dtype] = {
+    "BOOL": np.dtype("?"), "UINT8": np.dtype("<u1"), "INT32": np.dtype("<i4"), "INT64": np.dtype("<i8"),
+    "FP32": np.dtype("<f4"), "FP64": np.dtype("<f8"),
+}
+#: The surrogates' tensors: name -> (datatype, shape); ``n`` is the number of arclengths.
+SURROGATE_INPUTS = {"design": ("FP64", [-1, N_FEATURES]), "s": ("FP64", [-1])}
+SURROGATE_OUTPUTS = {"backbone": ("FP32", [-1, -1, 3]), "rotation": ("FP32", [-1, -1, 3, 3]),
+                     "tendons": ("FP32", [-1, -1, N_TENDONS, 3]), "in_distribution": ("BOOL", [-1])}
+#: The solver's extra tensors.
+LOAD_INPUTS = {"gravity": ("FP64", [-1, 3]), "density": ("FP64", [-1]), "tip_force": ("FP64", [-1, 3]),
+               "tip_moment": ("FP64", [-1, 3])}
+EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": ("BOOL", [-1]), "residual": ("FP64", [-1])}
+#: Header of the binary tensor extension.
+HEADER_LENGTH = "inference-header-content-length"
+
+
+class RequestInput(BaseModel):
+    """An input tensor: row-major ``data``, or ``parameters.binary_data_size`` bytes after the JSON."""
+
+    name: str
+    shape: list[int]
+    datatype: str
+    parameters: dict | None = None
+    data: list | None = None
+
+
+class RequestOutput(BaseModel):
+    name: str
+    parameters: dict | None = Field(None, description='{"binary_data": true} for a binary tensor')
+
+
+class InferenceRequest(BaseModel):
+    """The OIP inference request (documentation; bodies are decoded by :func:`decode`)."""
+
+    id: str | None = None
+    parameters: dict | None = Field(None, description='{"binary_data_output": true} for binary outputs')
+    inputs: list[RequestInput]
+    outputs: list[RequestOutput] | None = None
+
+
+class OipErrorBody(BaseModel):
+    error: str
+
+
+class OipError(Exception):
+    """A protocol error: ``status`` and a message naming the tensor and the reason."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status, self.message = status, message
+
+
+@dataclass(frozen=True)
+class InferRequest:
+    """A decoded inference request: input arrays by name, the outputs wanted (name -> binary)."""
+
+    inputs: dict[str, np.ndarray]
+    outputs: dict[str, bool]
+    id: str | None
+
+
+def tensor_metadata(tensors: Mapping[str, tuple[str, list[int]]]) -> list[dict]:
+    return [{"name": name, "datatype": dtype, "shape": shape} for name, (dtype, shape) in tensors.items()]
+
+
+def decode(body: bytes, header_length: str | None, *, inputs: Mapping[str, tuple[str, list[int]]],
+           outputs: Mapping[str, tuple[str, list[int]]], required: tuple[str, ...] = ("design",)) -> InferRequest:
+    """An OIP REST inference request (JSON, or JSON followed by binary tensors)."""
+    try:
+        json_length = len(body) if header_length is None else int(header_length)
+    except ValueError:
+        raise OipError(400, f"{HEADER_LENGTH} must be an integer, got {quote(header_length)}") from None
+    if not 0 <= json_length <= len(body):
+        raise OipError(400, f"{HEADER_LENGTH} {json_length} is outside the body of {len(body)} bytes")
+    try:
+        request = orjson.loads(body[:json_length])
+    except orjson.JSONDecodeError as exc:
+        raise OipError(400, f"the request is not valid JSON: {exc}") from None
+    if not isinstance(request, dict) or not isinstance(request.get("inputs"), list):
+        raise OipError(400, "the request must be an object with a list of 'inputs'")
+    binary = memoryview(body)[json_length:]
+    offset = 0
+    arrays: dict[str, np.ndarray] = {}
+    for spec in request["inputs"]:
+        if not isinstance(spec, dict):
+            raise OipError(400, "each input must be an object")
+        name = spec.get("name")
+        if name not in inputs:
+            raise OipError(400, f"unexpected input {quote(name)}; this model takes {list(inputs)}")
+        if name in arrays:
+            raise OipError(400, f"input {name!r} is given twice")
+        datatype, shape = spec.get("datatype"), spec.get("shape")
+        allowed = ("FP64", "FP32") if inputs[name][0] == "FP64" else (inputs[name][0],)
+        if datatype not in allowed:
+            raise OipError(400, f"input {name!r}: datatype must be one of {list(allowed)}, got {quote(datatype)}")
+        expected = inputs[name][1]
+        if (not isinstance(shape, list) or len(shape) != len(expected)
+                or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
+                or any(e != -1 and d != e for d, e in zip(shape, expected, strict=True))):
+            raise OipError(400, f"input {name!r}: shape must be {expected} (-1: any), got {quote(shape)}")
+        count = int(np.prod(shape, dtype=object))
+        dtype = DATATYPES[datatype]
+        size = (spec.get("parameters") or {}).get("binary_data_size")
+        if size is not None:
+            if not isinstance(size, int) or size != count * dtype.itemsize or offset + size > len(binary):
+                raise OipError(400, f"input {name!r}: binary_data_size {quote(size)} does not match its shape "
+                                    f"{shape} of {datatype} or the {len(binary) - offset} bytes left")
+            array = np.frombuffer(binary, dtype=dtype, count=count, offset=offset)
+            offset += size
+        else:
+            data = spec.get("data")
+            if not isinstance(data, list):
+                raise OipError(400, f"input {name!r}: 'data' must be a list (or use binary_data_size)")
+            array = np.asarray(data, dtype=object).reshape(-1) if count else np.zeros(0)
+            if array.size != count or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                               for v in array.tolist()):
+                raise OipError(400, f"input {name!r}: 'data' must hold {count} numbers, row-major")
+            array = array.astype(dtype)
+        arrays[name] = array.reshape(shape)
+    if offset != len(binary):
+        raise OipError(400, f"{len(binary) - offset} bytes of binary data are not claimed by any input")
+    missing = [n for n in required if n not in arrays]
+    if missing:
+        raise OipError(400, f"missing input(s) {missing}")
+    default_binary = bool((request.get("parameters") or {}).get("binary_data_output", False))
+    wanted: dict[str, bool] = {}
+    for spec in request.get("outputs") or [{"name": n} for n in outputs]:
+        name = spec.get("name") if isinstance(spec, dict) else None
+        if name not in outputs:
+            raise OipError(400, f"unknown output {quote(name)}; this model gives {list(outputs)}")
+        wanted[name] = bool((spec.get("parameters") or {}).get("binary_data", default_binary))
+    request_id = request.get("id")
+    return InferRequest(inputs=arrays, outputs=wanted, id=None if request_id is None else str(request_id)[:64])
+
+
+def encode(model: str, tensors: Mapping[str, tuple[str, np.ndarray]], binary: Mapping[str, bool],
+           request_id: str | None) -> tuple[bytes, int | None]:
+    """The response body and, when any output is binary, the length of its JSON part."""
+    outputs, blobs = [], []
+    for name, (datatype, array) in tensors.items():
+        array = np.ascontiguousarray(array, dtype=DATATYPES[datatype])
+        out = {"name": name, "datatype": datatype, "shape": list(array.shape)}
+        if binary[name]:
+            blob = array.tobytes()
+            out["parameters"] = {"binary_data_size": len(blob)}
+            blobs.append(blob)
+        else:
+            out["data"] = array.reshape(-1)
+        outputs.append(out)
+    head = orjson.dumps({"model_name": model, "model_version": "1", "outputs": outputs,
+                         **({"id": request_id} if request_id is not None else {})}, option=orjson.OPT_SERIALIZE_NUMPY)
+    return (head + b"".join(blobs), len(head)) if blobs else (head, None)
