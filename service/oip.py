@@ -25,6 +25,7 @@ import numpy as np
 import orjson
 from pydantic import BaseModel, Field
 
+from tdcr.client import INFERENCE_HEADER_LENGTH
 from tdcr.design_space import N_FEATURES, N_TENDONS
 from tdcr.validation import quote
 
@@ -42,7 +43,7 @@ LOAD_INPUTS = {"gravity": ("FP64", [-1, 3]), "density": ("FP64", [-1]), "tip_for
                "tip_moment": ("FP64", [-1, 3])}
 EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": ("BOOL", [-1]), "residual": ("FP64", [-1])}
 #: Header of the binary tensor extension.
-HEADER_LENGTH = "inference-header-content-length"
+HEADER_LENGTH = INFERENCE_HEADER_LENGTH
 
 
 class RequestInput(BaseModel):

@@ -204,7 +204,7 @@ def _cmd_loadtest(args) -> int:
         raise UsageError("--requests must be >= 1 and --seconds > 0")
     rows, before, after = asyncio.run(sweep(
         args.url, concurrencies=ints(args.concurrency), batches=ints(args.batch), model=args.model,
-        binary=args.binary, max_requests=args.requests, max_seconds=args.seconds))
+        binary=args.binary, max_requests=args.requests, max_seconds=args.seconds, protocol=args.protocol))
     print(format_rows(rows, before, after))
     return 1 if any(r.errors for r in rows) else 0
 
@@ -293,6 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", default="1,32,1024")
     p.add_argument("--model", default=None)
     p.add_argument("--binary", action="store_true", help=".npy requests and .npz answers instead of JSON")
+    p.add_argument("--protocol", choices=["http", "v2"], default="http",
+                   help="http: /predict (JSON, or .npy with --binary); v2: the Open Inference Protocol over REST, "
+                        "binary tensors")
     p.add_argument("--requests", type=int, default=2000, help="at most this many requests per cell")
     p.add_argument("--seconds", type=float, default=10.0, help="at most this long per cell")
     p.set_defaults(func=_cmd_loadtest)

@@ -18,6 +18,8 @@ import numpy as np
 from tdcr.design_space import DEFAULT_POINTS
 
 NPY, NPZ = "application/x-npy", "application/x-npz"
+#: The Open Inference Protocol's header giving the length of the JSON part of a binary-tensor body.
+INFERENCE_HEADER_LENGTH = "inference-header-content-length"
 
 
 class TDCRError(RuntimeError):

@@ -21,7 +21,7 @@ import numpy as np
 import orjson
 
 from tdcr import design_space
-from tdcr.client import NPY, NPZ, _npy
+from tdcr.client import INFERENCE_HEADER_LENGTH, NPY, NPZ, _npy
 
 
 @dataclass
@@ -57,13 +57,37 @@ async def server_rss(client: httpx.AsyncClient) -> float | None:
     return None
 
 
+#: What a load test speaks: the service's own /predict (JSON or .npy/.npz), or the Open Inference
+#: Protocol v2 over REST with binary tensors.
+PROTOCOLS = ("http", "v2")
+
+
+def _v2_body(features: np.ndarray, outputs: str | None) -> dict:
+    """A v2 inference request with the designs as a binary FP64 tensor and binary outputs."""
+    blob = np.ascontiguousarray(features, dtype="<f8").tobytes()
+    wanted = outputs.split(",") if outputs else ["backbone", "rotation", "tendons"]
+    head = orjson.dumps({"inputs": [{"name": "design", "shape": list(features.shape), "datatype": "FP64",
+                                     "parameters": {"binary_data_size": len(blob)}}],
+                         "outputs": [{"name": o, "parameters": {"binary_data": True}} for o in wanted]})
+    return {"content": head + blob,
+            "headers": {INFERENCE_HEADER_LENGTH: str(len(head)), "content-type": "application/octet-stream"}}
+
+
 async def run_cell(url: str, *, concurrency: int, batch: int, model: str | None, binary: bool,
                    max_requests: int, max_seconds: float, seed: int = 0, outputs: str | None = None,
-                   timeout: float = 120.0) -> Row:
-    """One cell against the service at ``url``: ``concurrency`` clients of one connection each."""
+                   timeout: float = 120.0, protocol: str = "http") -> Row:
+    """One cell against the service at ``url``: ``concurrency`` clients of one connection each.
+
+    ``protocol="v2"`` needs ``model`` (the path names it) and always sends binary tensors.
+    """
     designs = design_space.sample_designs(batch, seed=seed)
     feats = designs.features()
-    if binary:
+    path = "/predict"
+    if protocol == "v2":
+        if model is None:
+            raise ValueError("the v2 protocol needs a model name")
+        body, path = _v2_body(feats, outputs), f"/v2/models/{model}/infer"
+    elif binary:
         params = ({"model": model} if model else {}) | ({"outputs": outputs} if outputs else {})
         body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ}, "params": params}
     else:
@@ -83,7 +107,7 @@ async def run_cell(url: str, *, concurrency: int, batch: int, model: str | None,
                 issued += 1
                 t = time.perf_counter()
                 try:
-                    r = await client.post("/predict", **body)
+                    r = await client.post(path, **body)
                     ok = r.status_code == 200
                 except httpx.HTTPError:
                     ok = False
@@ -94,21 +118,25 @@ async def run_cell(url: str, *, concurrency: int, batch: int, model: str | None,
     await asyncio.gather(*(worker() for _ in range(concurrency)))
     elapsed = time.perf_counter() - start
     lat = np.array(latencies) * 1e3
-    encoding = ("npy" + (f" ({outputs})" if outputs else "")) if binary else "json"
+    encoding = "v2 binary" if protocol == "v2" else "npy" if binary else "json"
+    encoding += f" ({outputs})" if outputs and (binary or protocol == "v2") else ""
     return Row(concurrency, batch, encoding, len(latencies), errors, elapsed,
                *(float(np.percentile(lat, q)) for q in (50, 95, 99)))
 
 
 async def sweep(url: str, *, concurrencies=(1, 4, 16, 64), batches=(1, 32, 1024), model: str | None = None,
-                binary: bool = False, max_requests: int = 2000, max_seconds: float = 10.0):
-    """Run every cell; returns ``(rows, rss_before, rss_after)``."""
+                binary: bool = False, max_requests: int = 2000, max_seconds: float = 10.0, protocol: str = "http"):
+    """Run every cell; returns ``(rows, rss_before, rss_after)``.  (v2 without a model: the
+    server's default model.)"""
     async with httpx.AsyncClient(base_url=url, timeout=60.0) as client:
         before = await server_rss(client)
+        if protocol == "v2" and model is None:
+            model = (await client.get("/models")).json()["default_model"]
         rows = []
         for batch in batches:
             for c in concurrencies:
                 rows.append(await run_cell(url, concurrency=c, batch=batch, model=model, binary=binary,
-                                           max_requests=max_requests, max_seconds=max_seconds))
+                                           max_requests=max_requests, max_seconds=max_seconds, protocol=protocol))
         after = await server_rss(client)
     return rows, before, after
 

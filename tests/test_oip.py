@@ -147,3 +147,11 @@ def test_tritonclient_http(server, root):
     for model in MODELS:
         ref = httpx.post(server.url + "/predict", json=body | {"model": model}).json()["results"]
         np.testing.assert_allclose(answers[model], [r["tendons"] for r in ref], rtol=1e-6, atol=1e-9)
+
+
+def test_loadtest_speaks_v2(server, root):
+    done = subprocess.run([sys.executable, "-m", "tdcr.cli", "loadtest", "--url", server.url, "--protocol", "v2",
+                           "--concurrency", "1,4", "--batch", "1,32", "--requests", "30", "--seconds", "5"],
+                          capture_output=True, text=True, cwd=root, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.count("| v2 binary |") == 4
