@@ -160,3 +160,14 @@ def test_generate_on_a_local_dask_cluster(tmp_path):
     assert local["converged"] == 30
     a, b = dataset.load(tmp_path / "dask"), dataset.load(tmp_path / "local")
     np.testing.assert_array_equal(a["tendons"], b["tendons"])
+
+
+def test_a_resumed_generation_removes_half_written_shards(tmp_path):
+    """A run killed while writing a shard leaves its temporary file; the next run removes it."""
+    cfg = dataset.GenerateConfig(n=20, seed=3, shard_size=10)
+    dataset.generate(tmp_path / "d", cfg, workers=1, progress=False)
+    stale = tmp_path / "d" / "shards" / "shard-00001.npz.tmp-99999"
+    stale.write_bytes(b"half a shard")
+    dataset.shard_path(tmp_path / "d", 1).unlink()
+    dataset.generate(tmp_path / "d", cfg, workers=1, progress=False)
+    assert not stale.exists() and dataset.shard_path(tmp_path / "d", 1).exists()

@@ -111,9 +111,12 @@ def generate(
 
     Shards already on disk are kept; the others are solved on ``workers`` local processes
     (default: all cores) or, with ``scheduler``, on a Dask distributed cluster at that address.
+    Temporary files a killed run left behind are removed.
     """
     out = Path(out)
     _plan(out, cfg)
+    for stale in (out / "shards").glob("*.tmp-*"):  # half-written by a killed run (one writer per dataset)
+        stale.unlink()
     features = design_space.sample_designs(cfg.n, seed=cfg.seed).features()
     todo = [k for k in range(cfg.n_shards) if not shard_path(out, k).exists()]
     done_designs = cfg.n - sum(len(range(cfg.n)[_shard_range(cfg, k)]) for k in todo)
