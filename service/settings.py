@@ -8,6 +8,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from tdcr.design_space import MAX_POINTS
+from tdcr.exact import WorkBudget
 from tdcr.validation import Limits
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,6 +56,12 @@ class Settings(BaseSettings):
         """Size limits of one /predict request."""
         return Limits(max_designs=self.max_designs, max_points=self.max_points,
                       max_design_points=self.max_design_points)
+
+    def exact_budget(self) -> WorkBudget:
+        """The work /exact admits (estimated solver time, at most the factor times the deadline)."""
+        return WorkBudget(seconds_per_design=self.exact_seconds_per_design,
+                          seconds_per_loaded_design=self.exact_seconds_per_loaded_design,
+                          max_seconds=self.exact_admission_factor * self.exact_timeout_s)
 
     def exact_limits(self) -> Limits:
         """Size limits of one /exact request."""

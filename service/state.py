@@ -13,7 +13,9 @@ from service.metrics import Metrics
 from service.settings import Settings
 from service.solver_pool import SolverPool
 from tdcr import design_space
+from tdcr.exact import TooMuchWork, answer_json
 from tdcr.runtime import ManifestError, Surrogate, load_manifest
+from tdcr.validation import InvalidRequest
 
 
 @dataclass
@@ -33,6 +35,14 @@ class ServiceState:
     @property
     def pool_healthy(self) -> bool:
         return self.pool is not None and self.pool.healthy
+
+    async def solve_json(self, body: bytes) -> list[dict]:
+        """/exact's whole work for a JSON ``SolveRequest``: validation, admission and the solve, in a
+        solver process within the deadline.  Raises ``InvalidRequest``, ``TooMuchWork``,
+        ``TimeoutError``, ``WorkerDied`` or ``RuntimeError`` (the solver failed)."""
+        settings = self.settings
+        return await self.pool.run(answer_json, body, limits=settings.exact_limits(), budget=settings.exact_budget(),
+                                   timeout=settings.exact_timeout_s, expected=(InvalidRequest, TooMuchWork))
 
 
 def best_model(manifest: dict) -> str | None:

@@ -259,7 +259,7 @@ def _check_sizes(n_designs: int, n_points: int, limits: Limits) -> None:
 
 
 def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: list[Problem], *,
-             target: Target, model: str | None, outputs: tuple[str, ...]) -> ShapeRequest:
+             model: str | None, outputs: tuple[str, ...]) -> ShapeRequest:
     """Every value check of every entry point; raises :class:`InvalidRequest` naming each field."""
     value_problems = []
     for g in groups:  # (the surrogates' 4 tendons and no loads are structure: checked by the schema or shape)
@@ -304,7 +304,7 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
         by_count.setdefault(len(d.tendons), []).append(i)
     groups = [_group_from_json([request.designs[i] for i in rows], np.asarray(rows))
               for rows in by_count.values()]
-    return _checked(groups, fractions, problems, target=target, model=getattr(request, "model", None),
+    return _checked(groups, fractions, problems, model=getattr(request, "model", None),
                     outputs=wanted)
 
 
@@ -351,4 +351,4 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     wanted, more = check_outputs(outputs)
     problems += more + _check_model(model)
     group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features), loads=None)
-    return _checked([group], fractions, problems, target=target, model=model, outputs=wanted)
+    return _checked([group], fractions, problems, model=model, outputs=wanted)

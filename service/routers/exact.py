@@ -11,7 +11,7 @@ from fastapi import APIRouter, Request, Response
 from service.deps import State
 from service.errors import ApiError, from_invalid, require_json
 from service.solver_pool import WorkerDied
-from tdcr.exact import TooMuchWork, WorkBudget, answer_json
+from tdcr.exact import TooMuchWork
 from tdcr.schemas import ErrorResponse, ExactResponse
 from tdcr.validation import InvalidRequest
 
@@ -41,13 +41,9 @@ async def exact(request: Request, state: State) -> Response:
     async with state.exact_slots:  # held from reading the body to the answer
         require_json(request.headers.get("content-type", ""))
         body = await request.body()
-        budget = WorkBudget(seconds_per_design=settings.exact_seconds_per_design,
-                            seconds_per_loaded_design=settings.exact_seconds_per_loaded_design,
-                            max_seconds=settings.exact_admission_factor * settings.exact_timeout_s)
         started = time.perf_counter()
         try:  # parsing, validation, admission and solving all run in a solver process
-            results = await state.pool.run(answer_json, body, limits=settings.exact_limits(), budget=budget,
-                                           timeout=settings.exact_timeout_s, expected=(InvalidRequest, TooMuchWork))
+            results = await state.solve_json(body)
         except InvalidRequest as exc:
             raise from_invalid(exc) from None
         except TooMuchWork as exc:

@@ -31,7 +31,7 @@ from service.solver_pool import WorkerDied
 from service.state import ServiceState
 from tdcr.design_space import range_warnings
 from tdcr.designs import DesignBatch
-from tdcr.exact import TooMuchWork, WorkBudget, answer_json
+from tdcr.exact import TooMuchWork
 from tdcr.validation import OUTPUTS, InvalidRequest, validate_features
 
 router = APIRouter(prefix="/v2", tags=["v2"])
@@ -127,8 +127,9 @@ def _surrogate(state: ServiceState, model: str, body: bytes, header_length: str 
     return encode(model, {n: values[n] for n in request.outputs}, request.outputs, request.id), len(prediction.s)
 
 
-async def _exact(state: ServiceState, body: bytes, header_length: str | None):
-    request = await run_in_threadpool(decode, body, header_length, inputs=EXACT_INPUTS, outputs=EXACT_OUTPUTS)
+def _solve_request(body: bytes, header_length: str | None):
+    """The decoded v2 request, its designs ``(B, 15)`` and the equivalent JSON ``SolveRequest``."""
+    request = decode(body, header_length, inputs=EXACT_INPUTS, outputs=EXACT_OUTPUTS)
     features = np.asarray(request.inputs["design"], dtype=np.float64)
     designs = DesignBatch.from_features(features).to_dicts()
     for name in LOAD_INPUTS:
@@ -139,23 +140,22 @@ async def _exact(state: ServiceState, body: bytes, header_length: str | None):
             for d, v in zip(designs, values.tolist(), strict=True):
                 d[name] = v
     solve_body = {"designs": designs} | ({"s": request.inputs["s"].tolist()} if "s" in request.inputs else {})
-    settings = state.settings
-    budget = WorkBudget(seconds_per_design=settings.exact_seconds_per_design,
-                        seconds_per_loaded_design=settings.exact_seconds_per_loaded_design,
-                        max_seconds=settings.exact_admission_factor * settings.exact_timeout_s)
+    return request, features, orjson.dumps(solve_body)
+
+
+async def _exact(state: ServiceState, body: bytes, header_length: str | None):
+    request, features, solve_body = await run_in_threadpool(_solve_request, body, header_length)  # off the loop
     if state.pool is None or state.exact_slots is None or state.exact_slots.locked():
         raise OipError(503, "the solver is saturated or not running; retry later")
     async with state.exact_slots:
         try:
-            results = await state.pool.run(answer_json, orjson.dumps(solve_body), limits=settings.exact_limits(),
-                                           budget=budget, timeout=settings.exact_timeout_s,
-                                           expected=(InvalidRequest, TooMuchWork))
+            results = await state.solve_json(solve_body)
         except InvalidRequest as exc:
             raise OipError(413 if exc.too_large else 400, f"inputs: {exc.message}") from None
         except TooMuchWork as exc:
             raise OipError(413, str(exc)) from None
         except TimeoutError:
-            raise OipError(504, f"the solver did not finish within {settings.exact_timeout_s} s") from None
+            raise OipError(504, f"the solver did not finish within {state.settings.exact_timeout_s} s") from None
         except (WorkerDied, RuntimeError):
             raise OipError(503, "the solver failed on this request; retry later") from None
     values = {"backbone": ("FP32", np.array([r["backbone"] for r in results])),
