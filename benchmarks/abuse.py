@@ -1,6 +1,8 @@
 """The hardening issue's attacks against a real server on loopback: status, time and memory.
 
-Starts ``tdcr serve`` on the shipped models (``TDCR_EXACT_TIMEOUT_S=5``, other settings default),
+Starts ``tdcr serve`` on the shipped models (``TDCR_EXACT_TIMEOUT_S=2`` and
+``TDCR_EXACT_ADMISSION_FACTOR=10``, so that work estimated up to 20 s is admitted and the deadline
+case is reached; other settings default),
 then replays each defect of the issue and prints one row per attack: the answer, the seconds it
 took and the server's RSS growth (``/proc``).  Every request loop is bounded in count and time and
 sends only to 127.0.0.1.
@@ -177,7 +179,7 @@ def orphans_after_sigkill() -> str:
 def main() -> None:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; server and attacker on the same machine\n")
     print("| defect | attack | answer | seconds | server RSS growth (MB) |\n|---|---|---|---:|---:|")
-    with ServerProcess(ROOT / "models", exact_timeout_s=5) as server:
+    with ServerProcess(ROOT / "models", exact_timeout_s=2, exact_admission_factor=10) as server:
         feats = sample_designs(2, seed=0).features()
         row("1", ".npy /predict ?points=1e9", lambda: post(server, "/predict", params={"points": "1000000000"},
             content=npy(feats), headers={"content-type": "application/x-npy"}), server)
