@@ -317,8 +317,9 @@ def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
         tension=[[t.tension for t in d.tendons] for d in designs],
     )
     loads = None
-    if any(getattr(d, "gravity", None) is not None or getattr(d, "tip_force", None) is not None
-           or getattr(d, "tip_moment", None) is not None for d in designs):
+    takes_loads = "gravity" in type(designs[0]).model_fields  # surrogate designs have no load fields
+    if takes_loads and any(d.gravity is not None or d.tip_force is not None or d.tip_moment is not None
+                           for d in designs):
         zero, absent = (0.0, 0.0, 0.0), (np.nan, np.nan, np.nan)
         loads = ExternalLoads(
             gravity=np.array([absent if d.gravity is None else d.gravity for d in designs], dtype=np.float64),
