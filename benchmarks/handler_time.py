@@ -43,7 +43,7 @@ def main() -> None:
                 client.post("/predict", content=body, headers=headers)
                 times.append(time.perf_counter() - t)
             after = client.get("/metrics").text
-            labels = f'{{endpoint="/predict",model="{model}"}}'
+            labels = f'{{endpoint="/predict",model="{model}",protocol="http"}}'
             total, count = (_metric(after, f"tdcr_request_seconds_{k}" + labels)
                             - _metric(before, f"tdcr_request_seconds_{k}" + labels) for k in ("sum", "count"))
             print(f"| {model} | {1e3 * np.median(times):.2f} | {1e3 * np.percentile(times, 99):.2f} | "

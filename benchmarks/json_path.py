@@ -52,7 +52,7 @@ def in_process(body: bytes, repeats: int) -> np.ndarray:
 
 def server_seconds(text: str) -> tuple[float, int]:
     """(sum, count) of the /predict request-duration histogram for MODEL."""
-    labels = f'endpoint="/predict",model="{MODEL}"'
+    labels = f'endpoint="/predict",model="{MODEL}",protocol="http"'
     total = float(re.search(rf"tdcr_request_seconds_sum\{{{labels}\}} (\S+)", text).group(1))
     count = int(float(re.search(rf"tdcr_request_seconds_count\{{{labels}\}} (\S+)", text).group(1)))
     return total, count

@@ -3,8 +3,9 @@
     pip install "tritonclient[http]"
     python examples/tritonclient_http.py http://127.0.0.1:8000 [MODEL ...]
 
-Prints, per model, the shapes it answered and the tip of design 0's tendon 0 in metres (JSON on the
-last line, for scripts).  Inputs and outputs travel as binary tensors, tritonclient's default.
+Prints, per model, the shapes it answered; the last line is JSON for scripts: the designs sent and
+each model's tendon paths (B, n, 4, 3) in metres.  Inputs and outputs travel as binary tensors,
+tritonclient's default.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from urllib.parse import urlparse
 import numpy as np
 import tritonclient.http as triton
 
+# two designs in the README's feature order: E, r, L, 4 offsets, 4 pitches (rad/m), 4 tensions (N)
 DESIGNS = np.array([[3.0e10, 1.0e-3, 0.25, 0.008, 0.008, 0.008, 0.008, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0],
                     [2.0e10, 8.0e-4, 0.20, 0.006, 0.007, 0.008, 0.009, 5.0, -5.0, 0.0, 10.0, 1.0, 2.0, 0.5, 0.0]])
 
@@ -35,7 +37,7 @@ def main() -> None:
         print(f"{name}: tendons {tendons.shape}, rotation {result.as_numpy('rotation').shape}, "
               f"in_distribution {result.as_numpy('in_distribution').tolist()}")
         answers[name] = tendons.tolist()
-    print(json.dumps(answers))
+    print(json.dumps({"designs": DESIGNS.tolist(), "tendons": answers}))
 
 
 if __name__ == "__main__":

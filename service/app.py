@@ -22,7 +22,8 @@ from starlette.requests import ClientDisconnect
 
 import tdcr
 from service.errors import ApiError
-from service.metrics import Metrics
+from service.grpc_server import GrpcServer
+from service.metrics import HTTP, Metrics
 from service.oip import InferenceRequest
 from service.routers import exact, health, models, predict, v2
 from service.settings import Settings
@@ -43,7 +44,7 @@ class ExactAdmission:
     async def __call__(self, scope, receive, send):
         slots = self.state.exact_slots
         if scope["type"] == "http" and scope["path"] == "/exact" and slots is not None and slots.locked():
-            self.state.metrics.errors.labels("/exact", "saturated").inc()
+            self.state.metrics.errors.labels(HTTP, "/exact", "saturated").inc()
             return await _send_error(send, 503, "the solver is saturated; retry later",
                                      extra=[(b"connection", b"close"), (b"retry-after", b"1")])
         return await self.app(scope, receive, send)
@@ -120,10 +121,10 @@ class RequestMetrics:
             await self.app(scope, receive, send_status)
         finally:
             path = _route_label(scope)  # the router has put the matched route into the scope
-            self.metrics.requests.labels(path, str(status)).inc()
+            self.metrics.requests.labels(HTTP, path, str(status)).inc()
             if path not in ("/predict", "/exact", "/v2/models/{model}/infer",
                             "/v2/models/{model}/versions/{version}/infer"):
-                self.metrics.latency.labels(path, "").observe(time.perf_counter() - started)
+                self.metrics.latency.labels(HTTP, path, "").observe(time.perf_counter() - started)
 
 
 class _TooLarge(Exception):
@@ -146,7 +147,7 @@ def _route_label(scope) -> str:
 
 def _error_response(request: Request, exc: ApiError) -> JSONResponse:
     state: ServiceState = request.app.state.service
-    state.metrics.errors.labels(_route_label(request.scope), exc.kind).inc()
+    state.metrics.errors.labels(HTTP, _route_label(request.scope), exc.kind).inc()
     return JSONResponse({"message": exc.message, "detail": exc.detail}, status_code=exc.status, headers=exc.headers)
 
 
@@ -161,10 +162,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             start_pool(state)
         except Exception as exc:  # noqa: BLE001 - reported by /readyz
             state.problems.append(f"solver pool: {exc}")
+        grpc_server = GrpcServer(state) if settings.grpc_port else None
+        if grpc_server is not None:
+            try:
+                await grpc_server.start()
+            except RuntimeError as exc:  # e.g. the port is taken: reported by /readyz
+                state.problems.append(f"gRPC server on {grpc_server.address}: {exc}")
+                grpc_server = None
         state.ready = not state.problems and bool(state.models)
         log.info("ready=%s models=%s problems=%s", state.ready, sorted(state.models), state.problems)
         watcher = asyncio.create_task(state.pool.watch()) if state.pool is not None else None
         yield
+        if grpc_server is not None:
+            await grpc_server.stop()
         if watcher is not None:
             watcher.cancel()
         for batcher in state.batchers.values():

@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, ProcessCollector
 
+#: The ``protocol`` label: HTTP (the JSON/binary API and OIP v2 REST) or gRPC (OIP v2).
+HTTP = "http"
+GRPC = "grpc"
 _LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 30)
 
 
@@ -24,11 +27,12 @@ class Metrics:
         ProcessCollector(registry=reg)
         return cls(
             registry=reg,
-            requests=Counter("tdcr_requests", "HTTP requests", ["endpoint", "status"], registry=reg),
-            latency=Histogram("tdcr_request_seconds", "request latency, s", ["endpoint", "model"],
+            requests=Counter("tdcr_requests", "requests by status (HTTP status or gRPC code)",
+                             ["protocol", "endpoint", "status"], registry=reg),
+            latency=Histogram("tdcr_request_seconds", "request latency, s", ["protocol", "endpoint", "model"],
                               buckets=_LATENCY_BUCKETS, registry=reg),
-            designs=Counter("tdcr_designs", "designs answered", ["endpoint", "model"], registry=reg),
-            errors=Counter("tdcr_errors", "error responses by kind", ["endpoint", "kind"], registry=reg),
+            designs=Counter("tdcr_designs", "designs answered", ["protocol", "endpoint", "model"], registry=reg),
+            errors=Counter("tdcr_errors", "error responses by kind", ["protocol", "endpoint", "kind"], registry=reg),
             batch=Histogram("tdcr_graph_run_designs", "designs per onnxruntime run (dynamic batching)", ["model"],
                             buckets=(1, 2, 4, 8, 16, 32, 64, 256, 1024, 4096, 16384, 65536), registry=reg),
         )

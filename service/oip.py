@@ -74,17 +74,27 @@ class OipErrorBody(BaseModel):
     error: str
 
 
-class OipError(Exception):
-    """A protocol error: ``status`` and a message naming the tensor and the reason."""
+#: Error kinds and their HTTP statuses (the gRPC binding maps the same kinds to its status codes).
+HTTP_STATUS = {"invalid": 400, "not_found": 404, "too_large": 413, "saturated": 503, "unavailable": 503,
+               "deadline": 504}
 
-    def __init__(self, status: int, message: str):
+
+class OipError(Exception):
+    """A protocol error: its ``kind`` (a key of :data:`HTTP_STATUS`, also the metric label) and a
+    message naming the tensor and the reason."""
+
+    def __init__(self, kind: str, message: str):
         super().__init__(message)
-        self.status, self.message = status, message
+        self.kind, self.message = kind, message
+
+    @property
+    def status(self) -> int:
+        return HTTP_STATUS[self.kind]
 
 
 @dataclass(frozen=True)
 class InferRequest:
-    """A decoded inference request: input arrays by name, the outputs wanted (name -> binary)."""
+    """A decoded inference request: input arrays by name, the outputs wanted (name -> binary/raw)."""
 
     inputs: dict[str, np.ndarray]
     outputs: dict[str, bool]
@@ -95,72 +105,89 @@ def tensor_metadata(tensors: Mapping[str, tuple[str, list[int]]]) -> list[dict]:
     return [{"name": name, "datatype": dtype, "shape": shape} for name, (dtype, shape) in tensors.items()]
 
 
+def check_input(name, datatype, shape, *, inputs: Mapping[str, tuple[str, list[int]]],
+                seen: Mapping[str, np.ndarray]) -> tuple[np.dtype, int]:
+    """The numpy type and element count of an input tensor's declared ``name``, ``datatype`` and
+    ``shape`` (any transport); :class:`OipError` naming the tensor and the reason else."""
+    if name not in inputs:
+        raise OipError("invalid", f"unexpected input {quote(name)}; this model takes {list(inputs)}")
+    if name in seen:
+        raise OipError("invalid", f"input {name!r} is given twice")
+    allowed = ("FP64", "FP32") if inputs[name][0] == "FP64" else (inputs[name][0],)
+    if datatype not in allowed:
+        raise OipError("invalid", f"input {name!r}: datatype must be one of {list(allowed)}, got {quote(datatype)}")
+    expected = inputs[name][1]
+    if (not isinstance(shape, list) or len(shape) != len(expected)
+            or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
+            or any(e != -1 and d != e for d, e in zip(shape, expected, strict=True))):
+        raise OipError("invalid", f"input {name!r}: shape must be {expected} (-1: any), got {quote(shape)}")
+    return DATATYPES[datatype], int(np.prod(shape, dtype=object))
+
+
+def check_request(arrays: Mapping[str, np.ndarray], outputs_asked: list[tuple[object, bool]], *,
+                  outputs: Mapping[str, tuple[str, list[int]]], required: tuple[str, ...] = ("design",)
+                  ) -> dict[str, bool]:
+    """The outputs wanted (name -> binary/raw) from ``outputs_asked`` (name, binary) pairs, empty
+    for every output; :class:`OipError` for a missing input or an unknown output."""
+    missing = [n for n in required if n not in arrays]
+    if missing:
+        raise OipError("invalid", f"missing input(s) {missing}")
+    wanted: dict[str, bool] = {}
+    for name, binary in outputs_asked:
+        if name not in outputs:
+            raise OipError("invalid", f"unknown output {quote(name)}; this model gives {list(outputs)}")
+        wanted[name] = binary
+    return wanted
+
+
 def decode(body: bytes, header_length: str | None, *, inputs: Mapping[str, tuple[str, list[int]]],
            outputs: Mapping[str, tuple[str, list[int]]], required: tuple[str, ...] = ("design",)) -> InferRequest:
     """An OIP REST inference request (JSON, or JSON followed by binary tensors)."""
     try:
         json_length = len(body) if header_length is None else int(header_length)
     except ValueError:
-        raise OipError(400, f"{HEADER_LENGTH} must be an integer, got {quote(header_length)}") from None
+        raise OipError("invalid", f"{HEADER_LENGTH} must be an integer, got {quote(header_length)}") from None
     if not 0 <= json_length <= len(body):
-        raise OipError(400, f"{HEADER_LENGTH} {json_length} is outside the body of {len(body)} bytes")
+        raise OipError("invalid", f"{HEADER_LENGTH} {json_length} is outside the body of {len(body)} bytes")
     try:
         request = orjson.loads(body[:json_length])
     except orjson.JSONDecodeError as exc:
-        raise OipError(400, f"the request is not valid JSON: {exc}") from None
+        raise OipError("invalid", f"the request is not valid JSON: {exc}") from None
     if not isinstance(request, dict) or not isinstance(request.get("inputs"), list):
-        raise OipError(400, "the request must be an object with a list of 'inputs'")
+        raise OipError("invalid", "the request must be an object with a list of 'inputs'")
     binary = memoryview(body)[json_length:]
     offset = 0
     arrays: dict[str, np.ndarray] = {}
     for spec in request["inputs"]:
         if not isinstance(spec, dict):
-            raise OipError(400, "each input must be an object")
-        name = spec.get("name")
-        if name not in inputs:
-            raise OipError(400, f"unexpected input {quote(name)}; this model takes {list(inputs)}")
-        if name in arrays:
-            raise OipError(400, f"input {name!r} is given twice")
-        datatype, shape = spec.get("datatype"), spec.get("shape")
-        allowed = ("FP64", "FP32") if inputs[name][0] == "FP64" else (inputs[name][0],)
-        if datatype not in allowed:
-            raise OipError(400, f"input {name!r}: datatype must be one of {list(allowed)}, got {quote(datatype)}")
-        expected = inputs[name][1]
-        if (not isinstance(shape, list) or len(shape) != len(expected)
-                or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
-                or any(e != -1 and d != e for d, e in zip(shape, expected, strict=True))):
-            raise OipError(400, f"input {name!r}: shape must be {expected} (-1: any), got {quote(shape)}")
-        count = int(np.prod(shape, dtype=object))
-        dtype = DATATYPES[datatype]
+            raise OipError("invalid", "each input must be an object")
+        name, datatype, shape = spec.get("name"), spec.get("datatype"), spec.get("shape")
+        dtype, count = check_input(name, datatype, shape, inputs=inputs, seen=arrays)
         size = (spec.get("parameters") or {}).get("binary_data_size")
         if size is not None:
             if not isinstance(size, int) or size != count * dtype.itemsize or offset + size > len(binary):
-                raise OipError(400, f"input {name!r}: binary_data_size {quote(size)} does not match its shape "
-                                    f"{shape} of {datatype} or the {len(binary) - offset} bytes left")
+                raise OipError("invalid", f"input {name!r}: binary_data_size {quote(size)} does not match its "
+                                          f"shape {shape} of {datatype} or the {len(binary) - offset} bytes left")
             array = np.frombuffer(binary, dtype=dtype, count=count, offset=offset)
             offset += size
         else:
             data = spec.get("data")
             if not isinstance(data, list):
-                raise OipError(400, f"input {name!r}: 'data' must be a list (or use binary_data_size)")
+                raise OipError("invalid", f"input {name!r}: 'data' must be a list (or use binary_data_size)")
             array = np.asarray(data, dtype=object).reshape(-1) if count else np.zeros(0)
             if array.size != count or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                                for v in array.tolist()):
-                raise OipError(400, f"input {name!r}: 'data' must hold {count} numbers, row-major")
+                raise OipError("invalid", f"input {name!r}: 'data' must hold {count} numbers, row-major")
             array = array.astype(dtype)
         arrays[name] = array.reshape(shape)
     if offset != len(binary):
-        raise OipError(400, f"{len(binary) - offset} bytes of binary data are not claimed by any input")
-    missing = [n for n in required if n not in arrays]
-    if missing:
-        raise OipError(400, f"missing input(s) {missing}")
+        raise OipError("invalid", f"{len(binary) - offset} bytes of binary data are not claimed by any input")
     default_binary = bool((request.get("parameters") or {}).get("binary_data_output", False))
-    wanted: dict[str, bool] = {}
-    for spec in request.get("outputs") or [{"name": n} for n in outputs]:
-        name = spec.get("name") if isinstance(spec, dict) else None
-        if name not in outputs:
-            raise OipError(400, f"unknown output {quote(name)}; this model gives {list(outputs)}")
-        wanted[name] = bool((spec.get("parameters") or {}).get("binary_data", default_binary))
+    asked = [(spec.get("name") if isinstance(spec, dict) else None,
+              bool(((spec.get("parameters") if isinstance(spec, dict) else None) or {}).get("binary_data",
+                                                                                            default_binary)))
+             for spec in request.get("outputs") or [{"name": n} for n in outputs]]
+    wanted = check_request(arrays, asked, outputs=outputs, required=required)
     request_id = request.get("id")
     return InferRequest(inputs=arrays, outputs=wanted, id=None if request_id is None else str(request_id)[:64])
 

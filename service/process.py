@@ -60,16 +60,20 @@ class ServerProcess:
     Blocks until ``/readyz`` answers 200 (``RuntimeError`` with the log's tail if it never does).
     """
 
-    def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, **settings):
+    def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, grpc: bool = True, **settings):
+        """``grpc``: also serve gRPC, on a free port (``grpc_target``)."""
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
+        self.grpc_port = free_port() if grpc else 0
+        self.grpc_target = f"127.0.0.1:{self.grpc_port}"
         env = {**os.environ, "TDCR_MODELS_DIR": str(models_dir),
                **{f"TDCR_{k.upper()}": str(v) for k, v in settings.items()}}
         self.log_path = Path(tempfile.mkstemp(prefix="tdcr-server-", suffix=".log")[1])
         with self.log_path.open("wb") as log:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "tdcr.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
-                 "--log-level", "warning"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+                 "--grpc-port", str(self.grpc_port), "--log-level", "warning"],
+                cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + ready_timeout_s
         while time.monotonic() < deadline and self.proc.poll() is None:
             try:

@@ -52,6 +52,14 @@ class Settings(BaseSettings):
     max_connections: int = Field(1000, ge=1, description="open connections and requests before 503 (uvicorn's "
                                                          "limit_concurrency; keep it below the process's file limit)")
 
+    grpc_port: int = Field(8001, ge=0, le=65535, description="port of the OIP v2 gRPC server (0: no gRPC server)")
+    grpc_host: str = Field("127.0.0.1", description="address the gRPC server binds (tdcr serve sets it to --host)")
+    grpc_max_receive_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="largest gRPC request, bytes")
+    grpc_max_send_bytes: int = Field(
+        256 * 1024 * 1024, ge=1024, description="largest gRPC answer, bytes (every output of max_design_points "
+                                                "design-points as FP32 is 96 MB)")
+    grpc_grace_s: float = Field(5.0, ge=0, description="at shutdown, calls in flight get this long to finish")
+
     def predict_limits(self) -> Limits:
         """Size limits of one /predict request."""
         return Limits(max_designs=self.max_designs, max_points=self.max_points,

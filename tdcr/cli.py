@@ -172,10 +172,18 @@ def _unlimited():
 
 
 def _cmd_serve(args) -> int:
+    import os
+
     import uvicorn
 
     from service.settings import Settings
 
+    # the app factory (in each worker) reads its settings from the environment
+    os.environ.setdefault("TDCR_GRPC_HOST", args.host)
+    if args.grpc_port is not None:
+        if not 0 <= args.grpc_port <= 65535:
+            raise UsageError(f"--grpc-port must be 0 (off) to 65535, got {args.grpc_port}")
+        os.environ["TDCR_GRPC_PORT"] = str(args.grpc_port)
     settings = Settings()
     if not (settings.models_dir / "manifest.json").exists():
         raise UsageError(f"no models at {settings.models_dir} (set TDCR_MODELS_DIR)")
@@ -204,7 +212,8 @@ def _cmd_loadtest(args) -> int:
         raise UsageError("--requests must be >= 1 and --seconds > 0")
     rows, before, after = asyncio.run(sweep(
         args.url, concurrencies=ints(args.concurrency), batches=ints(args.batch), model=args.model,
-        binary=args.binary, max_requests=args.requests, max_seconds=args.seconds, protocol=args.protocol))
+        binary=args.binary, max_requests=args.requests, max_seconds=args.seconds, protocol=args.protocol,
+        target=args.grpc_target, outputs=args.outputs))
     print(format_rows(rows, before, after))
     return 1 if any(r.errors for r in rows) else 0
 
@@ -280,9 +289,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models-dir", default="models")
     p.set_defaults(func=_cmd_predict)
 
-    p = sub.add_parser("serve", help="run the HTTP service (settings from TDCR_* environment variables)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
+    p = sub.add_parser("serve", help="run the HTTP and gRPC service (settings from TDCR_* environment variables)")
+    p.add_argument("--host", default="127.0.0.1", help="address of both servers")
+    p.add_argument("--port", type=int, default=8000, help="HTTP port")
+    p.add_argument("--grpc-port", type=int, default=None,
+                   help="gRPC (OIP v2) port; default TDCR_GRPC_PORT or 8001; 0: no gRPC server")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--log-level", default="info")
     p.set_defaults(func=_cmd_serve)
@@ -293,9 +304,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", default="1,32,1024")
     p.add_argument("--model", default=None)
     p.add_argument("--binary", action="store_true", help=".npy requests and .npz answers instead of JSON")
-    p.add_argument("--protocol", choices=["http", "v2"], default="http",
+    p.add_argument("--protocol", choices=["http", "v2", "grpc"], default="http",
                    help="http: /predict (JSON, or .npy with --binary); v2: the Open Inference Protocol over REST, "
-                        "binary tensors")
+                        "binary tensors; grpc: the same over gRPC, raw tensors")
+    p.add_argument("--grpc-target", default=None, help="host:port of the gRPC server (default: --url's host, 8001)")
+    p.add_argument("--outputs", default=None,
+                   help="comma-separated outputs (binary, v2 and grpc), e.g. tendons; default: all shape arrays")
     p.add_argument("--requests", type=int, default=2000, help="at most this many requests per cell")
     p.add_argument("--seconds", type=float, default=10.0, help="at most this long per cell")
     p.set_defaults(func=_cmd_loadtest)

@@ -58,14 +58,33 @@ async def server_rss(client: httpx.AsyncClient) -> float | None:
 
 
 #: What a load test speaks: the service's own /predict (JSON or .npy/.npz), or the Open Inference
-#: Protocol v2 over REST with binary tensors.
-PROTOCOLS = ("http", "v2")
+#: Protocol v2 over REST with binary tensors, or over gRPC with raw tensors.
+PROTOCOLS = ("http", "v2", "grpc")
+#: The outputs of a v2 request when none are named.
+V2_OUTPUTS = ("backbone", "rotation", "tendons")
+
+
+def grpc_target(url: str, port: int = 8001) -> str:
+    """The gRPC address beside an HTTP ``url``: the same host, ``port``."""
+    return f"{httpx.URL(url).host}:{port}"
+
+
+def _grpc_request(model: str, features: np.ndarray, outputs: str | None):
+    """A ``ModelInferRequest`` with the designs as raw FP64 contents."""
+    from tdcr.oip_grpc import open_inference_grpc_pb2 as pb  # gRPC is an optional extra
+
+    wanted = outputs.split(",") if outputs else V2_OUTPUTS
+    return pb.ModelInferRequest(
+        model_name=model, inputs=[pb.ModelInferRequest.InferInputTensor(name="design", datatype="FP64",
+                                                                        shape=features.shape)],
+        outputs=[pb.ModelInferRequest.InferRequestedOutputTensor(name=o) for o in wanted],
+        raw_input_contents=[np.ascontiguousarray(features, dtype="<f8").tobytes()])
 
 
 def _v2_body(features: np.ndarray, outputs: str | None) -> dict:
     """A v2 inference request with the designs as a binary FP64 tensor and binary outputs."""
     blob = np.ascontiguousarray(features, dtype="<f8").tobytes()
-    wanted = outputs.split(",") if outputs else ["backbone", "rotation", "tendons"]
+    wanted = outputs.split(",") if outputs else V2_OUTPUTS
     head = orjson.dumps({"inputs": [{"name": "design", "shape": list(features.shape), "datatype": "FP64",
                                      "parameters": {"binary_data_size": len(blob)}}],
                          "outputs": [{"name": o, "parameters": {"binary_data": True}} for o in wanted]})
@@ -75,17 +94,22 @@ def _v2_body(features: np.ndarray, outputs: str | None) -> dict:
 
 async def run_cell(url: str, *, concurrency: int, batch: int, model: str | None, binary: bool,
                    max_requests: int, max_seconds: float, seed: int = 0, outputs: str | None = None,
-                   timeout: float = 120.0, protocol: str = "http") -> Row:
+                   timeout: float = 120.0, protocol: str = "http", target: str | None = None) -> Row:
     """One cell against the service at ``url``: ``concurrency`` clients of one connection each.
 
-    ``protocol="v2"`` needs ``model`` (the path names it) and always sends binary tensors.
+    ``protocol="v2"`` and ``"grpc"`` need ``model`` and always send binary (raw) tensors; gRPC goes
+    to ``target`` (default: :func:`grpc_target` of ``url``).
     """
     designs = design_space.sample_designs(batch, seed=seed)
     feats = designs.features()
     path = "/predict"
+    if protocol in ("v2", "grpc") and model is None:
+        raise ValueError(f"the {protocol} protocol needs a model name")
+    if protocol == "grpc":
+        return await _grpc_cell(target or grpc_target(url), _grpc_request(model, feats, outputs),
+                                concurrency=concurrency, batch=batch, max_requests=max_requests,
+                                max_seconds=max_seconds, timeout=timeout, outputs=outputs)
     if protocol == "v2":
-        if model is None:
-            raise ValueError("the v2 protocol needs a model name")
         body, path = _v2_body(feats, outputs), f"/v2/models/{model}/infer"
     elif binary:
         params = ({"model": model} if model else {}) | ({"outputs": outputs} if outputs else {})
@@ -117,26 +141,65 @@ async def run_cell(url: str, *, concurrency: int, batch: int, model: str | None,
     start = time.perf_counter()
     await asyncio.gather(*(worker() for _ in range(concurrency)))
     elapsed = time.perf_counter() - start
-    lat = np.array(latencies) * 1e3
     encoding = "v2 binary" if protocol == "v2" else "npy" if binary else "json"
     encoding += f" ({outputs})" if outputs and (binary or protocol == "v2") else ""
+    return _row(concurrency, batch, encoding, latencies, errors, elapsed)
+
+
+def _row(concurrency: int, batch: int, encoding: str, latencies: list[float], errors: int, elapsed: float) -> Row:
+    lat = np.array(latencies) * 1e3
     return Row(concurrency, batch, encoding, len(latencies), errors, elapsed,
                *(float(np.percentile(lat, q)) for q in (50, 95, 99)))
 
 
+async def _grpc_cell(target: str, request, *, concurrency: int, batch: int, max_requests: int, max_seconds: float,
+                     timeout: float, outputs: str | None) -> Row:
+    """A cell over gRPC: ``concurrency`` clients with a channel (one HTTP/2 connection) each."""
+    import grpc  # gRPC is an optional extra
+
+    from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
+
+    latencies: list[float] = []
+    errors = issued = 0
+    deadline = time.perf_counter() + max_seconds
+    unlimited = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
+
+    async def worker():
+        nonlocal errors, issued
+        async with grpc.aio.insecure_channel(target, options=unlimited) as channel:
+            infer = pb_grpc.GRPCInferenceServiceStub(channel).ModelInfer
+            while issued < max_requests and time.perf_counter() < deadline:
+                issued += 1
+                t = time.perf_counter()
+                try:
+                    await infer(request, timeout=timeout)
+                    ok = True
+                except grpc.RpcError:
+                    ok = False
+                latencies.append(time.perf_counter() - t)
+                errors += not ok
+
+    start = time.perf_counter()
+    await asyncio.gather(*(worker() for _ in range(concurrency)))
+    encoding = "grpc raw" + (f" ({outputs})" if outputs else "")
+    return _row(concurrency, batch, encoding, latencies, errors, time.perf_counter() - start)
+
+
 async def sweep(url: str, *, concurrencies=(1, 4, 16, 64), batches=(1, 32, 1024), model: str | None = None,
-                binary: bool = False, max_requests: int = 2000, max_seconds: float = 10.0, protocol: str = "http"):
-    """Run every cell; returns ``(rows, rss_before, rss_after)``.  (v2 without a model: the
-    server's default model.)"""
+                binary: bool = False, max_requests: int = 2000, max_seconds: float = 10.0, protocol: str = "http",
+                target: str | None = None, outputs: str | None = None):
+    """Run every cell; returns ``(rows, rss_before, rss_after)``.  (v2 and gRPC without a model:
+    the server's default model.)"""
     async with httpx.AsyncClient(base_url=url, timeout=60.0) as client:
         before = await server_rss(client)
-        if protocol == "v2" and model is None:
+        if protocol in ("v2", "grpc") and model is None:
             model = (await client.get("/models")).json()["default_model"]
         rows = []
         for batch in batches:
             for c in concurrencies:
                 rows.append(await run_cell(url, concurrency=c, batch=batch, model=model, binary=binary,
-                                           max_requests=max_requests, max_seconds=max_seconds, protocol=protocol))
+                                           max_requests=max_requests, max_seconds=max_seconds, protocol=protocol,
+                                           target=target, outputs=outputs))
         after = await server_rss(client)
     return rows, before, after
 

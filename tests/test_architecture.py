@@ -49,8 +49,9 @@ def test_the_rule_catches_an_offending_import(tmp_path):
 
 
 @pytest.mark.parametrize("module, banned", [
-    ("tdcr", ["torch", "fastapi", "uvicorn", "onnxruntime", "pydantic"]),
-    ("tdcr.cli", ["torch", "fastapi", "uvicorn", "onnxruntime"]),
+    ("tdcr", ["torch", "fastapi", "uvicorn", "onnxruntime", "pydantic", "grpc"]),
+    ("tdcr.cli", ["torch", "fastapi", "uvicorn", "onnxruntime", "grpc"]),
+    ("tdcr.loadtest", ["torch", "fastapi", "uvicorn", "onnxruntime", "grpc"]),
     ("tdcr.runtime", ["torch", "fastapi", "uvicorn"]),
     ("tdcr.validation", ["torch", "fastapi", "uvicorn", "onnxruntime"]),
     ("service.app", ["torch", "training"]),

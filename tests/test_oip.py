@@ -137,16 +137,14 @@ def test_tritonclient_http(server, root):
     done = subprocess.run([sys.executable, "examples/tritonclient_http.py", server.url], cwd=root,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
-    answers = json.loads(done.stdout.splitlines()[-1])
-    assert set(answers) == {*MODELS, "exact"}
-    designs = [[3.0e10, 1.0e-3, 0.25, 0.008, 0.008, 0.008, 0.008, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0],
-               [2.0e10, 8.0e-4, 0.20, 0.006, 0.007, 0.008, 0.009, 5.0, -5.0, 0.0, 10.0, 1.0, 2.0, 0.5, 0.0]]
-    body = {"designs": DesignBatch.from_features(np.array(designs)).to_dicts()}
+    answer = json.loads(done.stdout.splitlines()[-1])
+    assert set(answer["tendons"]) == {*MODELS, "exact"}
+    body = {"designs": DesignBatch.from_features(np.array(answer["designs"])).to_dicts()}
     exact = httpx.post(server.url + "/exact", json=body).json()["results"]
-    np.testing.assert_allclose(answers["exact"], [r["tendons"] for r in exact], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(answer["tendons"]["exact"], [r["tendons"] for r in exact], rtol=1e-6, atol=1e-9)
     for model in MODELS:
         ref = httpx.post(server.url + "/predict", json=body | {"model": model}).json()["results"]
-        np.testing.assert_allclose(answers[model], [r["tendons"] for r in ref], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(answer["tendons"][model], [r["tendons"] for r in ref], rtol=1e-6, atol=1e-9)
 
 
 def test_loadtest_speaks_v2(server, root):

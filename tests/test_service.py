@@ -184,9 +184,9 @@ def test_metrics_count_requests_designs_and_errors(example_request, server):
     httpx.post(server.url + "/predict", json={**example_request, "model": "deeponet"})
     assert httpx.post(server.url + "/predict", json={"designs": [{"E": -1}]}).status_code == 422
     text = httpx.get(server.url + "/metrics").text
-    assert 'tdcr_requests_total{endpoint="/predict",status="200"}' in text
-    assert 'tdcr_designs_total{endpoint="/predict",model="deeponet"}' in text
-    assert 'tdcr_errors_total{endpoint="/predict",kind="validation"}' in text
+    assert 'tdcr_requests_total{endpoint="/predict",protocol="http",status="200"}' in text
+    assert 'tdcr_designs_total{endpoint="/predict",model="deeponet",protocol="http"}' in text
+    assert 'tdcr_errors_total{endpoint="/predict",kind="validation",protocol="http"}' in text
     assert "tdcr_request_seconds_bucket" in text and "process_resident_memory_bytes" in text
     assert 'tdcr_graph_run_designs_count{model="deeponet"}' in text
 

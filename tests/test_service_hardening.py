@@ -123,7 +123,7 @@ def test_metric_labels_never_hold_user_input(server):
         assert httpx.get(f"{server.url}/no/such/path/{i}").status_code == 404
     text = httpx.get(server.url + "/metrics").text
     assert "/no/such/path" not in text
-    assert 'tdcr_errors_total{endpoint="other",kind="http_404"}' in text
+    assert 'tdcr_errors_total{endpoint="other",kind="http_404",protocol="http"}' in text
 
 
 def test_readiness_shows_no_file_paths(server, tiny_models):
@@ -153,7 +153,7 @@ def test_minor_protocol_details(server, example_request):
     r = httpx.post(server.url + "/predict", content=chunks(), headers={"content-type": "application/json"})
     assert r.status_code == 413
     text = httpx.get(server.url + "/metrics").text
-    assert 'tdcr_requests_total{endpoint="/predict",status="413"}' in text
+    assert 'tdcr_requests_total{endpoint="/predict",protocol="http",status="413"}' in text
     assert 'status="500"' not in text
 
 

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Request, Response
 
 from service.deps import State
 from service.errors import ApiError, from_invalid, require_json
+from service.metrics import HTTP
 from service.solver_pool import WorkerDied
 from tdcr.exact import TooMuchWork
 from tdcr.schemas import ErrorResponse, ExactResponse
@@ -56,6 +57,6 @@ async def exact(request: Request, state: State) -> Response:
         except RuntimeError as exc:
             log.error("solver failed: %s", exc)
             raise ApiError(503, "the solver failed on this request", kind="solver") from None
-    state.metrics.latency.labels("/exact", "solver").observe(time.perf_counter() - started)
-    state.metrics.designs.labels("/exact", "solver").inc(len(results))
+    state.metrics.latency.labels(HTTP, "/exact", "solver").observe(time.perf_counter() - started)
+    state.metrics.designs.labels(HTTP, "/exact", "solver").inc(len(results))
     return Response(orjson.dumps({"results": results}), media_type="application/json")

@@ -13,6 +13,7 @@ from starlette.concurrency import run_in_threadpool
 from service.dataplane import NPY, NPZ, QUERY_FIELDS, DataPlane, ModelNotFound
 from service.deps import Plane, State
 from service.errors import ApiError, from_invalid, require_json
+from service.metrics import HTTP
 from tdcr.schemas import ErrorResponse, PredictResponse
 from tdcr.validation import InvalidRequest
 
@@ -65,6 +66,6 @@ async def predict(request: Request, state: State, plane: Plane) -> Response:
     response, name, n = await run_in_threadpool(
         _answer, plane, body, request.headers.get("content-type", ""),
         request.headers.get("accept", ""), params)
-    state.metrics.latency.labels("/predict", name).observe(time.perf_counter() - started)
-    state.metrics.designs.labels("/predict", name).inc(n)
+    state.metrics.latency.labels(HTTP, "/predict", name).observe(time.perf_counter() - started)
+    state.metrics.designs.labels(HTTP, "/predict", name).inc(n)
     return response

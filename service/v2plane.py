@@ -1,0 +1,147 @@
+"""The Open Inference Protocol's models, transport-neutral: what the REST routes (service/routers/v2.py)
+and the gRPC servicer (service/grpc_server.py) both call.
+
+Every manifest operator is a model, and the physics solver is the model ``exact``; each has the
+single version ``"1"``.  Inputs arrive decoded (:class:`service.oip.InferRequest`) and leave as
+tensors ``name -> (datatype, array)``; errors are :class:`service.oip.OipError` with a kind that
+each transport maps to its own status.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import orjson
+
+import tdcr
+from service.dataplane import ModelNotFound
+from service.oip import EXACT_OUTPUTS, LOAD_INPUTS, SURROGATE_INPUTS, SURROGATE_OUTPUTS, InferRequest, OipError
+from service.solver_pool import WorkerDied
+from service.state import ServiceState
+from tdcr.design_space import range_warnings
+from tdcr.designs import DesignBatch
+from tdcr.exact import TooMuchWork
+from tdcr.validation import OUTPUTS, InvalidRequest, validate_features
+
+#: The solver's model name, and the one version of every model.
+EXACT = "exact"
+VERSION = "1"
+EXACT_INPUTS = SURROGATE_INPUTS | LOAD_INPUTS
+#: What the server says of itself (OIP server metadata).
+SERVER_NAME = "tdcr-surrogates"
+EXTENSIONS = ["binary_tensor_data"]
+
+#: Output tensors: name -> (datatype, array).
+Tensors = dict[str, tuple[str, np.ndarray]]
+
+
+class V2Plane:
+    """Health, metadata and inference of the v2 models of one service ``state``."""
+
+    def __init__(self, state: ServiceState):
+        self.state = state
+
+    # -- health and metadata ------------------------------------------------------------------
+
+    def server_ready(self) -> bool:
+        return self.state.ready and self.state.pool_healthy
+
+    def server_metadata(self) -> dict:
+        return {"name": SERVER_NAME, "version": tdcr.__version__, "extensions": EXTENSIONS}
+
+    def check_model(self, model: str, version: str | None) -> None:
+        """:class:`OipError` ``not_found`` unless ``model`` is loaded and ``version`` is empty or ``"1"``."""
+        if model != EXACT and model not in self.state.models:
+            raise OipError("not_found", f"unknown model {model[:64]!r}; available: "
+                                        f"{sorted(self.state.models) + [EXACT]}")
+        if version not in (None, "", VERSION):
+            raise OipError("not_found", f"model {model!r} has only version {VERSION}, not {version[:16]!r}")
+
+    def model_ready(self, model: str, version: str | None = None) -> bool:
+        self.check_model(model, version)
+        return self.state.pool_healthy if model == EXACT else True
+
+    @staticmethod
+    def tensors(model: str) -> tuple[dict, dict]:
+        """The ``(inputs, outputs)`` specifications of ``model``: name -> (datatype, shape)."""
+        return (EXACT_INPUTS, EXACT_OUTPUTS) if model == EXACT else (SURROGATE_INPUTS, SURROGATE_OUTPUTS)
+
+    def model_metadata(self, model: str, version: str | None = None) -> dict:
+        """Name, versions, platform, inputs and outputs (name, datatype, shape) and parameters: the
+        manifest's sha256, architecture, kind, metrics and ranges (the last two as JSON text)."""
+        self.check_model(model, version)
+        inputs, outputs = self.tensors(model)
+        meta = {"name": model, "versions": [VERSION],
+                "inputs": [{"name": n, "datatype": d, "shape": s} for n, (d, s) in inputs.items()],
+                "outputs": [{"name": n, "datatype": d, "shape": s} for n, (d, s) in outputs.items()]}
+        if model == EXACT:
+            return meta | {"platform": "tdcr_cosserat_solver",
+                           "parameters": {"deadline_s": self.state.settings.exact_timeout_s}}
+        entry = self.state.manifest["models"][model]
+        return meta | {"platform": "onnxruntime_onnx",
+                       "parameters": {"sha256": entry["sha256"], "architecture": entry["architecture"],
+                                      "kind": entry["kind"], "metrics": orjson.dumps(entry.get("metrics")).decode(),
+                                      "ranges": orjson.dumps(entry.get("ranges")).decode()}}
+
+    # -- inference ----------------------------------------------------------------------------
+
+    def surrogate(self, model: str, request: InferRequest) -> tuple[Tensors, int]:
+        """The wanted output tensors of an operator, and the number of designs (blocking: run it
+        off the event loop)."""
+        arrays_wanted = [n for n in request.outputs if n in OUTPUTS]
+        try:
+            shape_request = validate_features(request.inputs["design"], target="surrogate", model=model,
+                                              s=request.inputs.get("s"), outputs=arrays_wanted or ["tendons"],
+                                              limits=self.state.settings.predict_limits())
+            prediction = self.state.dataplane.run(shape_request)
+        except InvalidRequest as exc:
+            raise OipError("too_large" if exc.too_large else "invalid",
+                           f"input 'design' or 's': {exc.message}") from None
+        except ModelNotFound as exc:
+            raise OipError("not_found", str(exc)) from None
+        values = {"in_distribution": ("BOOL", np.array([not w for w in prediction.warnings]))}
+        values |= {k: ("FP32", v) for k, v in prediction.arrays.items()}
+        return {n: values[n] for n in request.outputs}, len(prediction.s)
+
+    @staticmethod
+    def solve_body(request: InferRequest) -> tuple[np.ndarray, bytes]:
+        """The designs ``(B, 15)`` of a decoded ``exact`` request, and the equivalent JSON
+        ``SolveRequest`` of /exact (which the solver process validates)."""
+        features = np.asarray(request.inputs["design"], dtype=np.float64)
+        designs = DesignBatch.from_features(features).to_dicts()
+        for name in LOAD_INPUTS:
+            if name in request.inputs:
+                values = request.inputs[name]
+                if len(values) != len(designs):
+                    raise OipError("invalid", f"input {name!r} has {len(values)} rows, 'design' has {len(designs)}")
+                for d, v in zip(designs, values.tolist(), strict=True):
+                    d[name] = v
+        body = {"designs": designs} | ({"s": request.inputs["s"].tolist()} if "s" in request.inputs else {})
+        return features, orjson.dumps(body)
+
+    async def exact(self, request: InferRequest, features: np.ndarray, body: bytes) -> tuple[Tensors, int]:
+        """The solver's answer to ``body`` (from :meth:`solve_body`), within /exact's bounded pool and
+        deadline."""
+        state = self.state
+        if state.pool is None or state.exact_slots is None:
+            raise OipError("unavailable", "the solver pool is not running")
+        if state.exact_slots.locked():
+            raise OipError("saturated", "the solver is saturated; retry later")
+        async with state.exact_slots:
+            try:
+                results = await state.solve_json(body)
+            except InvalidRequest as exc:
+                raise OipError("too_large" if exc.too_large else "invalid", f"inputs: {exc.message}") from None
+            except TooMuchWork as exc:
+                raise OipError("too_large", str(exc)) from None
+            except TimeoutError:
+                raise OipError("deadline", f"the solver did not finish within {state.settings.exact_timeout_s} s"
+                               ) from None
+            except (WorkerDied, RuntimeError):
+                raise OipError("unavailable", "the solver failed on this request; retry later") from None
+        values = {"backbone": ("FP32", np.array([r["backbone"] for r in results])),
+                  "rotation": ("FP32", np.array([r["rotation"] for r in results])),
+                  "tendons": ("FP32", np.array([r["tendons"] for r in results])),
+                  "in_distribution": ("BOOL", np.array([not w for w in range_warnings(features)])),
+                  "converged": ("BOOL", np.array([r["converged"] for r in results])),
+                  "residual": ("FP64", np.array([r["residual"] for r in results]))}
+        return {n: values[n] for n in request.outputs}, len(results)
