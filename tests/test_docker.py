@@ -18,7 +18,8 @@ def test_compose_file_is_valid_and_limited(root, shared):
     limits = svc["deploy"]["resources"]["limits"]
     assert float(limits["cpus"]) > 0 and limits["memory"].endswith(("M", "G"))
     assert svc["deploy"]["replicas"] >= 1
-    assert svc["ports"] == ["127.0.0.1::8000"]  # loopback only; no fixed host port, so replicas can scale
+    # HTTP and gRPC on loopback only; no fixed host port, so replicas can scale
+    assert svc["ports"] == ["127.0.0.1::8000", "127.0.0.1::8001"]
 
 
 def test_invalid_compose_is_rejected_by_the_schema(root, shared):
