@@ -81,17 +81,47 @@ def decode(request: pb.ModelInferRequest, *, inputs: Mapping[str, tuple[str, lis
 
 
 def encode(model: str, tensors: Mapping[str, tuple[str, np.ndarray]], *, raw: bool,
-           request_id: str | None) -> pb.ModelInferResponse:
-    """A ``ModelInferResponse`` of ``tensors`` (name -> (datatype, array)), raw or typed."""
+           request_id: str | None) -> pb.ModelInferResponse | bytes:
+    """A ``ModelInferResponse`` of ``tensors`` (name -> (datatype, array)): typed, as a message, or
+    raw, already serialised (:func:`encode_raw`)."""
+    if raw:
+        return encode_raw(model, tensors, request_id=request_id)
     response = pb.ModelInferResponse(model_name=model, model_version=VERSION, id=request_id or "")
     for name, (datatype, array) in tensors.items():
         array = np.ascontiguousarray(array, dtype=DATATYPES[datatype])
         tensor = response.outputs.add(name=name, datatype=datatype, shape=array.shape)
-        if raw:
-            response.raw_output_contents.append(array.tobytes())
-        else:
-            getattr(tensor.contents, CONTENTS[datatype]).extend(array.reshape(-1).tolist())
+        getattr(tensor.contents, CONTENTS[datatype]).extend(array.reshape(-1).tolist())
     return response
+
+
+#: The key of ``ModelInferResponse.raw_output_contents`` on the wire: field 6, length-delimited.
+RAW_OUTPUT_KEY = bytes([pb.ModelInferResponse.RAW_OUTPUT_CONTENTS_FIELD_NUMBER << 3 | 2])
+
+
+def _varint(value: int) -> bytes:
+    """A protobuf base-128 varint."""
+    out = bytearray()
+    while True:
+        byte, value = value & 0x7F, value >> 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def encode_raw(model: str, tensors: Mapping[str, tuple[str, np.ndarray]], *, request_id: str | None) -> bytes:
+    """The serialised ``ModelInferResponse`` with raw output contents, written straight from the
+    arrays: the message without the contents through protobuf, then each buffer as a
+    ``raw_output_contents`` field (key, varint length, bytes).  The bytes are those protobuf writes
+    for the same message (fields in number order; tested), with one copy of each array instead of
+    three (``tobytes``, the message's own, serialisation): 8,192 designs' tendons are 16.5 MB."""
+    head = pb.ModelInferResponse(model_name=model, model_version=VERSION, id=request_id or "")
+    parts = [b""]
+    for name, (datatype, array) in tensors.items():
+        array = np.ascontiguousarray(array, dtype=DATATYPES[datatype])
+        head.outputs.add(name=name, datatype=datatype, shape=array.shape)
+        parts += [RAW_OUTPUT_KEY, _varint(array.nbytes), memoryview(array.reshape(-1)).cast("B")]
+    parts[0] = head.SerializeToString()
+    return b"".join(parts)
 
 
 class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
@@ -167,6 +197,22 @@ class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
         return encode(model, tensors, raw=bool(request.raw_input_contents), request_id=decoded.id), n
 
 
+def _serialize(response: pb.ModelInferResponse | bytes | object) -> bytes:
+    """Answers are messages, or already serialised (:func:`encode_raw`)."""
+    return response if isinstance(response, bytes) else response.SerializeToString()
+
+
+def _handlers(servicer: InferenceServicer) -> grpc.GenericRpcHandler:
+    """The service's method handlers, as the generated ``add_..._to_server`` makes them, but with
+    :func:`_serialize` for the answers."""
+    methods = pb.DESCRIPTOR.services_by_name["GRPCInferenceService"].methods
+    return grpc.method_handlers_generic_handler(SERVICE_NAME, {
+        m.name: grpc.unary_unary_rpc_method_handler(getattr(servicer, m.name),
+                                                    request_deserializer=getattr(pb, m.input_type.name).FromString,
+                                                    response_serializer=_serialize)
+        for m in methods})
+
+
 def _value(response):
     async def work():
         return response
@@ -211,7 +257,7 @@ class GrpcServer:
             options=[("grpc.max_receive_message_length", settings.grpc_max_receive_bytes),
                      ("grpc.max_send_message_length", settings.grpc_max_send_bytes)],
             maximum_concurrent_rpcs=settings.max_connections)
-        pb_grpc.add_GRPCInferenceServiceServicer_to_server(InferenceServicer(self.plane), self.server)
+        self.server.add_generic_rpc_handlers((_handlers(InferenceServicer(self.plane)),))
         self.health = health.aio.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
         reflection.enable_server_reflection(
