@@ -92,3 +92,32 @@ def tiny_models(tiny_data, tmp_path_factory):
         train(cfg, tiny_data, root / name, progress=False, monitor_designs=20)
         export_run(root / name, models)
     return root, models
+
+
+@pytest.fixture(scope="session")
+def run_triton_example(root):
+    """Run ``examples/tritonclient_<protocol>.py`` against a server in its own process (Triton's
+    stubs and ours cannot share one) and check its tendon paths on every model against /predict
+    and /exact of the server at ``url`` (rtol 1e-6)."""
+    import subprocess
+    import sys
+
+    import httpx
+    import numpy as np
+
+    from tdcr.designs import DesignBatch
+
+    def run(protocol: str, target: str, url: str, models: list[str]) -> None:
+        done = subprocess.run([sys.executable, f"examples/tritonclient_{protocol}.py", target], cwd=root,
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-3000:]
+        answer = json.loads(done.stdout.splitlines()[-1])
+        assert set(answer["tendons"]) == {*models, "exact"}
+        body = {"designs": DesignBatch.from_features(np.array(answer["designs"])).to_dicts()}
+        exact = httpx.post(url + "/exact", json=body, timeout=60).json()["results"]
+        np.testing.assert_allclose(answer["tendons"]["exact"], [r["tendons"] for r in exact], rtol=1e-6, atol=1e-9)
+        for model in models:
+            ref = httpx.post(url + "/predict", json=body | {"model": model}).json()["results"]
+            np.testing.assert_allclose(answer["tendons"][model], [r["tendons"] for r in ref], rtol=1e-6, atol=1e-9)
+
+    return run

@@ -257,19 +257,9 @@ def test_saturated_and_late_solver_calls(tiny_models):
             assert infer(_request("fno", heavy[:2])).model_name == "fno"
 
 
-def test_tritonclient_grpc(server, root):
+def test_tritonclient_grpc(server, run_triton_example):
     """Triton's gRPC client, in its own process: raw tensors in and out on every model."""
-    done = subprocess.run([sys.executable, "examples/tritonclient_grpc.py", server.grpc_target], cwd=root,
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-3000:]
-    answer = json.loads(done.stdout.splitlines()[-1])
-    assert set(answer["tendons"]) == {*MODELS, "exact"}
-    body = _body(np.array(answer["designs"]))
-    exact = httpx.post(server.url + "/exact", json=body).json()["results"]
-    np.testing.assert_allclose(answer["tendons"]["exact"], [r["tendons"] for r in exact], rtol=1e-6, atol=1e-9)
-    for model in MODELS:
-        ref = httpx.post(server.url + "/predict", json=body | {"model": model}).json()["results"]
-        np.testing.assert_allclose(answer["tendons"][model], [r["tendons"] for r in ref], rtol=1e-6, atol=1e-9)
+    run_triton_example("grpc", server.grpc_target, server.url, MODELS)
 
 
 def test_metrics_are_labelled_by_protocol(server, stub):

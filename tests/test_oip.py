@@ -132,19 +132,9 @@ def test_bad_tensors_get_a_clear_error(server):
     assert r.status_code == 400 and "designs[0].E: must be a finite number, got nan" in r.json()["error"]
 
 
-def test_tritonclient_http(server, root):
+def test_tritonclient_http(server, run_triton_example):
     """Triton's HTTP client, in its own process: binary tensors in and out on every model."""
-    done = subprocess.run([sys.executable, "examples/tritonclient_http.py", server.url], cwd=root,
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-3000:]
-    answer = json.loads(done.stdout.splitlines()[-1])
-    assert set(answer["tendons"]) == {*MODELS, "exact"}
-    body = {"designs": DesignBatch.from_features(np.array(answer["designs"])).to_dicts()}
-    exact = httpx.post(server.url + "/exact", json=body).json()["results"]
-    np.testing.assert_allclose(answer["tendons"]["exact"], [r["tendons"] for r in exact], rtol=1e-6, atol=1e-9)
-    for model in MODELS:
-        ref = httpx.post(server.url + "/predict", json=body | {"model": model}).json()["results"]
-        np.testing.assert_allclose(answer["tendons"][model], [r["tendons"] for r in ref], rtol=1e-6, atol=1e-9)
+    run_triton_example("http", server.url, server.url, MODELS)
 
 
 def test_loadtest_speaks_v2(server, root):
