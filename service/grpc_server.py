@@ -143,6 +143,13 @@ class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
         except asyncio.CancelledError:  # the client went away or its deadline passed
             code = grpc.StatusCode.CANCELLED
             raise
+        except grpc.aio.AbortError:  # already answered with its status
+            raise
+        except Exception:  # a bug: INTERNAL with no details, logged, counted as such
+            code = grpc.StatusCode.INTERNAL
+            log.exception("unexpected error in %s", method)
+            self.metrics.errors.labels(GRPC, method, "internal").inc()
+            await context.abort(code, "internal error")
         finally:
             self.metrics.requests.labels(GRPC, method, code.name).inc()
 
