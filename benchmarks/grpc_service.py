@@ -28,7 +28,7 @@ import numpy as np
 
 from service.process import ROOT, ServerProcess
 from tdcr.design_space import sample_designs
-from tdcr.loadtest import _grpc_request, format_row, format_rows, run_cell, server_rss
+from tdcr.loadtest import format_row, format_rows, grpc_request, run_cell, server_rss
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 
 MODEL = "deeponet"
@@ -36,7 +36,7 @@ UNLIMITED = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_le
 
 
 def latency(stub, model: str, n: int = 1000) -> tuple[float, float]:
-    request = _grpc_request(model, sample_designs(1, seed=0).features(), None)
+    request = grpc_request(model, sample_designs(1, seed=0).features(), None)
     for _ in range(100):
         stub.ModelInfer(request)
     times = []
@@ -49,7 +49,7 @@ def latency(stub, model: str, n: int = 1000) -> tuple[float, float]:
 
 
 def bulk(stub, n: int = 10, batch: int = 8192) -> float:
-    request = _grpc_request(MODEL, sample_designs(batch, seed=1).features(), "tendons")
+    request = grpc_request(MODEL, sample_designs(batch, seed=1).features(), "tendons")
     for _ in range(2):
         stub.ModelInfer(request)
     started = time.perf_counter()

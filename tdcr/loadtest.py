@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable, Callable
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from dataclasses import dataclass
 
 import httpx
@@ -69,7 +71,7 @@ def grpc_target(url: str, port: int = 8001) -> str:
     return f"{httpx.URL(url).host}:{port}"
 
 
-def _grpc_request(model: str, features: np.ndarray, outputs: str | None):
+def grpc_request(model: str, features: np.ndarray, outputs: str | None):
     """A ``ModelInferRequest`` with the designs as raw FP64 contents."""
     from tdcr.oip_grpc import open_inference_grpc_pb2 as pb  # gRPC is an optional extra
 
@@ -102,87 +104,95 @@ async def run_cell(url: str, *, concurrency: int, batch: int, model: str | None,
     """
     designs = design_space.sample_designs(batch, seed=seed)
     feats = designs.features()
-    path = "/predict"
     if protocol in ("v2", "grpc") and model is None:
         raise ValueError(f"the {protocol} protocol needs a model name")
     if protocol == "grpc":
-        return await _grpc_cell(target or grpc_target(url), _grpc_request(model, feats, outputs),
-                                concurrency=concurrency, batch=batch, max_requests=max_requests,
-                                max_seconds=max_seconds, timeout=timeout, outputs=outputs)
-    if protocol == "v2":
-        body, path = _v2_body(feats, outputs), f"/v2/models/{model}/infer"
-    elif binary:
-        params = ({"model": model} if model else {}) | ({"outputs": outputs} if outputs else {})
-        body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ}, "params": params}
+        session = _grpc_session(target or grpc_target(url), grpc_request(model, feats, outputs), timeout)
+        encoding = "grpc raw" + (f" ({outputs})" if outputs else "")
     else:
-        # serialised once, as load generators do: the client's CPU is shared with the server here
-        payload = orjson.dumps({"designs": designs.to_dicts(), **({"model": model} if model else {})})
-        body = {"content": payload, "headers": {"content-type": "application/json"}}
-    latencies: list[float] = []
-    errors = 0
-    issued = 0
-    deadline = time.perf_counter() + max_seconds
-
-    async def worker():
-        nonlocal errors, issued
-        one = httpx.Limits(max_connections=1, max_keepalive_connections=1)
-        async with httpx.AsyncClient(base_url=url, timeout=timeout, limits=one) as client:
-            while issued < max_requests and time.perf_counter() < deadline:
-                issued += 1
-                t = time.perf_counter()
-                try:
-                    r = await client.post(path, **body)
-                    ok = r.status_code == 200
-                except httpx.HTTPError:
-                    ok = False
-                latencies.append(time.perf_counter() - t)
-                errors += not ok
-
-    start = time.perf_counter()
-    await asyncio.gather(*(worker() for _ in range(concurrency)))
-    elapsed = time.perf_counter() - start
-    encoding = "v2 binary" if protocol == "v2" else "npy" if binary else "json"
-    encoding += f" ({outputs})" if outputs and (binary or protocol == "v2") else ""
-    return _row(concurrency, batch, encoding, latencies, errors, elapsed)
-
-
-def _row(concurrency: int, batch: int, encoding: str, latencies: list[float], errors: int, elapsed: float) -> Row:
+        path = "/predict"
+        if protocol == "v2":
+            body, path = _v2_body(feats, outputs), f"/v2/models/{model}/infer"
+        elif binary:
+            params = ({"model": model} if model else {}) | ({"outputs": outputs} if outputs else {})
+            body = {"content": _npy(feats), "headers": {"content-type": NPY, "accept": NPZ}, "params": params}
+        else:
+            # serialised once, as load generators do: the client's CPU is shared with the server here
+            payload = orjson.dumps({"designs": designs.to_dicts(), **({"model": model} if model else {})})
+            body = {"content": payload, "headers": {"content-type": "application/json"}}
+        session = _http_session(url, path, body, timeout)
+        encoding = "v2 binary" if protocol == "v2" else "npy" if binary else "json"
+        encoding += f" ({outputs})" if outputs and (binary or protocol == "v2") else ""
+    latencies, errors, elapsed = await _drive(session, concurrency=concurrency, max_requests=max_requests,
+                                              max_seconds=max_seconds)
     lat = np.array(latencies) * 1e3
     return Row(concurrency, batch, encoding, len(latencies), errors, elapsed,
                *(float(np.percentile(lat, q)) for q in (50, 95, 99)))
 
 
-async def _grpc_cell(target: str, request, *, concurrency: int, batch: int, max_requests: int, max_seconds: float,
-                     timeout: float, outputs: str | None) -> Row:
-    """A cell over gRPC: ``concurrency`` clients with a channel (one HTTP/2 connection) each."""
-    import grpc  # gRPC is an optional extra
+#: A client's session: an async context manager giving a call that sends one request, True if it succeeded.
+Session = Callable[[], AbstractAsyncContextManager[Callable[[], Awaitable[bool]]]]
 
-    from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 
+async def _drive(session: Session, *, concurrency: int, max_requests: int,
+                 max_seconds: float) -> tuple[list[float], int, float]:
+    """``concurrency`` clients, a ``session`` each, calling until ``max_requests`` are issued or
+    ``max_seconds`` pass: the latencies (s), the errors and the elapsed time (s)."""
     latencies: list[float] = []
     errors = issued = 0
     deadline = time.perf_counter() + max_seconds
-    unlimited = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
 
     async def worker():
         nonlocal errors, issued
-        async with grpc.aio.insecure_channel(target, options=unlimited) as channel:
-            infer = pb_grpc.GRPCInferenceServiceStub(channel).ModelInfer
+        async with session() as call:
             while issued < max_requests and time.perf_counter() < deadline:
                 issued += 1
                 t = time.perf_counter()
-                try:
-                    await infer(request, timeout=timeout)
-                    ok = True
-                except grpc.RpcError:
-                    ok = False
+                ok = await call()
                 latencies.append(time.perf_counter() - t)
                 errors += not ok
 
     start = time.perf_counter()
     await asyncio.gather(*(worker() for _ in range(concurrency)))
-    encoding = "grpc raw" + (f" ({outputs})" if outputs else "")
-    return _row(concurrency, batch, encoding, latencies, errors, time.perf_counter() - start)
+    return latencies, errors, time.perf_counter() - start
+
+
+def _http_session(url: str, path: str, body: dict, timeout: float) -> Session:
+    """One ``httpx.AsyncClient`` with one keep-alive connection per client, POSTing ``body``."""
+    @asynccontextmanager
+    async def session():
+        one = httpx.Limits(max_connections=1, max_keepalive_connections=1)
+        async with httpx.AsyncClient(base_url=url, timeout=timeout, limits=one) as client:
+            async def call() -> bool:
+                try:
+                    return (await client.post(path, **body)).status_code == 200
+                except httpx.HTTPError:
+                    return False
+            yield call
+    return session
+
+
+def _grpc_session(target: str, request, timeout: float) -> Session:
+    """One ``grpc.aio`` channel (one HTTP/2 connection) per client, sending ``request`` to ModelInfer."""
+    import grpc  # gRPC is an optional extra
+
+    from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
+
+    unlimited = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
+
+    @asynccontextmanager
+    async def session():
+        async with grpc.aio.insecure_channel(target, options=unlimited) as channel:
+            infer = pb_grpc.GRPCInferenceServiceStub(channel).ModelInfer
+
+            async def call() -> bool:
+                try:
+                    await infer(request, timeout=timeout)
+                    return True
+                except grpc.RpcError:
+                    return False
+            yield call
+    return session
 
 
 async def sweep(url: str, *, concurrencies=(1, 4, 16, 64), batches=(1, 32, 1024), model: str | None = None,
