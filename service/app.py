@@ -25,7 +25,7 @@ from service.errors import ApiError
 from service.grpc_server import GrpcServer
 from service.metrics import HTTP, Metrics
 from service.oip import InferenceRequest
-from service.routers import exact, health, models, predict, v2
+from service.routers import design_space, exact, health, models, predict, v2, viewer
 from service.settings import Settings
 from service.state import ServiceState, load_models, start_pool
 from tdcr.schemas import ExactRequest, PredictRequest
@@ -187,8 +187,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "
                               "and the Cosserat solver (/exact).  SI units throughout.")
     app.state.service = state
-    for router in (predict.router, exact.router, models.router, health.router, v2.router):
+    for router in (predict.router, exact.router, models.router, design_space.router, health.router, v2.router,
+                   viewer.router):
         app.include_router(router)
+    viewer.mount(app)
 
     @app.exception_handler(ApiError)
     async def api_error(request: Request, exc: ApiError):

@@ -77,6 +77,17 @@ LOADS: dict[str, LoadBound] = {
 OOD_BINS: tuple[tuple[float, float], ...] = ((-0.05, 0.0), (0.0, 0.05), (0.05, 0.10), (0.10, 0.15), (0.15, 0.20))
 
 
+def describe() -> dict:
+    """The design space as JSON-ready data: per parameter its unit, Table I range and admissible
+    bounds; the loads' admissible bounds; the number of tendons and the feature order."""
+    def bounds(b) -> dict:
+        return {"admissible": list(b.admissible), "exclusive_min": b.exclusive_min, "unit": b.unit}
+
+    return {"parameters": {k: bounds(p) | {"table_i": [p.low, p.high]} for k, p in TABLE_I.items()},
+            "loads": {k: bounds(b) for k, b in LOADS.items()},
+            "n_tendons": N_TENDONS, "feature_order": feature_names(), "default_points": DEFAULT_POINTS}
+
+
 def feature_names(n_tendons: int = N_TENDONS) -> list[str]:
     """Names of the feature columns, e.g. ``['E', 'r', 'L', 'offset_0', ...]``."""
     return list(FeatureLayout(n_tendons).names)

@@ -33,7 +33,8 @@ def live(tiny_models):
     srv.stop()
 
 
-NAMES = ["GET /healthz", "GET /metrics", "GET /models", "GET /readyz", "POST /exact", "POST /predict",
+NAMES = ["GET /healthz", "GET /metrics", "GET /models", "GET /design-space", "GET /readyz", "POST /exact",
+         "POST /predict",
          "GET /v2", "GET /v2/health/live", "GET /v2/health/ready", "GET /v2/models/{model}",
          "GET /v2/models/{model}/ready", "POST /v2/models/{model}/infer", "GET /v2/models/{model}/versions/{version}",
          "GET /v2/models/{model}/versions/{version}/ready", "POST /v2/models/{model}/versions/{version}/infer"]
