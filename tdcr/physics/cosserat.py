@@ -94,6 +94,9 @@ class RodSolution:
         converged: per-design success flag, ``(B,)``.
         residual: per-design wrench-balance residual, N (moments divided by L), ``(B,)``.
         iterations: per-design Newton (tendon-only) or shooting iterations, ``(B,)``.
+        jacobian: with ``solve(..., jacobian=True)``, the sensitivity of the pose at each
+            arclength to the tensions, base frame, ``(B, n, 6, N_t)``: rows 0-2 d p / d tau (m/N),
+            rows 3-5 the rotation vector of d R R^T / d tau (rad/N); else ``None``.
     """
 
     s: np.ndarray
@@ -105,6 +108,7 @@ class RodSolution:
     converged: np.ndarray
     residual: np.ndarray
     iterations: np.ndarray
+    jacobian: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -219,7 +223,13 @@ def _residual(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
 
 
 def _residual_and_jacobian(x: np.ndarray, nodes: _Nodes) -> tuple[np.ndarray, np.ndarray]:
-    """Residual of (W1, W2) ``(P, 6)`` and its Jacobian, the Hessian of Phi ``(P, 6, 6)``.
+    """Residual of (W1, W2) ``(P, 6)`` and its Jacobian, the Hessian of Phi ``(P, 6, 6)``."""
+    res, jac, _ = _jacobian_parts(x, nodes)
+    return res, jac
+
+
+def _jacobian_parts(x: np.ndarray, nodes: _Nodes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residual ``(P, 6)``, Jacobian ``(P, 6, 6)`` and a_i = d residual / d tau_i ``(P, N_t, 6)``.
 
     With w_i = tau_i / |g_i|, A_i = [I, -hat(rho_i)] and a_i = A_i^T t_i = (t_i, rho_i x t_i):
     J = diag(K_se, K_bt) + sum_i w_i (A_i^T A_i - a_i a_i^T), symmetric positive definite
@@ -240,18 +250,20 @@ def _residual_and_jacobian(x: np.ndarray, nodes: _Nodes) -> tuple[np.ndarray, np
     jac[:, 3:, :3] += hw
     jac[:, 3:, 3:] -= wrr
     jac[:, diag + 3, diag + 3] += wr2[:, None] + nodes.kbt
-    return res, jac
+    return res, jac, a
 
 
 def _solve_batched(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``x`` with ``a @ x = b`` for ``(P, k, k)`` systems and ``(P, k)`` right-hand sides; NaN rows
-    where a system is not finite or singular, so that one bad design never fails the batch."""
+    """``x`` with ``a @ x = b`` for ``(P, k, k)`` systems and ``(P, k)`` or ``(P, k, m)`` right-hand
+    sides; NaN rows where a system is not finite or singular, so that one bad design never fails
+    the batch."""
     out = np.full(b.shape, np.nan)
-    good = np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=1)
+    good = np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b.reshape(b.shape[0], -1)).all(axis=1)
     if not good.any():
         return out
     try:
-        out[good] = np.linalg.solve(a[good], b[good][..., None])[..., 0]
+        out[good] = (np.linalg.solve(a[good], b[good]) if b.ndim == 3
+                     else np.linalg.solve(a[good], b[good][..., None])[..., 0])
     except np.linalg.LinAlgError:  # a singular system among them: solve one by one (rare)
         for i in np.nonzero(good)[0]:
             try:
@@ -262,13 +274,15 @@ def _solve_batched(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _solve_spd(jac: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve ``jac @ x = rhs`` for SPD ``(P, 6, 6)`` systems after symmetric Jacobi scaling (NaN rows
-    where a system is not positive on its diagonal, not finite, or singular)."""
+    """Solve ``jac @ x = rhs`` for SPD ``(P, 6, 6)`` systems and ``(P, 6)`` or ``(P, 6, m)``
+    right-hand sides after symmetric Jacobi scaling (NaN rows where a system is not positive on
+    its diagonal, not finite, or singular)."""
     diag = np.einsum("pii->pi", jac)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.where(diag > 0, 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), np.nan)
     scaled = jac * d[:, :, None] * d[:, None, :]
-    return d * _solve_batched(scaled, d * rhs)
+    dd = d if rhs.ndim == 2 else d[:, :, None]
+    return dd * _solve_batched(scaled, dd * rhs)
 
 
 def _newton(x: np.ndarray, nodes: _Nodes, opts: SolverOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -378,6 +392,7 @@ def solve(
     loads: ExternalLoads | None = None,
     options: SolverOptions | None = None,
     workers: int = 1,
+    jacobian: bool = False,
 ) -> RodSolution:
     """Equilibrium shapes of a batch of designs.
 
@@ -389,6 +404,9 @@ def solve(
         workers: processes to split the batch over (0: one per core).  Designs are independent,
             so the result equals ``workers=1`` (to round-off); a batch smaller than
             ``MIN_DESIGNS_PER_WORKER`` per process is solved here.
+        jacobian: also the pose's sensitivity to the tensions (``RodSolution.jacobian``), exact
+            by the implicit-function theorem at every node and a tangent carried through the
+            Magnus steps (no finite differences).  Tendon loads only.
 
     Returns:
         A :class:`RodSolution`.  A design that fails is flagged in ``converged``;
@@ -396,7 +414,7 @@ def solve(
     """
     workers = min(workers or os.cpu_count() or 1, designs.n_designs // MIN_DESIGNS_PER_WORKER)
     if workers > 1:
-        return _solve_in_processes(designs, s_fraction, loads, options, workers)
+        return _solve_in_processes(designs, s_fraction, loads, options, workers, jacobian)
     opts = options or SolverOptions()
     sigma_out = np.asarray(s_fraction, dtype=np.float64).reshape(-1)
     if sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -1e-9 or sigma_out.max() > 1 + 1e-9:
@@ -404,28 +422,32 @@ def solve(
     sigma_out = np.clip(sigma_out, 0.0, 1.0)
     if opts.linearized and loads is not None and not loads.is_zero():
         raise ValueError("the linearized model covers tendon loads only")
-    base = _solve_tendon_only(designs, sigma_out, opts)
+    if jacobian and (opts.linearized or loads is not None and not loads.is_zero()):
+        raise ValueError("the Jacobian covers the exact model under tendon loads only")
+    base = _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian)
     if loads is None or loads.is_zero():
         return base
     return _solve_with_loads(designs, sigma_out, loads, opts, base)
 
 
 def _solve_in_processes(designs: DesignBatch, s_fraction: np.ndarray, loads: ExternalLoads | None,
-                        options: SolverOptions | None, workers: int) -> RodSolution:
+                        options: SolverOptions | None, workers: int, jacobian: bool) -> RodSolution:
     """:func:`solve` on contiguous chunks of the batch in ``workers`` spawned processes."""
     from concurrent.futures import ProcessPoolExecutor
 
     chunks = np.array_split(np.arange(designs.n_designs), workers)
-    jobs = [(designs.take(rows), s_fraction, None if loads is None else loads.take(rows), options) for rows in chunks]
+    jobs = [(designs.take(rows), s_fraction, None if loads is None else loads.take(rows), options, jacobian)
+            for rows in chunks]
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         parts = list(pool.map(_solve_job, jobs))
-    return RodSolution(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+    return RodSolution(**{f.name: None if getattr(parts[0], f.name) is None
+                          else np.concatenate([getattr(p, f.name) for p in parts])
                           for f in dataclasses.fields(RodSolution)})
 
 
 def _solve_job(job) -> RodSolution:
-    designs, s_fraction, loads, options = job
-    return solve(designs, s_fraction, loads=loads, options=options)
+    designs, s_fraction, loads, options, jacobian = job
+    return solve(designs, s_fraction, loads=loads, options=options, jacobian=jacobian)
 
 
 def body_strains(designs: DesignBatch, s_fraction: np.ndarray, *, options: SolverOptions | None = None
@@ -449,7 +471,8 @@ def body_strains(designs: DesignBatch, s_fraction: np.ndarray, *, options: Solve
     return x.reshape(b, m, 6), ok.reshape(b, m).all(axis=1)
 
 
-def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions) -> RodSolution:
+def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions, *,
+                       jacobian: bool = False) -> RodSolution:
     b, _n = designs.n_designs, sigma_out.shape[0]
     mat = material(designs)
     edges, widths, out_step = _step_grid(sigma_out, opts.max_step)
@@ -465,6 +488,7 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
         # start every node from the base strains (exact for parallel tendons, close otherwise)
         x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
         x, ok, iters = _newton(np.repeat(x_base, m, axis=0), nodes, opts)
+    dx = _strain_sensitivities(x, nodes).reshape(b, m, 6, -1) if jacobian else None
     res = _residual(x, nodes).reshape(b, m, 6)
     x = x.reshape(b, m, 6)
     ok = ok.reshape(b, m).all(axis=1)
@@ -487,6 +511,10 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
         rot[:, j + 1] = rot[:, j] @ step_r[:, j]
     R = rot[:, out_step]
     p = pos[:, out_step]
+    pose_jacobian = None
+    if dx is not None:
+        eta = _magnus_tangent(x, dx, k, h, (cv, cw), mean, step_r, step_p)[:, out_step]  # (B, n, 6, N_t) body
+        pose_jacobian = np.concatenate([R @ eta[:, :, :3], R @ eta[:, :, 3:]], axis=2)
 
     x_out = x[:, out_step]
     rho_out, _ = tendon_routing(designs, sigma_out)
@@ -502,7 +530,66 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
     return RodSolution(
         s=designs.L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons,
         force=force, moment=moment, converged=converged, residual=residual, iterations=iters,
+        jacobian=pose_jacobian,
     )
+
+
+def _strain_sensitivities(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
+    """d x / d tau at every node, ``(P, 6, N_t)``, by the implicit-function theorem on (W1, W2):
+    J dx = -dF/dtau_i, with J the Hessian of Phi (already Newton's) and dF/dtau_i = a_i =
+    (t_i, rho_i x t_i) (the tendon tangents do not depend on the tensions).  NaN where J is not
+    positive definite or not finite."""
+    _, jac, a = _jacobian_parts(x, nodes)
+    return _solve_spd(jac, -np.swapaxes(a, 1, 2))
+
+
+def _ad(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The adjoint matrix of the twist (v, w): ad @ xi2 == [xi, xi2], ``(..., 6, 6)``."""
+    out = np.zeros(v.shape[:-1] + (6, 6))
+    out[..., :3, :3] = hat(w)
+    out[..., :3, 3:] = hat(v)
+    out[..., 3:, 3:] = hat(w)
+    return out
+
+
+def _dexp_right(ad: np.ndarray) -> np.ndarray:
+    """The right Jacobian of exp on SE(3), dexp_{-Omega} = sum_k (-ad_Omega)^k / (k+1)!, by its
+    series (exact to round-off: summed until a term is below 1e-17 of the identity), ``(..., 6, 6)``."""
+    total = np.broadcast_to(np.eye(6), ad.shape).copy()
+    term = total.copy()
+    for k in range(1, 80):
+        term = -(term @ ad) / (k + 1)
+        total += term
+        if not np.isfinite(term).all() or np.abs(term).max() < 1e-17:
+            break
+    return total
+
+
+def _magnus_tangent(x, dx, k, h, bracket, mean, step_r, step_p) -> np.ndarray:
+    """The body-frame pose tangents eta_j = (g_j^-1 dg_j / dtau)^v at every step edge, ``(B, K+1, 6, N_t)``.
+
+    Differentiating eq. (MAG), Omega = h mean + h^2/12 [xi_0, xi_1] and g_{j+1} = g_j exp(Omega):
+      d Omega = h (dxi_0 + 4 dxi_1/2 + dxi_1) / 6 + h^2/12 (ad_{xi_0} dxi_1 - ad_{xi_1} dxi_0),
+      eta_{j+1} = Ad_{exp(-Omega)} eta_j + dexp_{-Omega} d Omega,   eta_0 = 0 (the base is clamped).
+    """
+    b, n_t = x.shape[0], dx.shape[-1]
+    xi0, xi1 = x[:, :k], x[:, 1:k + 1]
+    dxi0, dxi1, dxim = dx[:, :k], dx[:, 1:k + 1], dx[:, k + 1:]
+    hh = h[..., None]  # (B, K, 1, 1)
+    d_omega = hh * (dxi0 + 4.0 * dxim + dxi1) / 6.0 + hh**2 / 12.0 * (
+        _ad(xi0[..., :3], xi0[..., 3:]) @ dxi1 - _ad(xi1[..., :3], xi1[..., 3:]) @ dxi0)
+    cv, cw = bracket
+    omega_v, omega_w = h * mean[..., :3] + h**2 / 12.0 * cv, h * mean[..., 3:] + h**2 / 12.0 * cw
+    carry = _dexp_right(_ad(omega_v, omega_w)) @ d_omega  # (B, K, 6, N_t)
+    rt = np.swapaxes(step_r, -1, -2)  # Ad of exp(-Omega) = (R^T, -R^T p): [[R^T, -R^T hat(p)], [0, R^T]]
+    ad_inverse = np.zeros(step_r.shape[:-2] + (6, 6))
+    ad_inverse[..., :3, :3] = rt
+    ad_inverse[..., :3, 3:] = -rt @ hat(step_p)
+    ad_inverse[..., 3:, 3:] = rt
+    eta = np.zeros((b, k + 1, 6, n_t))
+    for j in range(k):
+        eta[:, j + 1] = ad_inverse[:, j] @ eta[:, j] + carry[:, j]
+    return eta
 
 
 def _wrench_norm(res: np.ndarray, length: np.ndarray) -> np.ndarray:
