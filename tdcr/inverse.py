@@ -1,0 +1,266 @@
+"""Inverse kinematics: the tensions that put a design's tip on a target.
+
+A target is a tip position p(L) in the base frame (m) and optionally a tip direction R(L) e3.
+For each target, in order, warm-started from the previous target's answer (a planner's path), and
+with 0 <= tau_i <= tension_max throughout:
+
+1. a bounded Levenberg-Marquardt iteration on the tensions minimises
+   |p(tau) - p*|^2 / L^2 + |d(tau) - d*|^2;
+2. once on the target (1 % of the tolerance), steps that minimise |tau + dtau|^2 + |J dtau + r|^2 / w
+   (w tiny: 1e-10 of the Jacobian's scale) move along the tip's null space: among the tensions
+   that reach a target (four tendons leave a one-parameter family for a position) the answer is
+   the one with the least sum of squared tensions, i.e. no needless co-contraction.
+
+Each step solves a box-constrained quadratic program exactly (active set).  A target not reached
+from its start (the tip map of helical routings is not convex) is tried again from all tensions at
+tension_max / 2 and from seeded random tensions (:data:`RESTARTS` in all); the best answer is kept.  The Jacobian comes
+from :class:`Forward`: exact (the solver's own,
+``solve(..., jacobian=True)``) or any model's by central differences.
+
+Status per target: ``reached`` (position error <= tolerance x L, and direction error <= tolerance
+when given), ``closest`` (the iteration stopped at the best tip the bounds allow, farther than that),
+``failed`` (the forward model failed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from tdcr.designs import DesignBatch
+from tdcr.physics import solve
+
+#: Relative weight of |tau|^2 (to the Jacobian's scale) in the least-norm steps.
+LEAST_NORM_WEIGHT = 1e-10
+#: Least-norm steps end below this fraction of tension_max (0.5 mN at 5 N).
+LEAST_NORM_STEP = 1e-4
+#: Gauss-Newton steps that bring a least-norm step back onto the target before it is judged.
+RESTORATION_STEPS = 2
+#: Further starts for a target not reached from the warm start: all tensions at tension_max / 2,
+#: then seeded uniform draws within the bounds.
+RESTARTS = 4
+RESTART_SEED = 0
+#: Central-difference step of model Jacobians, N.
+DIFFERENCE_STEP = 1e-3
+
+
+@dataclass(frozen=True)
+class TipPose:
+    """Tip positions ``(T, 3)`` m, tip directions ``(T, 3)``, their Jacobians ``(T, 6, N_t)`` (rows
+    0-2 d p / d tau in m/N, rows 3-5 d d / d tau in 1/N), and which of the ``T`` answers are valid."""
+
+    position: np.ndarray
+    direction: np.ndarray
+    jacobian: np.ndarray
+    ok: np.ndarray
+
+
+#: A forward model of one design: tensions ``(T, N_t)`` -> their :class:`TipPose`.
+Forward = Callable[[np.ndarray], TipPose]
+
+
+def _with_tensions(design: DesignBatch, tensions: np.ndarray) -> DesignBatch:
+    """``T`` copies of a one-design batch with the given tensions ``(T, N_t)``."""
+    t = tensions.shape[0]
+    return DesignBatch(E=np.repeat(design.E, t), r=np.repeat(design.r, t), L=np.repeat(design.L, t),
+                       offset=np.repeat(design.offset, t, axis=0), pitch=np.repeat(design.pitch, t, axis=0),
+                       tension=tensions)
+
+
+def exact_forward(design: DesignBatch) -> Forward:
+    """The solver with its exact Jacobian (tendon loads only)."""
+    def forward(tensions: np.ndarray) -> TipPose:
+        with np.errstate(all="ignore"):
+            sol = solve(_with_tensions(design, tensions), np.array([1.0]), jacobian=True)
+        rot, jac = sol.rotation[:, -1], sol.jacobian[:, -1]  # (T, 3, 3), (T, 6, N_t)
+        direction = rot[:, :, 2]
+        # d (R e3) = (dR R^T) R e3 = omega x d, for each tension's rotation vector omega
+        d_direction = np.cross(np.swapaxes(jac[:, 3:], 1, 2), direction[:, None, :]).swapaxes(1, 2)
+        pose_jacobian = np.concatenate([jac[:, :3], d_direction], axis=1)
+        ok = sol.converged & np.isfinite(pose_jacobian).all(axis=(1, 2))
+        return TipPose(sol.backbone[:, -1], direction, pose_jacobian, ok)
+    return forward
+
+
+def model_forward(design: DesignBatch, predict: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+                  *, step: float = DIFFERENCE_STEP) -> Forward:
+    """Any model of the tip, ``predict(features (K, F)) -> (positions (K, 3), directions (K, 3))``,
+    with central differences in one batch of ``T (1 + 2 N_t)`` evaluations."""
+    def forward(tensions: np.ndarray) -> TipPose:
+        t, n_t = tensions.shape
+        eye = np.eye(n_t) * step
+        # central differences, one-sided where a bound is within a step (tensions stay >= 0)
+        lower = np.maximum(tensions[:, None, :] - eye[None], 0.0)
+        upper = tensions[:, None, :] + eye[None]
+        batch = np.concatenate([tensions, lower.reshape(-1, n_t), upper.reshape(-1, n_t)])
+        position, direction = predict(_with_tensions(design, batch).features())
+        pose = np.concatenate([position, direction], axis=1)  # (K, 6)
+        low, high = pose[t:t + t * n_t].reshape(t, n_t, 6), pose[t + t * n_t:].reshape(t, n_t, 6)
+        width = (upper - lower)[:, np.arange(n_t), np.arange(n_t)]  # (T, N_t)
+        jacobian = np.swapaxes((high - low) / width[..., None], 1, 2)
+        ok = np.isfinite(pose[:t]).all(axis=1) & np.isfinite(jacobian).all(axis=(1, 2))
+        return TipPose(position[:t], direction[:t], jacobian, ok)
+    return forward
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """One target's answer: ``tensions`` (N_t,) N, the tip ``position`` (3,) m and ``direction``
+    (3,) they give, the position ``error`` m, the direction error, ``status`` and ``iterations``."""
+
+    tensions: np.ndarray
+    position: np.ndarray
+    direction: np.ndarray
+    error: float
+    direction_error: float
+    status: str
+    iterations: int
+
+
+def _box_qp(h: np.ndarray, g: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """argmin 1/2 x^T h x + g^T x subject to low <= x <= high, for a small SPD ``h`` (active set:
+    clamp violating variables, release those whose gradient points inside, until neither)."""
+    n = g.size
+    at_low, at_high = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+    x = np.zeros(n)
+    for _ in range(4 * n + 4):
+        fixed = at_low | at_high
+        x = np.where(at_low, low, np.where(at_high, high, 0.0))
+        free = ~fixed
+        if free.any():
+            rhs = -g[free] - h[np.ix_(free, fixed)] @ x[fixed]
+            x[free] = np.linalg.solve(h[np.ix_(free, free)], rhs)
+        below, above = free & (x < low - 1e-15), free & (x > high + 1e-15)
+        if below.any() or above.any():
+            at_low |= below
+            at_high |= above
+            continue
+        grad = h @ x + g
+        release = (at_low & (grad < 0)) | (at_high & (grad > 0))
+        if not release.any():
+            return np.clip(x, low, high)
+        worst = np.argmax(np.abs(np.where(release, grad, 0.0)))
+        at_low[worst] = at_high[worst] = False
+    return np.clip(x, low, high)
+
+
+def inverse(forward: Forward, length: float, positions: np.ndarray, directions: np.ndarray | None, *,
+            start: np.ndarray, tension_max: float, tolerance: float = 1e-4, max_iterations: int = 60,
+            warm_start: bool = True) -> list[InverseResult]:
+    """Tensions for each target, in order.
+
+    Args:
+        forward: the model of the design's tip (:func:`exact_forward`, :func:`model_forward`).
+        length: the design's L, m (positions are weighed in units of L).
+        positions: target tip positions, base frame, m, ``(T, 3)``.
+        directions: target tip directions ``(T, 3)`` (normalised here; NaN rows: none), or ``None``.
+        start: first starting tensions ``(N_t,)`` N (clipped to the bounds).
+        tension_max: upper bound of every tension, N.
+        tolerance: a target is reached within ``tolerance x L`` (and ``tolerance`` in direction).
+        warm_start: start each target from the previous answer (else from ``start``).
+    """
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if directions is not None:
+        directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    n_t = np.asarray(start).size
+    low, high = np.zeros(n_t), np.full(n_t, float(tension_max))
+    tau0 = np.clip(np.asarray(start, dtype=np.float64), low, high)
+    results = []
+    rng = np.random.default_rng(RESTART_SEED)
+    for k, target in enumerate(positions):
+        wanted = None if directions is None or not np.isfinite(directions[k]).all() else directions[k]
+        result = _one_target(forward, length, target, wanted, tau0, low, high, tolerance, max_iterations)
+        # the tip map of helical routings is not convex: a start can end in a local minimum
+        restarts = [0.5 * high] + [rng.uniform(low, high) for _ in range(RESTARTS - 1)]
+        for restart in restarts:
+            if result.status == "reached":
+                break
+            again = _one_target(forward, length, target, wanted, restart, low, high, tolerance, max_iterations)
+            if again.status != "failed" and (result.status == "failed" or again.error < result.error):
+                result = replace(again, iterations=again.iterations + result.iterations)
+        results.append(result)
+        if warm_start and result.status != "failed":
+            tau0 = result.tensions
+    return results
+
+
+def _residual(pose: TipPose, i: int, target, wanted, length) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted residual and its Jacobian for answer ``i`` of ``pose``."""
+    r = (pose.position[i] - target) / length
+    j = pose.jacobian[i, :3] / length
+    if wanted is not None:
+        r = np.concatenate([r, pose.direction[i] - wanted])
+        j = np.concatenate([j, pose.jacobian[i, 3:]])
+    return r, j
+
+
+def _one_target(forward, length, target, wanted, tau, low, high, tolerance, max_iterations) -> InverseResult:
+    """Levenberg-Marquardt onto the target, then least-norm steps along the tip's null space."""
+    pose = forward(tau[None])
+    if not pose.ok[0]:
+        return _result(tau, pose, target, wanted, "failed", 0)
+    r, j = _residual(pose, 0, target, wanted, length)
+    scale = max(float(np.trace(j.T @ j)) / tau.size, 1e-300)
+    damping = 1e-3 * scale
+    close = (0.01 * tolerance) ** 2  # |r|^2 that ends the first phase
+    iteration = 0
+    while iteration < max_iterations and r @ r > close:
+        iteration += 1
+        step = _box_qp(j.T @ j + damping * np.eye(tau.size), j.T @ r, low - tau, high - tau)
+        trial = np.clip(tau + step, low, high)
+        trial_pose = forward(trial[None])
+        tr, tj = _residual(trial_pose, 0, target, wanted, length) if trial_pose.ok[0] else (None, None)
+        if tr is not None and tr @ tr <= r @ r:
+            stalled = np.abs(trial - tau).max() <= 1e-12 * high.max()
+            tau, pose, r, j = trial, trial_pose, tr, tj
+            damping = max(damping * 0.2, 1e-12 * scale)
+            if stalled:  # a stationary point within the bounds
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e12 * scale:  # no step lowers the error: the closest tip the bounds allow
+                break
+    if r @ r <= close:  # on the target: the least sum of squared tensions that stays there
+        weight = LEAST_NORM_WEIGHT * scale
+        on_target = (0.5 * tolerance) ** 2  # what a least-norm step may leave (the next one corrects it)
+        while iteration < max_iterations:
+            step = _box_qp(j.T @ j + weight * np.eye(tau.size), j.T @ r + weight * tau, low - tau, high - tau)
+            accepted = False
+            for _ in range(8):  # halve a step that leaves the target (the null space is curved)
+                if np.abs(step).max() <= LEAST_NORM_STEP * high.max():
+                    break
+                trial = np.clip(tau + step, low, high)
+                for _ in range(RESTORATION_STEPS + 1):  # back onto the target by least-change steps
+                    iteration += 1
+                    trial_pose = forward(trial[None])
+                    if not trial_pose.ok[0]:
+                        break
+                    tr, tj = _residual(trial_pose, 0, target, wanted, length)
+                    if tr @ tr <= close:
+                        break
+                    trial = np.clip(trial + _box_qp(tj.T @ tj + weight * np.eye(tau.size), tj.T @ tr,
+                                                    low - trial, high - trial), low, high)
+                if trial_pose.ok[0] and tr @ tr <= on_target and trial @ trial < tau @ tau:
+                    tau, pose, r, j, accepted = trial, trial_pose, tr, tj, True
+                    break
+                step = 0.5 * step
+            if not accepted:
+                break
+    return _result(tau, pose, target, wanted, _status(r, wanted, tolerance), iteration)
+
+
+def _status(r: np.ndarray, wanted, tolerance: float) -> str:
+    position_ok = np.linalg.norm(r[:3]) <= tolerance
+    direction_ok = wanted is None or np.linalg.norm(r[3:]) <= tolerance
+    return "reached" if position_ok and direction_ok else "closest"
+
+
+def _result(tau, pose: TipPose, target, wanted, status: str, iterations: int) -> InverseResult:
+    error = float(np.linalg.norm(pose.position[0] - target))
+    direction_error = 0.0 if wanted is None else float(np.linalg.norm(pose.direction[0] - wanted))
+    return InverseResult(tensions=np.asarray(tau, dtype=np.float64), position=pose.position[0],
+                         direction=pose.direction[0], error=error, direction_error=direction_error, status=status,
+                         iterations=iterations)
