@@ -25,10 +25,10 @@ from service.errors import ApiError
 from service.grpc_server import GrpcServer
 from service.metrics import HTTP, Metrics
 from service.oip import InferenceRequest
-from service.routers import design_space, exact, health, models, predict, v2, viewer
+from service.routers import design_space, exact, health, inverse, models, predict, v2, viewer
 from service.settings import Settings
 from service.state import ServiceState, load_models, start_pool
-from tdcr.schemas import ExactRequest, PredictRequest
+from tdcr.schemas import ExactRequest, InverseRequest, PredictRequest
 
 log = logging.getLogger("tdcr.service")
 
@@ -187,8 +187,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   description="Shapes of tendon-driven continuum robots: neural-operator surrogates (/predict) "
                               "and the Cosserat solver (/exact).  SI units throughout.")
     app.state.service = state
-    for router in (predict.router, exact.router, models.router, design_space.router, health.router, v2.router,
-                   viewer.router):
+    for router in (predict.router, exact.router, inverse.router, models.router, design_space.router, health.router,
+                   v2.router, viewer.router):
         app.include_router(router)
     viewer.mount(app)
 
@@ -239,7 +239,7 @@ def _openapi(app: FastAPI) -> dict:
         return app.openapi_schema
     schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
     components = schema.setdefault("components", {}).setdefault("schemas", {})
-    for body in (PredictRequest, ExactRequest, InferenceRequest):
+    for body in (PredictRequest, ExactRequest, InverseRequest, InferenceRequest):
         js = body.model_json_schema(ref_template="#/components/schemas/{model}")
         components.update(js.pop("$defs", {}))
         components[body.__name__] = js

@@ -23,6 +23,7 @@ import orjson
 
 from tdcr.design_space import range_warnings
 from tdcr.designs import L_COLUMN
+from tdcr.inverse import tip_by_differences
 from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
 
 #: Media types of the binary path.
@@ -59,6 +60,7 @@ class Prediction:
     arrays: dict[str, np.ndarray]
     warnings: list[list[str]]
     finite: np.ndarray  # (B,) the answer is finite (else its rows are zeros)
+    tip_jacobian: np.ndarray | None = None  # (B, 6, N_t) with "jacobian": true, by central differences
 
     @property
     def n_designs(self) -> int:
@@ -120,7 +122,16 @@ class DataPlane:
             arrays = {k: np.where(finite.reshape(-1, *[1] * (v.ndim - 1)), v, 0).astype(v.dtype)
                       for k, v in arrays.items()}
         s = features[:, L_COLUMN, None] * request.fractions[None, :]
-        return Prediction(model=name, s=s, arrays=arrays, warnings=range_warnings(features), finite=finite)
+        tip_jacobian = None
+        if request.jacobian:
+            def tip_pose(batch: np.ndarray):
+                out = predictor.predict(batch, np.ones(1), pose=True)
+                return out["backbone"][:, -1].astype(np.float64), out["rotation"][:, -1].astype(np.float64)
+
+            with np.errstate(all="ignore"):
+                tip_jacobian = np.ascontiguousarray(np.nan_to_num(tip_by_differences(features, tip_pose)[2]))
+        return Prediction(model=name, s=s, arrays=arrays, warnings=range_warnings(features), finite=finite,
+                          tip_jacobian=tip_jacobian)
 
     # -- encode ---------------------------------------------------------------------------------
 
@@ -132,6 +143,9 @@ class DataPlane:
         finite = prediction.finite.tolist()
         results = [{"s": s[j], **{k: v[j] for k, v in arrays.items()}, "in_distribution": not w, "warnings": w,
                     "finite": finite[j]} for j, w in enumerate(prediction.warnings)]
+        if prediction.tip_jacobian is not None:
+            for result, jacobian in zip(results, prediction.tip_jacobian, strict=True):
+                result["tip_jacobian"] = jacobian
         return orjson.dumps({"model": prediction.model, "results": results}, option=orjson.OPT_SERIALIZE_NUMPY)
 
     @staticmethod
@@ -142,6 +156,8 @@ class DataPlane:
         arrays = {"s": prediction.s, "in_distribution": np.array([not w for w in prediction.warnings]),
                   "finite": prediction.finite}
         arrays |= prediction.arrays
+        if prediction.tip_jacobian is not None:
+            arrays["tip_jacobian"] = prediction.tip_jacobian
         buf = io.BytesIO()
         with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
             for key, value in arrays.items():

@@ -42,6 +42,38 @@ def _cmd_solve(args) -> int:
     return 0
 
 
+def _cmd_inverse(args) -> int:
+    import numpy as np
+
+    from tdcr.inverse import EXACT_MODEL, answer, exact_forward, model_forward
+    from tdcr.runtime import ManifestError, Surrogate
+    from tdcr.validation import InvalidRequest, validate_inverse
+
+    try:
+        problem = validate_inverse(_read_text(args.request))
+    except InvalidRequest as exc:
+        raise _invalid(args.request, exc) from None
+    if problem.model == EXACT_MODEL:
+        results = answer(problem, exact_forward(problem.design))
+    else:
+        try:
+            model = Surrogate.load(args.models_dir, problem.model)
+        except ManifestError as exc:
+            raise UsageError(f"{args.models_dir}: {exc}") from None
+
+        def tip_pose(features):
+            out = model.predict(features, np.ones(1), pose=True)
+            return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
+
+        results = answer(problem, model_forward(problem.design, tip_pose))
+        if problem.polish:
+            starts = np.array([r["tensions"] for r in results])
+            results = answer(problem, exact_forward(problem.design), starts=starts)
+    json.dump({"model": problem.model, "results": results}, sys.stdout)
+    sys.stdout.write("\n")
+    return 0
+
+
 def _cmd_generate(args) -> int:
     from training.dataset import DatasetMismatch, GenerateConfig, generate
 
@@ -236,6 +268,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("solve", help="exact equilibria of the designs in a request JSON (Cosserat solver)")
     p.add_argument("request", help="request JSON file, or - for stdin")
     p.set_defaults(func=_cmd_solve)
+
+    p = sub.add_parser("inverse", help="tensions that reach the targets of an inverse-kinematics request JSON")
+    p.add_argument("request", help='{"design": ..., "targets": [{"position": [x, y, z]}, ...]} file, or - for stdin')
+    p.add_argument("--models-dir", default="models", help="manifest and ONNX files (operator models)")
+    p.set_defaults(func=_cmd_inverse)
 
     p = sub.add_parser("generate", help="generate a solver dataset of Table I designs")
     p.add_argument("--n", type=int, required=True, help="number of designs")

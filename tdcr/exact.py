@@ -60,11 +60,20 @@ def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None
     ``tendons`` ((n, N_t, 3) m), ``converged`` and ``residual`` (N), as nested lists.
     """
     results: list[dict | None] = [None] * request.n_designs
+    # the tip Jacobian is that of s = L: solved as one more arclength when it is not asked for
+    fractions = request.fractions
+    tip = np.nonzero(fractions == 1.0)[0]
+    if request.jacobian and tip.size == 0:
+        fractions = np.append(fractions, 1.0)
+    tip_index = int(tip[0]) if tip.size else fractions.size - 1
+    n = request.fractions.size
     for group in request.groups:
         with np.errstate(all="ignore"):  # overflow of an extreme design is reported in its flags
-            sol = solve(group.designs, request.fractions, loads=group.loads, options=options)
+            sol = solve(group.designs, fractions, loads=group.loads, options=options, jacobian=request.jacobian)
         for j, i in enumerate(group.rows):
-            results[i] = solution_to_dict(sol, j)
+            results[i] = solution_to_dict(sol, j, points=n)
+            if request.jacobian:
+                results[i]["tip_jacobian"] = np.nan_to_num(sol.jacobian[j, tip_index]).tolist()
     return results  # type: ignore[return-value]
 
 
@@ -72,11 +81,13 @@ def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None
 NOT_FINITE_RESIDUAL = sys.float_info.max
 
 
-def solution_to_dict(sol: RodSolution, j: int) -> dict:
-    """Design ``j`` of a :class:`RodSolution` as JSON-ready lists, numbers only: a design with
-    non-finite values is reported not converged, with those values as 0 and the residual as
-    :data:`NOT_FINITE_RESIDUAL`."""
-    arrays = {"s": sol.s[j], "backbone": sol.backbone[j], "rotation": sol.rotation[j], "tendons": sol.tendons[j]}
+def solution_to_dict(sol: RodSolution, j: int, *, points: int | None = None) -> dict:
+    """Design ``j`` of a :class:`RodSolution` (its first ``points`` arclengths; all by default) as
+    JSON-ready lists, numbers only: a design with non-finite values is reported not converged, with
+    those values as 0 and the residual as :data:`NOT_FINITE_RESIDUAL`."""
+    n = slice(points)
+    arrays = {"s": sol.s[j, n], "backbone": sol.backbone[j, n], "rotation": sol.rotation[j, n],
+              "tendons": sol.tendons[j, n]}
     finite = bool(all(np.isfinite(v).all() for v in arrays.values()) and np.isfinite(sol.residual[j]))
     if not finite:
         arrays = {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in arrays.items()}

@@ -31,6 +31,7 @@ import numpy as np
 
 from tdcr.designs import DesignBatch
 from tdcr.physics import solve
+from tdcr.validation import InverseProblem
 
 #: Relative weight of |tau|^2 (to the Jacobian's scale) in the least-norm steps.
 LEAST_NORM_WEIGHT = 1e-10
@@ -69,39 +70,34 @@ def _with_tensions(design: DesignBatch, tensions: np.ndarray) -> DesignBatch:
                        tension=tensions)
 
 
+def _pose(position: np.ndarray, frame: np.ndarray, jacobian: np.ndarray, ok: np.ndarray) -> TipPose:
+    """A :class:`TipPose` from tip positions, frames and pose Jacobians (rows 3-5 rotation vectors):
+    d (R e3) = (dR R^T) R e3 = omega x d for each tension's rotation vector omega."""
+    direction = frame[:, :, 2]
+    d_direction = np.cross(np.swapaxes(jacobian[:, 3:], 1, 2), direction[:, None, :]).swapaxes(1, 2)
+    pose_jacobian = np.concatenate([jacobian[:, :3], d_direction], axis=1)
+    ok = ok & np.isfinite(pose_jacobian).all(axis=(1, 2)) & np.isfinite(position).all(axis=1)
+    return TipPose(position, direction, pose_jacobian, ok)
+
+
 def exact_forward(design: DesignBatch) -> Forward:
     """The solver with its exact Jacobian (tendon loads only)."""
     def forward(tensions: np.ndarray) -> TipPose:
         with np.errstate(all="ignore"):
             sol = solve(_with_tensions(design, tensions), np.array([1.0]), jacobian=True)
-        rot, jac = sol.rotation[:, -1], sol.jacobian[:, -1]  # (T, 3, 3), (T, 6, N_t)
-        direction = rot[:, :, 2]
-        # d (R e3) = (dR R^T) R e3 = omega x d, for each tension's rotation vector omega
-        d_direction = np.cross(np.swapaxes(jac[:, 3:], 1, 2), direction[:, None, :]).swapaxes(1, 2)
-        pose_jacobian = np.concatenate([jac[:, :3], d_direction], axis=1)
-        ok = sol.converged & np.isfinite(pose_jacobian).all(axis=(1, 2))
-        return TipPose(sol.backbone[:, -1], direction, pose_jacobian, ok)
+        return _pose(sol.backbone[:, -1], sol.rotation[:, -1], sol.jacobian[:, -1], sol.converged)
     return forward
 
 
-def model_forward(design: DesignBatch, predict: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
-                  *, step: float = DIFFERENCE_STEP) -> Forward:
-    """Any model of the tip, ``predict(features (K, F)) -> (positions (K, 3), directions (K, 3))``,
-    with central differences in one batch of ``T (1 + 2 N_t)`` evaluations."""
+def model_forward(design: DesignBatch, tip_pose: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], *,
+                  step: float = DIFFERENCE_STEP) -> Forward:
+    """Any model of the tip, ``tip_pose(features (K, F)) -> (positions (K, 3), frames (K, 3, 3))``,
+    with its Jacobian by central differences (:func:`tip_by_differences`)."""
     def forward(tensions: np.ndarray) -> TipPose:
-        t, n_t = tensions.shape
-        eye = np.eye(n_t) * step
-        # central differences, one-sided where a bound is within a step (tensions stay >= 0)
-        lower = np.maximum(tensions[:, None, :] - eye[None], 0.0)
-        upper = tensions[:, None, :] + eye[None]
-        batch = np.concatenate([tensions, lower.reshape(-1, n_t), upper.reshape(-1, n_t)])
-        position, direction = predict(_with_tensions(design, batch).features())
-        pose = np.concatenate([position, direction], axis=1)  # (K, 6)
-        low, high = pose[t:t + t * n_t].reshape(t, n_t, 6), pose[t + t * n_t:].reshape(t, n_t, 6)
-        width = (upper - lower)[:, np.arange(n_t), np.arange(n_t)]  # (T, N_t)
-        jacobian = np.swapaxes((high - low) / width[..., None], 1, 2)
-        ok = np.isfinite(pose[:t]).all(axis=1) & np.isfinite(jacobian).all(axis=(1, 2))
-        return TipPose(position[:t], direction[:t], jacobian, ok)
+        features = _with_tensions(design, tensions).features()
+        with np.errstate(all="ignore"):
+            position, frame, jacobian = tip_by_differences(features, tip_pose, step=step)
+        return _pose(position, frame, jacobian, np.ones(len(tensions), dtype=bool))
     return forward
 
 
@@ -164,6 +160,7 @@ def inverse(forward: Forward, length: float, positions: np.ndarray, directions: 
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     if directions is not None:
         directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        directions = directions / np.abs(directions).max(axis=1, keepdims=True)  # no overflow in the norm
         directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     n_t = np.asarray(start).size
     low, high = np.zeros(n_t), np.full(n_t, float(tension_max))
@@ -264,3 +261,86 @@ def _result(tau, pose: TipPose, target, wanted, status: str, iterations: int) ->
     return InverseResult(tensions=np.asarray(tau, dtype=np.float64), position=pose.position[0],
                          direction=pose.direction[0], error=error, direction_error=direction_error, status=status,
                          iterations=iterations)
+
+
+def tip_by_differences(features: np.ndarray, tip_pose: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], *,
+                       step: float = DIFFERENCE_STEP) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A model's tip pose and its tip Jacobian by central differences in the tensions, in one batch.
+
+    Args:
+        features: raw SI designs ``(B, 3 + 3 N_t)``.
+        tip_pose: the model, ``features (K, F) -> (tip positions (K, 3) m, tip frames (K, 3, 3))``.
+        step: the tension step, N (one-sided where a tension is within a step of 0).
+
+    Returns:
+        ``(positions (B, 3), frames (B, 3, 3), jacobian (B, 6, N_t))``: rows 0-2 d p / d tau (m/N),
+        rows 3-5 the rotation vector of d R R^T / d tau (rad/N), base frame, as the solver's.
+    """
+    b, n_t = features.shape[0], (features.shape[1] - 3) // 3
+    tension = slice(3 + 2 * n_t, 3 + 3 * n_t)
+    eye = np.eye(n_t) * step
+    lower = np.repeat(features[:, None, :], n_t, axis=1)
+    upper = lower.copy()
+    lower[..., tension] = np.maximum(lower[..., tension] - eye[None], 0.0)
+    upper[..., tension] += eye[None]
+    batch = np.concatenate([features, lower.reshape(-1, features.shape[1]), upper.reshape(-1, features.shape[1])])
+    position, frame = tip_pose(batch)
+    p_low, p_high = position[b:b + b * n_t].reshape(b, n_t, 3), position[b + b * n_t:].reshape(b, n_t, 3)
+    r_low, r_high = frame[b:b + b * n_t].reshape(b, n_t, 3, 3), frame[b + b * n_t:].reshape(b, n_t, 3, 3)
+    width = (upper - lower)[..., tension][:, np.arange(n_t), np.arange(n_t)][..., None]  # (B, N_t, 1)
+    d_position = (p_high - p_low) / width
+    spin = (r_high - r_low) / width[..., None] @ np.swapaxes(frame[:b, None], -1, -2)  # d R R^T
+    d_rotation = np.stack([spin[..., 2, 1] - spin[..., 1, 2], spin[..., 0, 2] - spin[..., 2, 0],
+                           spin[..., 1, 0] - spin[..., 0, 1]], axis=-1) / 2  # its skew part's vector
+    return position[:b], frame[:b], np.swapaxes(np.concatenate([d_position, d_rotation], axis=-1), 1, 2)
+
+
+def answer(problem: InverseProblem, forward: Forward, *, starts: np.ndarray | None = None,
+           max_iterations: int = 60) -> list[dict]:
+    """JSON-ready answers of a validated request with ``forward`` (one per target, in order).
+
+    ``starts``: one start per target ``(T, N_t)`` (e.g. a surrogate's answers to polish), without
+    warm starts; default: the design's tensions, then each answer warm-starts the next target.
+    """
+    length = float(problem.design.L[0])
+    if starts is None:
+        results = inverse(forward, length, problem.positions, problem.directions, start=problem.design.tension[0],
+                          tension_max=problem.tension_max, tolerance=problem.tolerance, max_iterations=max_iterations)
+    else:
+        results = [inverse(forward, length, problem.positions[k:k + 1], problem.directions[k:k + 1], start=start,
+                           tension_max=problem.tension_max, tolerance=problem.tolerance,
+                           max_iterations=max_iterations)[0] for k, start in enumerate(starts)]
+    out = []
+    for k, res in enumerate(results):
+        finite = np.isfinite(res.position).all() and np.isfinite(res.error)
+        item = {"tensions": res.tensions.tolist(),
+                "position": res.position.tolist() if finite else [0.0, 0.0, 0.0],
+                "error": res.error if finite else NOT_FINITE, "status": res.status if finite else "failed",
+                "iterations": res.iterations}
+        if np.isfinite(problem.directions[k]).all():
+            item["direction"] = np.nan_to_num(res.direction).tolist()
+        out.append(item)
+    return out
+
+
+#: The model name of the solver in requests.
+EXACT_MODEL = "exact"
+#: The error reported for a target whose answer is not finite (JSON has no inf or NaN).
+NOT_FINITE = 1.7976931348623157e308
+#: Estimated forward evaluations per target, for admission (a cold target takes 5-15, restarts more).
+EVALUATIONS_PER_TARGET = 20
+
+
+def answer_exact_json(body: bytes, *, starts: list | None = None, max_seconds: float | None = None,
+                      seconds_per_design: float = 1e-3) -> list[dict]:
+    """/inverse with the exact model, from the JSON body: validation, admission and the solve,
+    run in a solver process; ``starts`` ``(T, N_t)``: polish these answers (of an operator).
+    Raises ``InvalidRequest`` or ``TooMuchWork``."""
+    from tdcr.exact import TooMuchWork
+    from tdcr.validation import validate_inverse
+
+    problem = validate_inverse(body)
+    estimate = problem.n_targets * EVALUATIONS_PER_TARGET * 4 * seconds_per_design  # ~4 ms per evaluation
+    if max_seconds is not None and estimate > max_seconds:
+        raise TooMuchWork(estimate, max_seconds)
+    return answer(problem, exact_forward(problem.design), starts=None if starts is None else np.asarray(starts))

@@ -98,11 +98,24 @@ class _Arclengths(BaseModel):
                                       description="arclengths as fractions of L, each in [0, 1] (instead of points)")
 
 
+_JACOBIAN = Field(False, description="add tip_jacobian to each result: (6, N_t), rows 0-2 d p(L) / d tau (m/N), "
+                                     "rows 3-5 the tip's rotation vector d R(L) R(L)^T / d tau (rad/N), base frame "
+                                     "(tendon loads only)")
+
+
+#: JSON schema: a Jacobian is asked only of designs without external loads.
+_JACOBIAN_WITHOUT_LOADS = {
+    "if": {"properties": {"jacobian": {"const": True}}, "required": ["jacobian"]},
+    "then": {"properties": {"designs": {"items": {"properties": {
+        "gravity": {"type": "null"}, "tip_force": {"type": "null"}, "tip_moment": {"type": "null"}}}}}}}
+
+
 class SolveRequest(_Arclengths):
     """A batch of designs and the arclengths wanted: ``points`` equispaced, or explicit ``s``."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S)
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S | _JACOBIAN_WITHOUT_LOADS)
     designs: list[Design] = Field(min_length=1)
+    jacobian: bool = _JACOBIAN
 
 
 class PredictRequest(_Arclengths):
@@ -112,6 +125,8 @@ class PredictRequest(_Arclengths):
     designs: list[SurrogateDesign] = Field(min_length=1)
     model: str | None = Field(None, min_length=1, max_length=MAX_MODEL_NAME,
                               description="deeponet, deeponet_pose, fno or fno_pose", examples=["deeponet"])
+    jacobian: bool = Field(False, description="add tip_jacobian to each result (as for /exact), by central "
+                                              "differences of the operator")
 
 
 class ExactRequest(SolveRequest):
@@ -125,6 +140,7 @@ class PredictedShape(BaseModel):
     tendons: list[list[list[float]]] = Field(description="(n, N_t, 3) tendon positions, m")
     in_distribution: bool = Field(description="every parameter inside the trained ranges")
     warnings: list[str] = Field(description="one line per parameter outside the trained ranges")
+    tip_jacobian: list[list[float]] | None = Field(None, description="(6, N_t) with jacobian: true")
     finite: bool = Field(True, description="the surrogate's answer is finite; when false (far outside the "
                                            "trained ranges) the arrays hold zeros and must not be used")
 
@@ -142,10 +158,70 @@ class ExactShape(BaseModel):
     converged: bool = Field(description="the solver met its tolerances; false for a design it could not solve "
                                         "(then non-finite coordinates are returned as 0)")
     residual: float = Field(description="wrench-balance residual, N (1.8e308 when it is not finite)")
+    tip_jacobian: list[list[float]] | None = Field(None, description="(6, N_t) with jacobian: true")
 
 
 class ExactResponse(BaseModel):
     results: list[ExactShape]
+
+
+#: Most targets of one inverse-kinematics request, and the bound of a target coordinate (m).
+MAX_TARGETS = 1000
+MAX_TARGET_COORDINATE = TABLE_I["L"].admissible[1]
+_Coordinate = Annotated[float, Field(strict=True, json_schema_extra={"minimum": -MAX_TARGET_COORDINATE,
+                                                                     "maximum": MAX_TARGET_COORDINATE})]
+
+
+class TipTarget(BaseModel):
+    """A tip target in the base frame: position p(L), m, and optionally the direction R(L) e3."""
+
+    model_config = ConfigDict(extra="forbid")
+    position: list[_Coordinate] = Field(min_length=3, max_length=3, description="tip position, base frame, m")
+    direction: list[Annotated[float, Field(strict=True)]] = Field(  # type: ignore[assignment]
+        None, min_length=3, max_length=3, description="tip tangent R(L) e3, any non-zero length (optional)",
+        json_schema_extra={"contains": {"not": {"const": 0}}})
+
+
+class InverseDesign(BaseModel):
+    """A design for inverse kinematics: tendon loads only (its tensions are the first start)."""
+
+    model_config = ConfigDict(extra="forbid")
+    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
+    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
+    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
+    tendons: list[Tendon] = Field(min_length=1, max_length=MAX_TENDONS)
+
+
+class InverseRequest(BaseModel):
+    """One design and the targets of a path, in order (an operator takes 4 tendons)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={
+        "if": {"properties": {"model": {"not": {"const": "exact"}}}, "required": ["model"]},
+        "then": {"properties": {"design": {"properties": {"tendons": {"minItems": N_TENDONS,
+                                                                      "maxItems": N_TENDONS}}}}}})
+    design: InverseDesign
+    targets: list[TipTarget] = Field(min_length=1, max_length=MAX_TARGETS)
+    tension_max: float = Field(5.0, gt=0.0, le=TABLE_I["tension"].admissible[1], description="upper bound of "
+                               "every tension, N (the lower bound is 0)")
+    model: str = Field("exact", min_length=1, max_length=MAX_MODEL_NAME,
+                       description="exact (the solver and its exact Jacobian) or an operator")
+    polish: bool = Field(False, description="with an operator: finish each target with exact steps")
+    tolerance: float = Field(1e-4, ge=1e-9, le=0.1, description="a target is reached within tolerance x L "
+                             "(and tolerance in direction)")
+
+
+class InverseResult(BaseModel):
+    tensions: list[float] = Field(description="(N_t,) tensions, N")
+    position: list[float] = Field(description="the tip they give, base frame, m")
+    direction: list[float] | None = Field(None, description="its direction R(L) e3 (when the target had one)")
+    error: float = Field(description="distance from the target position, m")
+    status: str = Field(description="reached, closest (unreachable within the bounds: the closest tip) or failed")
+    iterations: int = Field(description="forward-model evaluations")
+
+
+class InverseResponse(BaseModel):
+    model: str
+    results: list[InverseResult]
 
 
 class ErrorItem(BaseModel):

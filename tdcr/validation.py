@@ -27,11 +27,12 @@ from tdcr.design_space import (
     LOADS,
     MAX_POINTS,
     N_FEATURES,
+    N_TENDONS,
     TABLE_I,
     admissible_bounds,
 )
 from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
-from tdcr.schemas import MAX_MODEL_NAME, PredictRequest, SolveRequest
+from tdcr.schemas import MAX_MODEL_NAME, InverseRequest, PredictRequest, SolveRequest
 
 #: What a request is for: the surrogates (4 tendons, no loads) or the physics solver.
 Target = Literal["surrogate", "solver"]
@@ -121,13 +122,14 @@ class ShapeRequest:
 
     ``groups``: the designs by tendon count (one group for surrogate requests); ``fractions``:
     arclengths ``(n,)`` as fractions of L; ``model``: the surrogate named (None: the default);
-    ``outputs``: the arrays wanted.
+    ``outputs``: the arrays wanted; ``jacobian``: add each tip's Jacobian to the tensions.
     """
 
     groups: tuple[DesignGroup, ...]
     fractions: np.ndarray
     model: str | None = None
     outputs: tuple[str, ...] = OUTPUTS
+    jacobian: bool = False
 
     @property
     def n_designs(self) -> int:
@@ -259,20 +261,28 @@ def _check_sizes(n_designs: int, n_points: int, limits: Limits) -> None:
 
 
 def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: list[Problem], *,
-             model: str | None, outputs: tuple[str, ...]) -> ShapeRequest:
+             model: str | None, outputs: tuple[str, ...], jacobian: bool = False) -> ShapeRequest:
     """Every value check of every entry point; raises :class:`InvalidRequest` naming each field."""
     value_problems = []
     for g in groups:  # (the surrogates' 4 tendons and no loads are structure: checked by the schema or shape)
         value_problems += check_features(g.designs.features(), g.rows)
         if g.loads is not None:
             value_problems += check_loads(g.loads, g.rows)
+            if jacobian:
+                value_problems += [Problem(("designs", int(g.rows[b]), "jacobian"), "the tip Jacobian covers tendon "
+                                           "loads only: remove gravity and tip loads", "jacobian_with_loads")
+                                   for b in np.nonzero(_loaded(_zero_absent(g.loads)))[0]]
     value_problems.sort(key=lambda p: p.loc[1])  # by design, stable within a design (column order)
     problems = problems + value_problems
     if problems:
         raise InvalidRequest(problems)
-    groups = [g if g.loads is None else replace(g, loads=replace(  # absent (NaN above): no weight
-        g.loads, gravity=np.nan_to_num(g.loads.gravity), density=np.nan_to_num(g.loads.density))) for g in groups]
-    return ShapeRequest(groups=tuple(groups), fractions=fractions, model=model, outputs=outputs)
+    groups = [g if g.loads is None else replace(g, loads=_zero_absent(g.loads)) for g in groups]
+    return ShapeRequest(groups=tuple(groups), fractions=fractions, model=model, outputs=outputs, jacobian=jacobian)
+
+
+def _zero_absent(loads: ExternalLoads) -> ExternalLoads:
+    """Absent gravity and density (NaN from JSON) as zeros: no weight."""
+    return replace(loads, gravity=np.nan_to_num(loads.gravity), density=np.nan_to_num(loads.density))
 
 
 def _loaded(loads: ExternalLoads) -> np.ndarray:
@@ -305,7 +315,7 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     groups = [_group_from_json([request.designs[i] for i in rows], np.asarray(rows))
               for rows in by_count.values()]
     return _checked(groups, fractions, problems, model=getattr(request, "model", None),
-                    outputs=wanted)
+                    outputs=wanted, jacobian=request.jacobian)
 
 
 def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
@@ -353,3 +363,58 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     problems += more + _check_model(model)
     group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features), loads=None)
     return _checked([group], fractions, problems, model=model, outputs=wanted)
+
+
+@dataclass(frozen=True)
+class InverseProblem:
+    """A validated inverse-kinematics request: one ``design`` (its tensions are the first start),
+    target ``positions`` ``(T, 3)`` m and ``directions`` ``(T, 3)`` (NaN rows: none), and the options."""
+
+    design: DesignBatch
+    positions: np.ndarray
+    directions: np.ndarray
+    tension_max: float
+    model: str
+    polish: bool
+    tolerance: float
+
+    @property
+    def n_targets(self) -> int:
+        return len(self.positions)
+
+
+def validate_inverse(body: bytes | str | dict) -> InverseProblem:
+    """A JSON ``InverseRequest``: structure (pydantic; the design has no load fields), then the
+    design's values through the same checks as every design, 4 tendons for an operator, and
+    non-zero directions.
+    Raises :class:`InvalidRequest`."""
+    try:
+        request = (InverseRequest.model_validate(body) if isinstance(body, dict)
+                   else InverseRequest.model_validate_json(body))
+    except ValidationError as exc:
+        raise InvalidRequest(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"])
+                             for e in exc.errors(include_input=False, include_url=False)) from None
+    group = _group_from_json([request.design], np.zeros(1, dtype=int))
+    problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(group.designs.features(),
+                                                                                         group.rows)]
+    if request.model != "exact" and group.designs.n_tendons != N_TENDONS:
+        problems.append(Problem(("design", "tendons"), f"the operators take {N_TENDONS} tendons, got "
+                                                       f"{group.designs.n_tendons}", "tendon_count"))
+    positions = np.array([t.position for t in request.targets], dtype=np.float64)
+    directions = np.full_like(positions, np.nan)
+    for k, target in enumerate(request.targets):
+        if not np.isfinite(positions[k]).all():
+            problems.append(Problem(("targets", k, "position"), "must be finite numbers", "finite_number"))
+        if target.direction is not None:
+            d = np.asarray(target.direction, dtype=np.float64)
+            if not np.isfinite(d).all() or not np.abs(d).max() > 0.0:
+                problems.append(Problem(("targets", k, "direction"), "must be a finite, non-zero vector",
+                                        "direction"))
+            else:
+                d = d / np.abs(d).max()  # scaled first: no overflow or underflow in the norm
+                directions[k] = d / np.linalg.norm(d)
+    if problems:
+        raise InvalidRequest(problems)
+    return InverseProblem(design=group.designs, positions=positions, directions=directions,
+                          tension_max=request.tension_max, model=request.model, polish=request.polish,
+                          tolerance=request.tolerance)

@@ -34,6 +34,7 @@ def live(tiny_models):
 
 
 NAMES = ["GET /healthz", "GET /metrics", "GET /models", "GET /design-space", "GET /readyz", "POST /exact",
+         "POST /inverse",
          "POST /predict",
          "GET /v2", "GET /v2/health/live", "GET /v2/health/ready", "GET /v2/models/{model}",
          "GET /v2/models/{model}/ready", "POST /v2/models/{model}/infer", "GET /v2/models/{model}/versions/{version}",
@@ -50,7 +51,7 @@ def test_every_check_passes(live, operations, name):
     the document; no server error).  Schema-valid cases must not get 422; the size limits of the
     server's settings (413) and /exact's documented 503 (saturated) and 504 (deadline) are allowed,
     which schemathesis's own acceptance and server-error checks would not know."""
-    solver = name == "POST /exact" or name.endswith("/infer")  # /v2 infer may name the model exact
+    solver = name in ("POST /exact", "POST /inverse") or name.endswith("/infer")  # /v2 infer may name exact
     excluded = [checks.positive_data_acceptance] + ([checks.not_a_server_error] if solver else [])
 
     @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
