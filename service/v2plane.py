@@ -20,10 +20,11 @@ from service.state import ServiceState
 from tdcr.design_space import range_warnings
 from tdcr.designs import DesignBatch
 from tdcr.exact import TooMuchWork
+from tdcr.schemas import EXACT_MODEL
 from tdcr.validation import OUTPUTS, InvalidRequest, validate_features
 
 #: The solver's model name, and the one version of every model.
-EXACT = "exact"
+EXACT = EXACT_MODEL
 VERSION = "1"
 EXACT_INPUTS = SURROGATE_INPUTS | LOAD_INPUTS
 #: What the server says of itself (OIP server metadata).

@@ -45,8 +45,9 @@ def _cmd_solve(args) -> int:
 def _cmd_inverse(args) -> int:
     import numpy as np
 
-    from tdcr.inverse import EXACT_MODEL, answer, exact_forward, model_forward
+    from tdcr.inverse import answer, exact_forward, model_forward
     from tdcr.runtime import ManifestError, Surrogate
+    from tdcr.schemas import EXACT_MODEL
     from tdcr.validation import InvalidRequest, validate_inverse
 
     try:

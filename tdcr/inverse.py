@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from tdcr.designs import DesignBatch
+from tdcr.exact import NOT_FINITE_RESIDUAL
 from tdcr.physics import solve
 from tdcr.validation import InverseProblem
 
@@ -315,7 +316,7 @@ def answer(problem: InverseProblem, forward: Forward, *, starts: np.ndarray | No
         finite = np.isfinite(res.position).all() and np.isfinite(res.error)
         item = {"tensions": res.tensions.tolist(),
                 "position": res.position.tolist() if finite else [0.0, 0.0, 0.0],
-                "error": res.error if finite else NOT_FINITE, "status": res.status if finite else "failed",
+                "error": res.error if finite else NOT_FINITE_RESIDUAL, "status": res.status if finite else "failed",
                 "iterations": res.iterations}
         if np.isfinite(problem.directions[k]).all():
             item["direction"] = np.nan_to_num(res.direction).tolist()
@@ -323,10 +324,6 @@ def answer(problem: InverseProblem, forward: Forward, *, starts: np.ndarray | No
     return out
 
 
-#: The model name of the solver in requests.
-EXACT_MODEL = "exact"
-#: The error reported for a target whose answer is not finite (JSON has no inf or NaN).
-NOT_FINITE = 1.7976931348623157e308
 #: Estimated forward evaluations per target, for admission (a cold target takes 5-15, restarts more).
 EVALUATIONS_PER_TARGET = 20
 

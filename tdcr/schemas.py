@@ -19,6 +19,8 @@ from tdcr.design_space import DEFAULT_POINTS, LOADS, MAX_POINTS, MAX_TENDONS, N_
 
 #: Longest model name a request may carry.
 MAX_MODEL_NAME = 64
+#: The physics solver's name where a request names a model (/inverse, the v2 protocol).
+EXACT_MODEL = "exact"
 
 
 def _bounds(low: float, high: float, exclusive_min: bool) -> dict:
@@ -196,14 +198,14 @@ class InverseRequest(BaseModel):
     """One design and the targets of a path, in order (an operator takes 4 tendons)."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={
-        "if": {"properties": {"model": {"not": {"const": "exact"}}}, "required": ["model"]},
+        "if": {"properties": {"model": {"not": {"const": EXACT_MODEL}}}, "required": ["model"]},
         "then": {"properties": {"design": {"properties": {"tendons": {"minItems": N_TENDONS,
                                                                       "maxItems": N_TENDONS}}}}}})
     design: InverseDesign
     targets: list[TipTarget] = Field(min_length=1, max_length=MAX_TARGETS)
     tension_max: float = Field(5.0, gt=0.0, le=TABLE_I["tension"].admissible[1], description="upper bound of "
                                "every tension, N (the lower bound is 0)")
-    model: str = Field("exact", min_length=1, max_length=MAX_MODEL_NAME,
+    model: str = Field(EXACT_MODEL, min_length=1, max_length=MAX_MODEL_NAME,
                        description="exact (the solver and its exact Jacobian) or an operator")
     polish: bool = Field(False, description="with an operator: finish each target with exact steps")
     tolerance: float = Field(1e-4, ge=1e-9, le=0.1, description="a target is reached within tolerance x L "

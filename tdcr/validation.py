@@ -32,7 +32,7 @@ from tdcr.design_space import (
     admissible_bounds,
 )
 from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
-from tdcr.schemas import MAX_MODEL_NAME, InverseRequest, PredictRequest, SolveRequest
+from tdcr.schemas import EXACT_MODEL, MAX_MODEL_NAME, InverseRequest, PredictRequest, SolveRequest
 
 #: What a request is for: the surrogates (4 tendons, no loads) or the physics solver.
 Target = Literal["surrogate", "solver"]
@@ -397,7 +397,7 @@ def validate_inverse(body: bytes | str | dict) -> InverseProblem:
     group = _group_from_json([request.design], np.zeros(1, dtype=int))
     problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(group.designs.features(),
                                                                                          group.rows)]
-    if request.model != "exact" and group.designs.n_tendons != N_TENDONS:
+    if request.model != EXACT_MODEL and group.designs.n_tendons != N_TENDONS:
         problems.append(Problem(("design", "tendons"), f"the operators take {N_TENDONS} tendons, got "
                                                        f"{group.designs.n_tendons}", "tendon_count"))
     positions = np.array([t.position for t in request.targets], dtype=np.float64)

@@ -20,8 +20,8 @@ from service.errors import ApiError, from_invalid, require_json
 from service.metrics import HTTP
 from service.solver_pool import WorkerDied
 from tdcr.exact import TooMuchWork
-from tdcr.inverse import EXACT_MODEL, answer, answer_exact_json, model_forward
-from tdcr.schemas import ErrorResponse, InverseResponse
+from tdcr.inverse import answer, answer_exact_json, model_forward
+from tdcr.schemas import EXACT_MODEL, ErrorResponse, InverseResponse
 from tdcr.validation import InvalidRequest, InverseProblem, validate_inverse
 
 router = APIRouter(tags=["inverse"])
