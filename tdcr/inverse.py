@@ -31,7 +31,7 @@ import numpy as np
 
 from tdcr.designs import DesignBatch
 from tdcr.exact import NOT_FINITE_RESIDUAL
-from tdcr.physics import solve
+from tdcr.physics import TipSolver
 from tdcr.validation import InverseProblem
 
 #: Relative weight of |tau|^2 (to the Jacobian's scale) in the least-norm steps.
@@ -82,10 +82,13 @@ def _pose(position: np.ndarray, frame: np.ndarray, jacobian: np.ndarray, ok: np.
 
 
 def exact_forward(design: DesignBatch) -> Forward:
-    """The solver with its exact Jacobian (tendon loads only)."""
+    """The solver with its exact Jacobian (tendon loads only), Newton warm-started from the last
+    evaluation (:class:`tdcr.physics.TipSolver`)."""
+    tip = TipSolver(design)
+
     def forward(tensions: np.ndarray) -> TipPose:
         with np.errstate(all="ignore"):
-            sol = solve(_with_tensions(design, tensions), np.array([1.0]), jacobian=True)
+            sol = tip(tensions)
         return _pose(sol.backbone[:, -1], sol.rotation[:, -1], sol.jacobian[:, -1], sol.converged)
     return forward
 

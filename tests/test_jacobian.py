@@ -83,3 +83,19 @@ def test_loads_and_the_linearized_model_are_refused():
         solve(designs, S42, loads=gravity, jacobian=True)
     with pytest.raises(ValueError, match="tendon loads only"):
         solve(designs, S42, options=SolverOptions(linearized=True), jacobian=True)
+
+
+def test_tip_solver_warm_starts_give_the_solvers_answers():
+    """TipSolver (Newton from the last solve's strains) answers as solve() does, to Newton's tolerance,
+    along a sequence of tensions that jumps around."""
+    from tdcr.physics import TipSolver
+
+    design = design_space.sample_designs(1, seed=8)
+    tip = TipSolver(design)
+    rng = np.random.default_rng(0)
+    for tension in [design.tension[0], *rng.uniform(0.0, 5.0, (5, 4))]:
+        warm = tip(tension[None])
+        cold = solve(_with_tension(design, tension[None]), np.array([1.0]), jacobian=True)
+        np.testing.assert_allclose(warm.backbone, cold.backbone, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(warm.jacobian, cold.jacobian, rtol=0, atol=1e-9 * np.abs(cold.jacobian).max())
+        assert warm.converged.all()

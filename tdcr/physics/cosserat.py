@@ -471,8 +471,15 @@ def body_strains(designs: DesignBatch, s_fraction: np.ndarray, *, options: Solve
     return x.reshape(b, m, 6), ok.reshape(b, m).all(axis=1)
 
 
+@dataclass
+class _WarmStart:
+    """Strains of the last solve ``(P, 6)``: the next solve of the same shape starts its Newton there."""
+
+    strains: np.ndarray | None = None
+
+
 def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions, *,
-                       jacobian: bool = False) -> RodSolution:
+                       jacobian: bool = False, warm: _WarmStart | None = None) -> RodSolution:
     b, _n = designs.n_designs, sigma_out.shape[0]
     mat = material(designs)
     edges, widths, out_step = _step_grid(sigma_out, opts.max_step)
@@ -484,10 +491,14 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
     if opts.linearized:
         x = _first_order_strains(nodes)
         ok, iters = np.ones(x.shape[0], dtype=bool), np.zeros(x.shape[0], dtype=np.int64)
+    elif warm is not None and warm.strains is not None and warm.strains.shape == (b * m, 6):
+        x, ok, iters = _newton(warm.strains.copy(), nodes, opts)  # from the last solve's strains
     else:
         # start every node from the base strains (exact for parallel tendons, close otherwise)
         x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
         x, ok, iters = _newton(np.repeat(x_base, m, axis=0), nodes, opts)
+    if warm is not None:
+        warm.strains = x.copy() if ok.all() else None  # a failed solve is no place to start from
     dx = _strain_sensitivities(x, nodes).reshape(b, m, 6, -1) if jacobian else None
     res = _residual(x, nodes).reshape(b, m, 6)
     x = x.reshape(b, m, 6)
@@ -590,6 +601,28 @@ def _magnus_tangent(x, dx, k, h, bracket, mean, step_r, step_p) -> np.ndarray:
     for j in range(k):
         eta[:, j + 1] = ad_inverse[:, j] @ eta[:, j] + carry[:, j]
     return eta
+
+
+class TipSolver:
+    """Repeated tendon-only solves of one design's tip (s = L) with its exact Jacobian, for new
+    tensions each time: each Newton starts from the last solve's strains (inverse kinematics asks
+    for many nearby tensions).  ``solver(tensions (T, N_t))`` -> :class:`RodSolution` at s = L with
+    ``jacobian``; the answers equal :func:`solve`'s to Newton's tolerance."""
+
+    def __init__(self, design: DesignBatch, *, options: SolverOptions | None = None):
+        if design.n_designs != 1:
+            raise ValueError("TipSolver takes one design")
+        self.design = design
+        self.options = options or SolverOptions()
+        self._warm = _WarmStart()
+
+    def __call__(self, tensions: np.ndarray) -> RodSolution:
+        tensions = np.asarray(tensions, dtype=np.float64)
+        t, d = tensions.shape[0], self.design
+        designs = DesignBatch(E=np.repeat(d.E, t), r=np.repeat(d.r, t), L=np.repeat(d.L, t),
+                              offset=np.repeat(d.offset, t, axis=0), pitch=np.repeat(d.pitch, t, axis=0),
+                              tension=tensions)
+        return _solve_tendon_only(designs, np.ones(1), self.options, jacobian=True, warm=self._warm)
 
 
 def _wrench_norm(res: np.ndarray, length: np.ndarray) -> np.ndarray:
