@@ -33,7 +33,7 @@ from starlette.concurrency import run_in_threadpool
 from service.metrics import GRPC
 from service.oip import DATATYPES, InferRequest, OipError, check_input, check_request
 from service.state import ServiceState
-from service.v2plane import EXACT, VERSION, V2Plane
+from service.v2plane import SOLVER_MODELS, VERSION, V2Plane
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 
@@ -52,7 +52,7 @@ HEALTH_PERIOD_S = 0.5
 
 
 def decode(request: pb.ModelInferRequest, *, inputs: Mapping[str, tuple[str, list[int]]],
-           outputs: Mapping[str, tuple[str, list[int]]]) -> InferRequest:
+           outputs: Mapping[str, tuple[str, list[int]]], required: tuple[str, ...] = ("design",)) -> InferRequest:
     """A ``ModelInferRequest`` as an :class:`InferRequest` (outputs raw iff the inputs were)."""
     raw = request.raw_input_contents
     if raw and len(raw) != len(request.inputs):
@@ -76,7 +76,7 @@ def decode(request: pb.ModelInferRequest, *, inputs: Mapping[str, tuple[str, lis
             array = np.array(values, dtype=dtype)
         arrays[name] = array.reshape(shape)
     asked = [(o.name, bool(raw)) for o in request.outputs] or [(n, bool(raw)) for n in outputs]
-    wanted = check_request(arrays, asked, outputs=outputs)
+    wanted = check_request(arrays, asked, outputs=outputs, required=required)
     return InferRequest(inputs=arrays, outputs=wanted, id=request.id[:64] or None)
 
 
@@ -182,10 +182,10 @@ class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
             started = time.perf_counter()
             model = request.model_name
             self.plane.check_model(model, request.model_version)
-            if model == EXACT:  # the solver request built off the loop, the solve in the pool
+            if model in SOLVER_MODELS:  # the solver request built off the loop, the solve in the pool
                 decoded = self._decode(model, request)
-                features, body = await run_in_threadpool(self.plane.solve_body, decoded)
-                tensors, n = await self.plane.exact(decoded, features, body)
+                features, body = await run_in_threadpool(self.plane.solver_body, model, decoded)
+                tensors, n = await self.plane.solver(model, decoded, features, body)
                 response = encode(model, tensors, raw=bool(request.raw_input_contents), request_id=decoded.id)
             else:  # decode, run and encode in one thread hop
                 response, n = await run_in_threadpool(self._surrogate, model, request)
@@ -195,8 +195,8 @@ class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
         return await self._answer("ModelInfer", context, work)
 
     def _decode(self, model: str, request: pb.ModelInferRequest) -> InferRequest:
-        inputs, outputs = self.plane.tensors(model)
-        return decode(request, inputs=inputs, outputs=outputs)
+        inputs, outputs, required = self.plane.tensors(model)
+        return decode(request, inputs=inputs, outputs=outputs, required=required)
 
     def _surrogate(self, model: str, request: pb.ModelInferRequest) -> tuple[pb.ModelInferResponse, int]:
         decoded = self._decode(model, request)

@@ -42,6 +42,13 @@ SURROGATE_OUTPUTS = {"backbone": ("FP32", [-1, -1, 3]), "rotation": ("FP32", [-1
 LOAD_INPUTS = {"gravity": ("FP64", [-1, 3]), "density": ("FP64", [-1]), "tip_force": ("FP64", [-1, 3]),
                "tip_moment": ("FP64", [-1, 3])}
 EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": ("BOOL", [-1]), "residual": ("FP64", [-1])}
+#: Inverse kinematics (/inverse with the exact model): one design, the targets of a path.
+INVERSE_INPUTS = {"design": ("FP64", [1, N_FEATURES]), "position": ("FP64", [-1, 3]), "direction": ("FP64", [-1, 3]),
+                  "tension_max": ("FP64", [1])}
+INVERSE_OUTPUTS = {"tensions": ("FP64", [-1, N_TENDONS]), "position": ("FP64", [-1, 3]), "error": ("FP64", [-1]),
+                   "status": ("INT32", [-1])}
+#: The ``status`` output of the inverse model.
+INVERSE_STATUS = {"reached": 0, "closest": 1, "failed": 2}
 #: Header of the binary tensor extension.
 HEADER_LENGTH = INFERENCE_HEADER_LENGTH
 

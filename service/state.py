@@ -14,6 +14,7 @@ from service.settings import Settings
 from service.solver_pool import SolverPool
 from tdcr import design_space
 from tdcr.exact import TooMuchWork, answer_json
+from tdcr.inverse import answer_exact_json
 from tdcr.runtime import ManifestError, Surrogate, load_manifest
 from tdcr.validation import InvalidRequest
 
@@ -42,6 +43,16 @@ class ServiceState:
         ``TimeoutError``, ``WorkerDied`` or ``RuntimeError`` (the solver failed)."""
         settings = self.settings
         return await self.pool.run(answer_json, body, limits=settings.exact_limits(), budget=settings.exact_budget(),
+                                   timeout=settings.exact_timeout_s, expected=(InvalidRequest, TooMuchWork))
+
+
+    async def inverse_json(self, body: bytes, starts: list | None = None) -> list[dict]:
+        """/inverse with the exact model (or the exact polish of ``starts``) in a solver process
+        within /exact's deadline and admission.  Raises as :meth:`solve_json`."""
+        settings = self.settings
+        return await self.pool.run(answer_exact_json, body, starts=starts,
+                                   max_seconds=settings.exact_budget().max_seconds,
+                                   seconds_per_design=settings.exact_seconds_per_design,
                                    timeout=settings.exact_timeout_s, expected=(InvalidRequest, TooMuchWork))
 
 

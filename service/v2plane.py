@@ -1,7 +1,8 @@
 """The Open Inference Protocol's models, transport-neutral: what the REST routes (service/routers/v2.py)
 and the gRPC servicer (service/grpc_server.py) both call.
 
-Every manifest operator is a model, and the physics solver is the model ``exact``; each has the
+Every manifest operator is a model, the physics solver is the model ``exact`` and its inverse
+kinematics (POST /inverse with the exact model) the model ``inverse``; each has the
 single version ``"1"``.  Inputs arrive decoded (:class:`service.oip.InferRequest`) and leave as
 tensors ``name -> (datatype, array)``; errors are :class:`service.oip.OipError` with a kind that
 each transport maps to its own status.
@@ -14,7 +15,17 @@ import orjson
 
 import tdcr
 from service.dataplane import ModelNotFound
-from service.oip import EXACT_OUTPUTS, LOAD_INPUTS, SURROGATE_INPUTS, SURROGATE_OUTPUTS, InferRequest, OipError
+from service.oip import (
+    EXACT_OUTPUTS,
+    INVERSE_INPUTS,
+    INVERSE_OUTPUTS,
+    INVERSE_STATUS,
+    LOAD_INPUTS,
+    SURROGATE_INPUTS,
+    SURROGATE_OUTPUTS,
+    InferRequest,
+    OipError,
+)
 from service.solver_pool import WorkerDied
 from service.state import ServiceState
 from tdcr.design_space import range_warnings
@@ -23,8 +34,10 @@ from tdcr.exact import TooMuchWork
 from tdcr.schemas import EXACT_MODEL
 from tdcr.validation import OUTPUTS, InvalidRequest, validate_features
 
-#: The solver's model name, and the one version of every model.
+#: The solver's model name, the inverse-kinematics model's, and the one version of every model.
 EXACT = EXACT_MODEL
+INVERSE = "inverse"
+SOLVER_MODELS = (EXACT, INVERSE)
 VERSION = "1"
 EXACT_INPUTS = SURROGATE_INPUTS | LOAD_INPUTS
 #: What the server says of itself (OIP server metadata).
@@ -51,32 +64,37 @@ class V2Plane:
 
     def check_model(self, model: str, version: str | None) -> None:
         """:class:`OipError` ``not_found`` unless ``model`` is loaded and ``version`` is empty or ``"1"``."""
-        if model != EXACT and model not in self.state.models:
+        if model not in SOLVER_MODELS and model not in self.state.models:
             raise OipError("not_found", f"unknown model {model[:64]!r}; available: "
-                                        f"{sorted(self.state.models) + [EXACT]}")
+                                        f"{sorted(self.state.models) + list(SOLVER_MODELS)}")
         if version not in (None, "", VERSION):
             raise OipError("not_found", f"model {model!r} has only version {VERSION}, not {version[:16]!r}")
 
     def model_ready(self, model: str, version: str | None = None) -> bool:
         self.check_model(model, version)
-        return self.state.pool_healthy if model == EXACT else True
+        return self.state.pool_healthy if model in SOLVER_MODELS else True
 
     @staticmethod
-    def tensors(model: str) -> tuple[dict, dict]:
-        """The ``(inputs, outputs)`` specifications of ``model``: name -> (datatype, shape)."""
-        return (EXACT_INPUTS, EXACT_OUTPUTS) if model == EXACT else (SURROGATE_INPUTS, SURROGATE_OUTPUTS)
+    def tensors(model: str) -> tuple[dict, dict, tuple[str, ...]]:
+        """The ``(inputs, outputs, required inputs)`` of ``model``; specifications name -> (datatype, shape)."""
+        if model == INVERSE:
+            return INVERSE_INPUTS, INVERSE_OUTPUTS, ("design", "position")
+        if model == EXACT:
+            return EXACT_INPUTS, EXACT_OUTPUTS, ("design",)
+        return SURROGATE_INPUTS, SURROGATE_OUTPUTS, ("design",)
 
     def model_metadata(self, model: str, version: str | None = None) -> dict:
         """Name, versions, platform, inputs and outputs (name, datatype, shape) and parameters: the
         manifest's sha256, architecture, kind, metrics and ranges (the last two as JSON text)."""
         self.check_model(model, version)
-        inputs, outputs = self.tensors(model)
+        inputs, outputs, _ = self.tensors(model)
         meta = {"name": model, "versions": [VERSION],
                 "inputs": [{"name": n, "datatype": d, "shape": s} for n, (d, s) in inputs.items()],
                 "outputs": [{"name": n, "datatype": d, "shape": s} for n, (d, s) in outputs.items()]}
-        if model == EXACT:
+        if model in SOLVER_MODELS:
+            extra = {"status": orjson.dumps(INVERSE_STATUS).decode()} if model == INVERSE else {}
             return meta | {"platform": "tdcr_cosserat_solver",
-                           "parameters": {"deadline_s": self.state.settings.exact_timeout_s}}
+                           "parameters": {"deadline_s": self.state.settings.exact_timeout_s} | extra}
         entry = self.state.manifest["models"][model]
         return meta | {"platform": "onnxruntime_onnx",
                        "parameters": {"sha256": entry["sha256"], "architecture": entry["architecture"],
@@ -119,9 +137,42 @@ class V2Plane:
         body = {"designs": designs} | ({"s": request.inputs["s"].tolist()} if "s" in request.inputs else {})
         return features, orjson.dumps(body)
 
-    async def exact(self, request: InferRequest, features: np.ndarray, body: bytes) -> tuple[Tensors, int]:
-        """The solver's answer to ``body`` (from :meth:`solve_body`), within /exact's bounded pool and
-        deadline."""
+    @staticmethod
+    def inverse_body(request: InferRequest) -> bytes:
+        """The JSON ``InverseRequest`` (model exact) of a decoded ``inverse`` request."""
+        design = DesignBatch.from_features(np.asarray(request.inputs["design"], dtype=np.float64)).to_dicts()[0]
+        positions = request.inputs["position"]
+        directions = request.inputs.get("direction")
+        if directions is not None and len(directions) != len(positions):
+            raise OipError("invalid", f"input 'direction' has {len(directions)} rows, 'position' has {len(positions)}")
+        targets = [{"position": p} for p in positions.tolist()]
+        if directions is not None:
+            for target, d in zip(targets, directions.tolist(), strict=True):
+                target["direction"] = d
+        body = {"design": design, "targets": targets, "model": EXACT}
+        if "tension_max" in request.inputs:
+            body["tension_max"] = float(request.inputs["tension_max"][0])
+        return orjson.dumps(body)
+
+    def solver_body(self, model: str, request: InferRequest) -> tuple[np.ndarray | None, bytes]:
+        """The designs (``exact``) and the JSON body a solver process validates and answers."""
+        return (None, self.inverse_body(request)) if model == INVERSE else self.solve_body(request)
+
+    async def solver(self, model: str, request: InferRequest, features: np.ndarray | None,
+                     body: bytes) -> tuple[Tensors, int]:
+        """``exact`` or ``inverse`` on ``body`` (from :meth:`solver_body`), within /exact's bounded
+        pool and deadline."""
+        if model == INVERSE:
+            results = await self._in_pool(self.state.inverse_json, body)
+            values = {"tensions": ("FP64", np.array([r["tensions"] for r in results])),
+                      "position": ("FP64", np.array([r["position"] for r in results])),
+                      "error": ("FP64", np.array([r["error"] for r in results])),
+                      "status": ("INT32", np.array([INVERSE_STATUS[r["status"]] for r in results]))}
+            return {n: values[n] for n in request.outputs}, len(results)
+        return await self.exact(request, features, body)
+
+    async def _in_pool(self, call, body: bytes) -> list[dict]:
+        """``call(body)`` in a solver process, with /exact's slots; its errors as :class:`OipError`."""
         state = self.state
         if state.pool is None or state.exact_slots is None:
             raise OipError("unavailable", "the solver pool is not running")
@@ -129,7 +180,7 @@ class V2Plane:
             raise OipError("saturated", "the solver is saturated; retry later")
         async with state.exact_slots:
             try:
-                results = await state.solve_json(body)
+                return await call(body)
             except InvalidRequest as exc:
                 raise OipError("too_large" if exc.too_large else "invalid", f"inputs: {exc.message}") from None
             except TooMuchWork as exc:
@@ -139,6 +190,10 @@ class V2Plane:
                                ) from None
             except (WorkerDied, RuntimeError):
                 raise OipError("unavailable", "the solver failed on this request; retry later") from None
+
+    async def exact(self, request: InferRequest, features: np.ndarray, body: bytes) -> tuple[Tensors, int]:
+        """The solver's shapes for ``body`` (from :meth:`solve_body`)."""
+        results = await self._in_pool(self.state.solve_json, body)
         values = {"backbone": ("FP32", np.array([r["backbone"] for r in results])),
                   "rotation": ("FP32", np.array([r["rotation"] for r in results])),
                   "tendons": ("FP32", np.array([r["tendons"] for r in results])),

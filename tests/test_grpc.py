@@ -24,6 +24,7 @@ from tdcr.design_space import sample_designs
 from tdcr.designs import DesignBatch
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
+from tdcr.physics import solve
 
 MODELS = ["deeponet", "deeponet_pose", "fno", "fno_pose"]
 SERVICE = "inference.GRPCInferenceService"
@@ -59,8 +60,8 @@ def _request(model: str, features: np.ndarray, *, raw: bool = True, outputs=(), 
 
 
 def _outputs(response: pb.ModelInferResponse) -> dict[str, np.ndarray]:
-    dtypes = {"FP32": "<f4", "FP64": "<f8", "BOOL": "?"}
-    fields = {"FP32": "fp32_contents", "FP64": "fp64_contents", "BOOL": "bool_contents"}
+    dtypes = {"FP32": "<f4", "FP64": "<f8", "BOOL": "?", "INT32": "<i4"}
+    fields = {"FP32": "fp32_contents", "FP64": "fp64_contents", "BOOL": "bool_contents", "INT32": "int_contents"}
     out = {}
     for i, t in enumerate(response.outputs):
         if response.raw_output_contents:
@@ -295,3 +296,25 @@ def test_api_keys_guard_grpc_too(tiny_models):
                 assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED
         for metadata in ((("x-api-key", "k1"),), (("authorization", "Bearer k1"),)):
             assert stub.ModelInfer(_request("fno", features), metadata=metadata).model_name == "fno"
+
+
+def test_inverse_kinematics_as_a_v2_model(server, stub):
+    """The model ``inverse``: one design, target positions (and directions); tensions, tips, errors and
+    a status code (0 reached) over gRPC, equal to POST /inverse over REST."""
+    design = sample_designs(1, seed=12)
+    targets = solve(design, np.array([1.0]))
+    position, direction = targets.backbone[:, -1], targets.rotation[:, -1, :, 2]
+    start = DesignBatch.from_features(design.features() * np.r_[np.ones(11), np.zeros(4)])  # tensions 0
+    request = _request("inverse", start.features(), position=position, direction=direction)
+    out = _outputs(stub.ModelInfer(request))
+    rest = httpx.post(server.url + "/inverse", json={"design": start.to_dicts()[0], "targets": [
+        {"position": position[0].tolist(), "direction": direction[0].tolist()}]}, timeout=60).json()["results"][0]
+    assert out["status"].tolist() == [0] and rest["status"] == "reached"
+    np.testing.assert_allclose(out["tensions"][0], rest["tensions"], rtol=1e-12, atol=1e-12)
+    assert out["error"][0] <= 1e-4 * design.L[0]
+    meta = stub.ModelMetadata(pb.ModelMetadataRequest(name="inverse"))
+    assert [t.name for t in meta.inputs] == ["design", "position", "direction", "tension_max"]
+    with pytest.raises(grpc.RpcError) as err:
+        stub.ModelInfer(_request("inverse", start.features()))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "missing input(s) ['position']" in \
+        err.value.details()

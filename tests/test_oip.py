@@ -143,3 +143,20 @@ def test_loadtest_speaks_v2(server, root):
                           capture_output=True, text=True, cwd=root, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stdout.count("| v2 binary |") == 4
+
+
+def test_inverse_kinematics_model_over_rest(server):
+    from tdcr.physics import solve
+
+    design = sample_designs(1, seed=13)
+    tip = solve(design, np.array([1.0])).backbone[0, -1]
+    request = {"inputs": [{"name": "design", "shape": [1, 15], "datatype": "FP64",
+                           "data": design.features().reshape(-1).tolist()},
+                          {"name": "position", "shape": [1, 3], "datatype": "FP64", "data": tip.tolist()}],
+               "outputs": [{"name": "status"}, {"name": "error"}]}
+    r = _post(server, "inverse", request)
+    assert r.status_code == 200, r.text
+    outputs = {o["name"]: o["data"] for o in r.json()["outputs"]}
+    assert outputs["status"] == [0] and outputs["error"][0] <= 1e-4 * design.L[0]
+    two_designs = request | {"inputs": [request["inputs"][0] | {"shape": [2, 15], "data": [0.0] * 30}]}
+    assert _post(server, "inverse", two_designs).status_code == 400

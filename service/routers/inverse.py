@@ -20,7 +20,7 @@ from service.errors import ApiError, from_invalid, require_json
 from service.metrics import HTTP
 from service.solver_pool import WorkerDied
 from tdcr.exact import TooMuchWork
-from tdcr.inverse import answer, answer_exact_json, model_forward
+from tdcr.inverse import answer, model_forward
 from tdcr.schemas import EXACT_MODEL, ErrorResponse, InverseResponse
 from tdcr.validation import InvalidRequest, InverseProblem, validate_inverse
 
@@ -80,10 +80,7 @@ async def _exact(state, body: bytes, starts: list | None) -> list[dict]:
         raise ApiError(503, "the solver is saturated; retry later", kind="saturated", headers={"retry-after": "1"})
     async with state.exact_slots:
         try:
-            return await state.pool.run(answer_exact_json, body, starts=starts,
-                                        max_seconds=settings.exact_budget().max_seconds,
-                                        seconds_per_design=settings.exact_seconds_per_design,
-                                        timeout=settings.exact_timeout_s, expected=(InvalidRequest, TooMuchWork))
+            return await state.inverse_json(body, starts)
         except TooMuchWork as exc:
             raise ApiError(413, str(exc), kind="too_much_work") from None
         except TimeoutError:

@@ -15,7 +15,7 @@ from service.deps import State
 from service.metrics import HTTP
 from service.oip import HEADER_LENGTH, OipError, OipErrorBody, decode, encode
 from service.state import ServiceState
-from service.v2plane import EXACT, V2Plane
+from service.v2plane import SOLVER_MODELS, V2Plane
 
 router = APIRouter(prefix="/v2", tags=["v2"])
 
@@ -80,16 +80,16 @@ def model_ready(plane: Plane, model: str, version: str | None = None):
 
 
 def _surrogate(plane: V2Plane, model: str, body: bytes, header_length: str | None):
-    inputs, outputs = plane.tensors(model)
-    request = decode(body, header_length, inputs=inputs, outputs=outputs)
+    inputs, outputs, required = plane.tensors(model)
+    request = decode(body, header_length, inputs=inputs, outputs=outputs, required=required)
     tensors, n = plane.surrogate(model, request)
     return encode(model, tensors, request.outputs, request.id), n
 
 
-def _exact_request(plane: V2Plane, body: bytes, header_length: str | None):
-    inputs, outputs = plane.tensors(EXACT)
-    request = decode(body, header_length, inputs=inputs, outputs=outputs)
-    return request, *plane.solve_body(request)
+def _solver_request(plane: V2Plane, model: str, body: bytes, header_length: str | None):
+    inputs, outputs, required = plane.tensors(model)
+    request = decode(body, header_length, inputs=inputs, outputs=outputs, required=required)
+    return request, *plane.solver_body(model, request)
 
 
 @_routes("/infer", methods=["POST"], summary="OIP inference (JSON tensors or the binary tensor extension)",
@@ -106,9 +106,10 @@ async def infer(request: Request, plane: Plane, model: str, version: str | None 
     started = time.perf_counter()
     try:
         plane.check_model(model, version)
-        if model == EXACT:  # decoding and the solver request off the loop, the solve in the pool
-            decoded, features, solve_body = await run_in_threadpool(_exact_request, plane, body, header_length)
-            tensors, n = await plane.exact(decoded, features, solve_body)
+        if model in SOLVER_MODELS:  # decoding and the solver request off the loop, the solve in the pool
+            decoded, features, solver_body = await run_in_threadpool(_solver_request, plane, model, body,
+                                                                     header_length)
+            tensors, n = await plane.solver(model, decoded, features, solver_body)
             payload, json_length = encode(model, tensors, decoded.outputs, decoded.id)
         else:  # decode, run and encode in one thread hop
             (payload, json_length), n = await run_in_threadpool(_surrogate, plane, model, body, header_length)
