@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection
+import logging
+from collections.abc import Collection, Iterator
+from contextlib import contextmanager
 
+from service.solver_pool import WorkerDied
+from tdcr.exact import TooMuchWork
 from tdcr.validation import InvalidRequest
+
+log = logging.getLogger("tdcr.service")
 
 
 class ApiError(Exception):
@@ -43,3 +49,21 @@ def require_json(content_type: str) -> None:
     if media not in JSON_TYPES and not (media.startswith("application/") and media.endswith("+json")):
         raise ApiError(415, f"Content-Type must be application/json, got {media[:40] or 'none'!r}",
                        kind="media_type")
+
+
+@contextmanager
+def solver_errors(timeout_s: float) -> Iterator[None]:
+    """A solver process's failures as HTTP errors: more work than admitted 413, past the deadline
+    ``timeout_s`` 504 (the worker was killed: its work stops with the deadline), a dead or failing
+    worker 503."""
+    try:
+        yield
+    except TooMuchWork as exc:
+        raise ApiError(413, str(exc), kind="too_much_work") from None
+    except TimeoutError:
+        raise ApiError(504, f"the solver did not finish within {timeout_s} s", kind="deadline") from None
+    except WorkerDied as exc:
+        raise ApiError(503, str(exc), kind="unavailable") from None
+    except RuntimeError as exc:
+        log.error("solver failed: %s", exc)
+        raise ApiError(503, "the solver failed on this request", kind="solver") from None

@@ -2,22 +2,18 @@
 
 from __future__ import annotations
 
-import logging
 import time
 
 import orjson
 from fastapi import APIRouter, Request, Response
 
 from service.deps import State
-from service.errors import ApiError, from_invalid, require_json
+from service.errors import ApiError, from_invalid, require_json, solver_errors
 from service.metrics import HTTP
-from service.solver_pool import WorkerDied
-from tdcr.exact import TooMuchWork
 from tdcr.schemas import ErrorResponse, ExactResponse
 from tdcr.validation import InvalidRequest
 
 router = APIRouter(tags=["exact"])
-log = logging.getLogger("tdcr.service")
 
 
 @router.post(
@@ -44,19 +40,10 @@ async def exact(request: Request, state: State) -> Response:
         body = await request.body()
         started = time.perf_counter()
         try:  # parsing, validation, admission and solving all run in a solver process
-            results = await state.solve_json(body)
+            with solver_errors(settings.exact_timeout_s):
+                results = await state.solve_json(body)
         except InvalidRequest as exc:
             raise from_invalid(exc) from None
-        except TooMuchWork as exc:
-            raise ApiError(413, str(exc), kind="too_much_work") from None
-        except TimeoutError:  # the worker was killed: its work stops with the deadline
-            raise ApiError(504, f"the solver did not finish within {settings.exact_timeout_s} s",
-                           kind="deadline") from None
-        except WorkerDied as exc:
-            raise ApiError(503, str(exc), kind="unavailable") from None
-        except RuntimeError as exc:
-            log.error("solver failed: %s", exc)
-            raise ApiError(503, "the solver failed on this request", kind="solver") from None
     state.metrics.latency.labels(HTTP, "/exact", "solver").observe(time.perf_counter() - started)
     state.metrics.designs.labels(HTTP, "/exact", "solver").inc(len(results))
     return Response(orjson.dumps({"results": results}), media_type="application/json")

@@ -7,7 +7,6 @@ and ``polish: true`` finishes each of its answers with exact steps in a solver p
 
 from __future__ import annotations
 
-import logging
 import time
 
 import orjson
@@ -16,16 +15,13 @@ from starlette.concurrency import run_in_threadpool
 
 from service.dataplane import ModelNotFound
 from service.deps import Plane, State
-from service.errors import ApiError, from_invalid, require_json
+from service.errors import ApiError, from_invalid, require_json, solver_errors
 from service.metrics import HTTP
-from service.solver_pool import WorkerDied
-from tdcr.exact import TooMuchWork
 from tdcr.inverse import answer, model_forward
 from tdcr.schemas import EXACT_MODEL, ErrorResponse, InverseResponse
 from tdcr.validation import InvalidRequest, InverseProblem, validate_inverse
 
 router = APIRouter(tags=["inverse"])
-log = logging.getLogger("tdcr.service")
 ROUTE = "/inverse"
 
 
@@ -79,15 +75,5 @@ async def _exact(state, body: bytes, starts: list | None) -> list[dict]:
     if state.exact_slots.locked():
         raise ApiError(503, "the solver is saturated; retry later", kind="saturated", headers={"retry-after": "1"})
     async with state.exact_slots:
-        try:
+        with solver_errors(settings.exact_timeout_s):
             return await state.inverse_json(body, starts)
-        except TooMuchWork as exc:
-            raise ApiError(413, str(exc), kind="too_much_work") from None
-        except TimeoutError:
-            raise ApiError(504, f"the solver did not finish within {settings.exact_timeout_s} s",
-                           kind="deadline") from None
-        except WorkerDied as exc:
-            raise ApiError(503, str(exc), kind="unavailable") from None
-        except RuntimeError as exc:
-            log.error("inverse kinematics failed: %s", exc)
-            raise ApiError(503, "the solver failed on this request", kind="solver") from None
