@@ -164,6 +164,35 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_study(args) -> int:
+    import time
+
+    from training import studies
+
+    names = studies.STUDIES if args.name == "all" else (args.name,)
+    if args.name != "all" and args.name not in studies.STUDIES:
+        raise UsageError(f"unknown study {args.name!r}; known: {', '.join(studies.STUDIES)}, all")
+    if args.budget not in studies.BUDGETS:
+        raise UsageError(f"unknown budget {args.budget!r}; known: {', '.join(studies.BUDGETS)}")
+    presets = tuple(args.presets.split(","))
+    for preset in presets:
+        if preset not in studies.PRESET_NAMES:
+            raise UsageError(f"--presets: unknown preset {preset!r}; known: {', '.join(studies.PRESET_NAMES)}")
+    if args.hours is not None and args.hours <= 0:
+        raise UsageError(f"--hours: must be > 0, got {args.hours}")
+    budget = studies.BUDGETS[args.budget]
+    data = Path(args.data or f"data/study-{budget.name}")
+    ctx = studies.Context(data=data, runs=Path(args.runs), out=Path(args.out), budget=budget, presets=presets,
+                          models=tuple(_model_names(args.models)), workers=args.workers,
+                          stop_at=None if args.hours is None else time.time() + 3600.0 * args.hours,
+                          models_dir=Path(args.models_dir),
+                          progress=(lambda _msg: None) if args.quiet else (lambda msg: print(msg, flush=True)))
+    for name in names:  # `all`: in the order of STUDIES, under one --hours deadline
+        result = studies.run_study(name, ctx, plot_only=args.plot_only)
+        print(json.dumps({"study": name, "budget": budget.name, **result}), flush=True)
+    return 0
+
+
 def _cmd_params(args) -> int:
     from training.operators.models import REGISTRY, build_model, count_parameters
 
@@ -317,6 +346,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models", nargs="*", default=None)
     p.add_argument("--ood", type=int, default=0, help="also the paper's OOD bins, with this many designs per bin")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("study", help="run (or resume) one of the paper's studies; JSON lines + PNG under --out")
+    p.add_argument("name", help="n-sweep, dropout, seeds, ood, timing, worst, or all (in that order)")
+    p.add_argument("--budget", default="full", help="full (docs/report.md) or tiny (seconds; the tests')")
+    p.add_argument("--data", default=None, help="dataset (generated if missing; default data/study-BUDGET)")
+    p.add_argument("--runs", default="runs/study", help="training runs and checkpoints (resumable)")
+    p.add_argument("--out", default="docs/study", help="where NAME.jsonl and NAME.png go")
+    p.add_argument("--models-dir", default="models", help="shipped models (timing, worst)")
+    p.add_argument("--presets", default="paper,tuned")
+    p.add_argument("--models", nargs="*", default=None)
+    p.add_argument("--workers", type=int, default=1, help="training runs side by side (one thread each)")
+    p.add_argument("--hours", type=float, default=None,
+                   help="start no new epoch after this long; a later call resumes where this one stopped")
+    p.add_argument("--plot-only", action="store_true", help="redraw NAME.png from NAME.jsonl")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_study)
 
     p = sub.add_parser("params", help="parameter counts of the four operators next to the paper's")
     p.set_defaults(func=_cmd_params)

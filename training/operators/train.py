@@ -139,8 +139,14 @@ def _config_dict(cfg: TrainConfig) -> dict:
 
 
 def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool = True,
-          monitor_designs: int = 2000) -> dict:
-    """Train (or resume) one model; writes ``out``/checkpoint.pt, model.pt and metrics.jsonl."""
+          monitor_designs: int = 2000, stop_at: float | None = None) -> dict:
+    """Train (or resume) one model; writes ``out``/checkpoint.pt, model.pt and metrics.jsonl.
+
+    ``stop_at`` (a ``time.time()`` instant) interrupts a run between epochs: the checkpoint is saved,
+    no model.pt is written, and the summary's ``stop`` is ``'interrupted'``; calling ``train`` again
+    resumes it.  Each epoch reseeds torch's generator from ``(seed, epoch)``, so shuffling and dropout
+    masks, and hence the weights, do not depend on where a run was interrupted.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -184,6 +190,7 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         for group in opt.param_groups:
             group["lr"] = lr
         model.train()
+        torch.manual_seed(cfg.seed * 1_000_003 + epoch)  # dropout masks: reproducible across resumes
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
         perm = torch.randperm(n, generator=gen).to(device)
         total, count = 0.0, 0
@@ -201,7 +208,7 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         epoch += 1
         elapsed += time.perf_counter() - t0
         train_loss = total / count
-        record = {"epoch": epoch, "lr": lr, "train_loss": train_loss, "seconds": round(elapsed, 2)}
+        record = {"epoch": epoch, "lr": lr, "train_loss": train_loss, "seconds": round(elapsed, 4)}
         if epoch % 10 == 0 or epoch == cfg.epochs:
             model.eval()
             with torch.no_grad():
@@ -215,11 +222,16 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
             best, stale = train_loss, 0
         else:
             stale += 1
-        done = stale >= cfg.patience or (budget is not None and elapsed >= budget) or epoch >= cfg.epochs
+        interrupted = stop_at is not None and time.time() >= stop_at and epoch < cfg.epochs
+        done = (stale >= cfg.patience or (budget is not None and elapsed >= budget) or epoch >= cfg.epochs
+                or interrupted)
         if done or time.perf_counter() - last_save > 60:
             _save_atomic({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                           "elapsed": elapsed, "best": best, "stale": stale, "config": _config_dict(cfg)}, ckpt_path)
             last_save = time.perf_counter()
+        if interrupted and stale < cfg.patience:
+            stop_reason = "interrupted"
+            break
         if stale >= cfg.patience:
             stop_reason = "converged"
             break
@@ -232,6 +244,8 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
     summary = {"model": cfg.model, "epochs": epoch, "train_seconds": round(elapsed, 1), "stop": stop_reason,
                "parameters": count_parameters(model), "n_train": n, "device": device.type,
                "final_train_loss": train_loss if epoch > start_epoch else None}
+    if stop_reason == "interrupted":
+        return summary
     torch.save({"format_version": CHECKPOINT_FORMAT_VERSION, "name": cfg.model,
                 "hyperparameters": asdict(model.config), "config": _config_dict(cfg),
                 "state_dict": {k: v.cpu() for k, v in model.state_dict().items()}, "summary": summary},

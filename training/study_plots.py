@@ -1,0 +1,191 @@
+"""PNG figures of the studies (matplotlib, Agg), drawn from their JSON-lines records only.
+
+One function per study, registered in ``PLOTS``; each takes the records of ``docs/study/NAME.jsonl``
+and returns a figure with one panel per preset where the study has presets.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+MODEL_ORDER = ("deeponet", "deeponet_pose", "fno", "fno_pose")
+PRESET_ORDER = ("paper", "tuned")
+_MARKERS = {"deeponet": "o", "deeponet_pose": "s", "fno": "^", "fno_pose": "D"}
+
+
+def _figure(ncols: int, width: float = 5.0):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    fig, axes = plt.subplots(1, ncols, figsize=(width * ncols, 4.0), squeeze=False, constrained_layout=True)
+    return fig, list(axes[0])
+
+
+def _by_preset(records: list[dict]) -> dict[str, list[dict]]:
+    groups: dict[str, list[dict]] = defaultdict(list)
+    for r in records:
+        groups[r["preset"]].append(r)
+    return {p: groups[p] for p in PRESET_ORDER if p in groups}
+
+
+def _mean_std_lines(ax, records: list[dict], x_key: str) -> None:
+    """Mean +- std over seeds of the held-out mean relative l2, one line per model."""
+    for model in MODEL_ORDER:
+        points: dict[float, list[float]] = defaultdict(list)
+        for r in records:
+            if r["model"] == model:
+                points[r[x_key]].append(r["test"]["mean"])
+        if not points:
+            continue
+        xs = sorted(points)
+        mean = np.array([np.mean(points[x]) for x in xs])
+        std = np.array([np.std(points[x]) for x in xs])
+        seeds = [len(points[x]) for x in xs]
+        ax.errorbar(xs, mean, yerr=std, marker=_MARKERS[model], capsize=3,
+                    label=f"{model} (seeds: {min(seeds)}-{max(seeds)})")
+
+
+def plot_n_sweep(records: list[dict]):
+    groups = _by_preset(records)
+    fig, axes = _figure(len(groups))
+    for ax, (preset, recs) in zip(axes, groups.items(), strict=True):
+        _mean_std_lines(ax, recs, "n_train")
+        ax.set(xscale="log", yscale="log", xlabel="training designs N", ylabel="held-out mean relative l2",
+               title=f"preset {preset}: error against N (mean +- std over seeds)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    return fig
+
+
+def plot_dropout(records: list[dict]):
+    groups = _by_preset(records)
+    fig, axes = _figure(len(groups))
+    for ax, (preset, recs) in zip(axes, groups.items(), strict=True):
+        _mean_std_lines(ax, recs, "dropout")
+        n = max(r["n_train"] for r in recs)
+        ax.set(yscale="log", xlabel="dropout probability q", ylabel="held-out mean relative l2",
+               title=f"preset {preset}: dropout at N = {n:,}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    return fig
+
+
+def plot_seeds(records: list[dict]):
+    groups = _by_preset(records)
+    fig, axes = _figure(len(groups))
+    for ax, (preset, recs) in zip(axes, groups.items(), strict=True):
+        for k, model in enumerate(MODEL_ORDER):
+            errs = [r["test"]["mean"] for r in recs if r["model"] == model]
+            if errs:
+                ax.scatter([k] * len(errs), errs, marker=_MARKERS[model], label=model)
+                ax.hlines(np.mean(errs), k - 0.25, k + 0.25, color="k")
+        n = max(r["n_train"] for r in recs)
+        ax.set(yscale="log", xticks=range(len(MODEL_ORDER)), xticklabels=MODEL_ORDER,
+               ylabel="held-out mean relative l2", title=f"preset {preset}: seeds at N = {n:,} (bar: mean)")
+        ax.grid(True, which="both", alpha=0.3)
+    return fig
+
+
+def plot_ood(records: list[dict]):
+    protocols = [p for p in ("paper", "widened") if any(r["protocol"] == p for r in records)]
+    fig, axes = _figure(len(protocols), width=6.0)
+    for ax, protocol in zip(axes, protocols, strict=True):
+        recs = [r for r in records if r["protocol"] == protocol]
+        bins = list(dict.fromkeys(r["bin"] for r in recs))
+        series: dict[str, dict[str, float]] = defaultdict(dict)
+        for r in recs:
+            label = r["model"] if r["preset"] == "-" else f"{r['model']} ({r['preset']})"
+            series[label][r["bin"]] = r["error"]["mean"]
+        for label, row in series.items():
+            style = "--" if "(" not in label else ("-" if "tuned" in label else ":")
+            ax.plot(range(len(bins)), [row.get(b, np.nan) for b in bins], style, marker="o", label=label)
+        ax.set(yscale="log", xticks=range(len(bins)), xticklabels=bins, ylabel="mean relative l2",
+               xlabel="p" + (" of the upper bound" if protocol == "paper" else " of the range width, both sides"),
+               title=f"OOD, {protocol} protocol")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6, ncol=2)
+    return fig
+
+
+def plot_timing(records: list[dict]):
+    fig, axes = _figure(2, width=6.0)
+    train = [r for r in records if r["kind"] == "training"]
+    ax = axes[0]
+    for preset in PRESET_ORDER:
+        for model in MODEL_ORDER:
+            rs = sorted((r for r in train if r["preset"] == preset and r["model"] == model), key=lambda r: r["n"])
+            if rs:
+                ax.plot([r["n"] for r in rs], [r["seconds_per_epoch"] for r in rs], "-" if preset == "tuned" else ":",
+                        marker=_MARKERS[model], label=f"{model} ({preset})")
+    ax.set(xscale="log", yscale="log", xlabel="training designs N", ylabel="seconds per epoch (1 CPU thread)",
+           title="training: seconds per epoch")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=6, ncol=2)
+    ax = axes[1]
+    infer = [r for r in records if r["kind"] == "inference"]
+    for model in MODEL_ORDER:
+        rs = sorted((r for r in infer if r["model"] == model), key=lambda r: r["n"])
+        if rs:
+            line = ax.plot([r["n"] for r in rs], [r["seconds"] for r in rs], "-", marker=_MARKERS[model],
+                           label=f"{model} (ours, CPU)")
+            paper = [(r["n"], r["paper_seconds"]) for r in rs if r["paper_seconds"] is not None]
+            if paper:
+                ax.plot(*zip(*paper, strict=True), "--", marker=_MARKERS[model], color=line[0].get_color(),
+                        alpha=0.6, label=f"{model} (paper, RTX 4090)")
+    ax.set(xscale="log", yscale="log", xlabel="designs per call", ylabel="seconds",
+           title="inference (42 points)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=6, ncol=2)
+    return fig
+
+
+def plot_worst(records: list[dict]):
+    """Error against the bending angle: one row per preset (shipped, paper, tuned), one column per model."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    rows = [p for p in ("shipped", *PRESET_ORDER) if any(r["preset"] == p for r in records)]
+    fig, axes = plt.subplots(len(rows), len(MODEL_ORDER), figsize=(3.4 * len(MODEL_ORDER), 3.0 * len(rows)),
+                             squeeze=False, constrained_layout=True, sharex=True)
+    for r in records:
+        ax = axes[rows.index(r["preset"])][MODEL_ORDER.index(r["model"])]
+        curve = [b for b in r["error_vs_bending_angle"] if b["median_error"] is not None]
+        ax.plot([np.sqrt(b["theta_low"] * b["theta_high"]) for b in curve], [b["median_error"] for b in curve],
+                "-o", ms=3, label="median per bin")
+        ax.scatter([w["bending_angle"] for w in r["worst"]], [w["error"] for w in r["worst"]], color="C3",
+                   marker="x", label=f"{len(r['worst'])} worst")
+        ax.set(xscale="log", yscale="log", title=f"{r['model']} ({r['preset']})")
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("bending angle tau rho L / (E I), rad")
+    for row in axes:
+        row[0].set_ylabel("relative l2")
+    axes[0][0].legend(fontsize=7)
+    return fig
+
+
+PLOTS: dict[str, Callable[[list[dict]], object]] = {
+    "n-sweep": plot_n_sweep, "dropout": plot_dropout, "seeds": plot_seeds,
+    "ood": plot_ood, "timing": plot_timing, "worst": plot_worst,
+}
+
+
+def plot(name: str, records: list[dict], path: Path) -> Path | None:
+    """Draw study ``name`` from its records into ``path`` (PNG); ``None`` when there is nothing yet."""
+    if not records:
+        return None
+    from matplotlib import pyplot as plt
+
+    fig = PLOTS[name](records)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, metadata={"Software": None})  # no version string: re-runs give the same file
+    plt.close(fig)
+    return path
