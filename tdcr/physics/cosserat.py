@@ -63,6 +63,13 @@ class SolverOptions:
         load_steps: load-continuation steps for external loads.
         residual_tol: a design whose wrench residual (N) exceeds this times its load
             scale is reported as not converged.
+        step_tol: per-design step control (tendon loads): the largest accepted estimate of the
+            relative l2 error of the tendon positions at the outputs due to the integration step
+            (Richardson, see :func:`solve`); a design whose estimate stays above it after
+            ``max_level`` halvings of the step is flagged (status ``step_tol_not_met``).
+        max_level: how many times the step may be halved per design.
+        kernel: ``'auto'`` (the compiled numba kernel where numba is installed) or ``'numpy'``
+            (the vectorised path: the same method and step control; results equal to round-off).
         linearized: replace the local Newton solve by the first-order strains (the roots of
             (W1, W2) with the tendon tangents of the undeformed rod; the neural operators'
             reference robot).  Tendon loads only; ``converged`` then only flags non-finite
@@ -77,6 +84,9 @@ class SolverOptions:
     max_shooting: int = 20
     load_steps: int = 4
     residual_tol: float = 1e-8
+    step_tol: float = 3e-7
+    max_level: int = 4
+    kernel: str = "auto"
     linearized: bool = False
 
 
@@ -94,6 +104,11 @@ class RodSolution:
         converged: per-design success flag, ``(B,)``.
         residual: per-design wrench-balance residual, N (moments divided by L), ``(B,)``.
         iterations: per-design Newton (tendon-only) or shooting iterations, ``(B,)``.
+        status: per-design outcome, an index into :data:`STATUS` ``(B,)``: 0 converged, 1 Newton
+            failed, 2 not finite, 3 step tolerance not met, 4 residual above tolerance.
+        error_estimate: per-design estimate of the relative l2 error of the tendon positions due
+            to the integration step, ``(B,)`` (NaN where not estimated: loads, linearized).
+        steps: integration steps per design along [0, L], ``(B,)``.
         jacobian: with ``solve(..., jacobian=True)``, the sensitivity of the pose at each
             arclength to the tensions, base frame, ``(B, n, 6, N_t)``: rows 0-2 d p / d tau (m/N),
             rows 3-5 the rotation vector of d R R^T / d tau (rad/N); else ``None``.
@@ -109,6 +124,13 @@ class RodSolution:
     residual: np.ndarray
     iterations: np.ndarray
     jacobian: np.ndarray | None = None
+    status: np.ndarray | None = None
+    error_estimate: np.ndarray | None = None
+    steps: np.ndarray | None = None
+
+
+#: Names of ``RodSolution.status`` codes (the compiled kernel uses the same codes).
+STATUS = ("converged", "newton_failed", "not_finite", "step_tol_not_met", "residual_too_large")
 
 
 @dataclass(frozen=True)
@@ -401,9 +423,10 @@ def solve(
         s_fraction: requested arclengths as fractions of L in [0, 1], ``(n,)``, any order.
         loads: optional gravity and tip loads; ``None`` means tendon loads only.
         options: numerical settings.
-        workers: processes to split the batch over (0: one per core).  Designs are independent,
-            so the result equals ``workers=1`` (to round-off); a batch smaller than
-            ``MIN_DESIGNS_PER_WORKER`` per process is solved here.
+        workers: cores to use (0: all).  The compiled tendon-only kernel runs ``workers`` threads
+            in this process; the other paths (loads, Jacobians, ``kernel='numpy'``) split the batch
+            over that many spawned processes, each with at least ``MIN_DESIGNS_PER_WORKER``
+            designs.  Designs are independent, so the result equals ``workers=1`` (to round-off).
         jacobian: also the pose's sensitivity to the tensions (``RodSolution.jacobian``), exact
             by the implicit-function theorem at every node and a tangent carried through the
             Magnus steps (no finite differences).  Tendon loads only.
@@ -412,10 +435,13 @@ def solve(
         A :class:`RodSolution`.  A design that fails is flagged in ``converged``;
         it never fails the batch.
     """
-    workers = min(workers or os.cpu_count() or 1, designs.n_designs // MIN_DESIGNS_PER_WORKER)
-    if workers > 1:
-        return _solve_in_processes(designs, s_fraction, loads, options, workers, jacobian)
     opts = options or SolverOptions()
+    threads = workers
+    compiled = (not jacobian and not opts.linearized and (loads is None or loads.is_zero())
+                and _compiled_kernel(opts) is not None)
+    processes = 1 if compiled else min(workers or os.cpu_count() or 1, designs.n_designs // MIN_DESIGNS_PER_WORKER)
+    if processes > 1:
+        return _solve_in_processes(designs, s_fraction, loads, options, processes, jacobian)
     sigma_out = np.asarray(s_fraction, dtype=np.float64).reshape(-1)
     if sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -1e-9 or sigma_out.max() > 1 + 1e-9:
         raise ValueError("s_fraction must be a non-empty array of fractions in [0, 1]")
@@ -424,7 +450,7 @@ def solve(
         raise ValueError("the linearized model covers tendon loads only")
     if jacobian and (opts.linearized or loads is not None and not loads.is_zero()):
         raise ValueError("the Jacobian covers the exact model under tendon loads only")
-    base = _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian)
+    base = _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian, threads=threads)
     if loads is None or loads.is_zero():
         return base
     return _solve_with_loads(designs, sigma_out, loads, opts, base)
@@ -479,10 +505,147 @@ class _WarmStart:
 
 
 def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions, *,
-                       jacobian: bool = False, warm: _WarmStart | None = None) -> RodSolution:
+                       jacobian: bool = False, warm: _WarmStart | None = None, threads: int = 1) -> RodSolution:
+    """Tendon loads only.  Step control per design (``opts.step_tol``) except for the linearized
+    model and warm-started tip solves (:class:`TipSolver`), which use the base grid."""
+    edges0, _, out0 = _step_grid(sigma_out, opts.max_step)
+    if opts.linearized or warm is not None:
+        sol, _ = _solve_on_grid(designs, sigma_out, edges0, out0, opts, jacobian=jacobian, warm=warm)
+        return _finish_status(sol, np.full(designs.n_designs, np.nan), len(edges0) - 1, opts, estimated=False)
+    if not jacobian and _compiled_kernel(opts) is not None:
+        return _solve_compiled(designs, sigma_out, edges0, out0, opts, threads)
+    return _solve_adaptive(designs, sigma_out, edges0, out0, opts, jacobian)
+
+
+def _compiled_kernel(opts: SolverOptions):
+    """The numba kernel module, or ``None`` (numba missing, or ``kernel='numpy'``)."""
+    if opts.kernel not in ("auto", "numpy"):
+        raise ValueError(f"kernel must be 'auto' or 'numpy', got {opts.kernel!r}")
+    if opts.kernel == "numpy":
+        return None
+    from tdcr.physics._compiled import kernel
+
+    return kernel
+
+
+def _refine(edges: np.ndarray) -> np.ndarray:
+    """Every step split in two at its midpoint 0.5 (a + b) (the kernel's arithmetic exactly)."""
+    out = np.empty(2 * edges.size - 1)
+    out[0::2] = edges
+    out[1::2] = 0.5 * (edges[:-1] + edges[1:])
+    return out
+
+
+def _coarse_grid(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The coarse grid of the free error estimate: each two consecutive steps of equal width joined
+    into one, whose midpoint is their shared edge; a step without an equal neighbour kept.
+
+    Returns ``(coarse edges as indices into edges (Kc+1,), coarse midpoints as node indices (Kc,))``
+    with the node layout of :func:`_solve_on_grid` (K+1 edges, then K midpoints)."""
+    k_steps = edges.size - 1
+    widths = np.diff(edges)
+    c_edges, c_mids, k = [0], [], 0
+    while k < k_steps:
+        if k + 1 < k_steps and abs(widths[k + 1] - widths[k]) <= 1e-12 * widths[k]:
+            c_mids.append(k + 1)
+            k += 2
+        else:
+            c_mids.append(k_steps + 1 + k)
+            k += 1
+        c_edges.append(k)
+    return np.array(c_edges), np.array(c_mids, dtype=np.int64)
+
+
+def _magnus_steps(xi0: np.ndarray, xi1: np.ndarray, xim: np.ndarray, h: np.ndarray):
+    """eq. (MAG): 4th-order Magnus step on SE(3) for g' = g xi^ with body twists xi = (nu, kappa)
+    at both ends and the middle of each step (Simpson / Lobatto nodes):
+      Omega = h/6 (xi_0 + 4 xi_1/2 + xi_1) + h^2/12 [xi_0, xi_1],   g_{k+1} = g_k exp(Omega).
+    Twists ``(B, K, 6)``, h ``(B, K, 1)`` m.  Returns ``(rot (B, K+1, 3, 3), pos (B, K+1, 3), parts)``
+    with ``parts = ((cv, cw), mean, step_r, step_p)`` for the tangent of :func:`_magnus_tangent`."""
+    b, k = xi0.shape[0], xi0.shape[1]
+    cv, cw = se3_bracket(xi0[..., :3], xi0[..., 3:], xi1[..., :3], xi1[..., 3:])
+    mean = (xi0 + 4.0 * xim + xi1) / 6.0
+    step_r, step_p = se3_exp(h * mean[..., :3] + h**2 / 12.0 * cv, h * mean[..., 3:] + h**2 / 12.0 * cw)
+    rot = np.empty((b, k + 1, 3, 3))
+    pos = np.empty((b, k + 1, 3))
+    rot[:, 0] = np.eye(3)
+    pos[:, 0] = 0.0
+    for j in range(k):
+        pos[:, j + 1] = pos[:, j] + np.einsum("bij,bj->bi", rot[:, j], step_p[:, j])
+        rot[:, j + 1] = rot[:, j] @ step_r[:, j]
+    return rot, pos, ((cv, cw), mean, step_r, step_p)
+
+
+def _richardson(fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+    """Error estimate of ``fine`` from a solution with twice its step, 4th-order method:
+    ||T_fine - T_coarse|| / (15 ||T_fine||) per design (relative l2, tdcr.metrics), ``(B,)``."""
+    axes = tuple(range(1, fine.ndim))
+    diff = np.sqrt(((fine - coarse) ** 2).sum(axis=axes))
+    norm = np.sqrt((fine**2).sum(axis=axes))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(norm > 0, diff / np.where(norm > 0, norm, 1.0), diff) / 15.0
+
+
+def _coarse_estimate(designs: DesignBatch, x: np.ndarray, edges: np.ndarray, out_step: np.ndarray,
+                     rho_out: np.ndarray, tendons: np.ndarray) -> np.ndarray:
+    """The free Richardson estimate of a grid solution (no new Newton solve), ``(B,)``: against the
+    coarse grid of :func:`_coarse_grid`, at the outputs on coarse edges.  ``x`` node strains
+    ``(B, 2K+1, 6)``, ``tendons`` the grid solution's ``(B, n, N_t, 3)``."""
+    c_edges, c_mids = _coarse_grid(edges)
+    h = np.diff(edges[c_edges])[None, :, None] * designs.L[:, None, None]
+    rot, pos, _ = _magnus_steps(x[:, c_edges[:-1]], x[:, c_edges[1:]], x[:, c_mids], h)
+    on_coarse = np.isin(out_step, c_edges)
+    where = np.searchsorted(c_edges, out_step[on_coarse])
+    R, p = rot[:, where], pos[:, where]
+    coarse = p[:, :, None, :] + np.einsum("bnij,bntj->bnti", R, rho_out[:, on_coarse])
+    return _richardson(tendons[:, on_coarse], coarse)
+
+
+def _solve_adaptive(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndarray, out0: np.ndarray,
+                    opts: SolverOptions, jacobian: bool) -> RodSolution:
+    """The vectorised path with the kernel's step control: the base grid with the free estimate,
+    then, for the designs above ``step_tol``, the grid halved (Richardson against the last level)."""
+    sol, x = _solve_on_grid(designs, sigma_out, edges0, out0, opts, jacobian=jacobian)
+    rho_out, _ = tendon_routing(designs, sigma_out, derivative=False)
+    estimate = _coarse_estimate(designs, x, edges0, out0, rho_out, sol.tendons)
+    fields = {f.name: getattr(sol, f.name) for f in dataclasses.fields(RodSolution)
+              if getattr(sol, f.name) is not None}
+    fields = {k: v.copy() for k, v in fields.items()}
+    steps = np.full(designs.n_designs, len(edges0) - 1)
+    edges, out_step = edges0, out0
+    active = np.nonzero(estimate > opts.step_tol)[0]
+    for _level in range(opts.max_level):
+        if active.size == 0:
+            break
+        edges, out_step = _refine(edges), 2 * out_step
+        finer, _ = _solve_on_grid(designs.take(active), sigma_out, edges, out_step, opts, jacobian=jacobian)
+        estimate[active] = _richardson(finer.tendons, fields["tendons"][active])
+        for name in fields:
+            fields[name][active] = getattr(finer, name)
+        steps[active] = len(edges) - 1
+        active = active[estimate[active] > opts.step_tol]
+    return _finish_status(RodSolution(**fields), estimate, steps, opts, estimated=True)
+
+
+def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOptions, *,
+                   estimated: bool) -> RodSolution:
+    """Add the step control's verdict to a grid solution's ``status``; ``converged`` = status 0."""
+    status = sol.status.copy()
+    if estimated:
+        status[(status == 0) & ~(estimate <= opts.step_tol)] = STATUS.index("step_tol_not_met")
+    b = status.shape[0]
+    return dataclasses.replace(sol, converged=status == 0, status=status, error_estimate=estimate,
+                               steps=np.broadcast_to(np.asarray(steps), (b,)).copy())
+
+
+def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarray, out_step: np.ndarray,
+                   opts: SolverOptions, *, jacobian: bool = False, warm: _WarmStart | None = None
+                   ) -> tuple[RodSolution, np.ndarray]:
+    """Tendon-only solve on one step grid (``edges`` fractions of L, outputs at edges ``out_step``);
+    returns the solution and the node strains ``(B, 2K+1, 6)`` (K+1 edges, then K midpoints)."""
     b, _n = designs.n_designs, sigma_out.shape[0]
     mat = material(designs)
-    edges, widths, out_step = _step_grid(sigma_out, opts.max_step)
+    widths = np.diff(edges)
     k = widths.shape[0]
     starts = edges[:-1]
     sigma_nodes = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,), the outputs among the edges
@@ -505,26 +668,14 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
     ok = ok.reshape(b, m).all(axis=1)
     iters = iters.reshape(b, m).max(axis=1)
 
-    # eq. (MAG): 4th-order Magnus step on SE(3) for g' = g xi^ with body twists xi = (nu, kappa)
-    # at both ends and the middle of each step (Simpson / Lobatto nodes):
-    #   Omega = h/6 (xi_0 + 4 xi_1/2 + xi_1) + h^2/12 [xi_0, xi_1],   g_{k+1} = g_k exp(Omega).
-    xi0, xi1, xim = x[:, :k], x[:, 1:k + 1], x[:, k + 1:]
     h = widths[None, :, None] * designs.L[:, None, None]  # (B, K, 1) m
-    cv, cw = se3_bracket(xi0[..., :3], xi0[..., 3:], xi1[..., :3], xi1[..., 3:])
-    mean = (xi0 + 4.0 * xim + xi1) / 6.0
-    step_r, step_p = se3_exp(h * mean[..., :3] + h**2 / 12.0 * cv, h * mean[..., 3:] + h**2 / 12.0 * cw)
-    rot = np.empty((b, k + 1, 3, 3))
-    pos = np.empty((b, k + 1, 3))
-    rot[:, 0] = np.eye(3)
-    pos[:, 0] = 0.0
-    for j in range(k):
-        pos[:, j + 1] = pos[:, j] + np.einsum("bij,bj->bi", rot[:, j], step_p[:, j])
-        rot[:, j + 1] = rot[:, j] @ step_r[:, j]
+    rot, pos, parts = _magnus_steps(x[:, :k], x[:, 1:k + 1], x[:, k + 1:], h)
     R = rot[:, out_step]
     p = pos[:, out_step]
     pose_jacobian = None
     if dx is not None:
-        eta = _magnus_tangent(x, dx, k, h, (cv, cw), mean, step_r, step_p)[:, out_step]  # (B, n, 6, N_t) body
+        bracket, mean, step_r, step_p = parts
+        eta = _magnus_tangent(x, dx, k, h, bracket, mean, step_r, step_p)[:, out_step]  # (B, n, 6, N_t) body
         pose_jacobian = np.concatenate([R @ eta[:, :, :3], R @ eta[:, :, 3:]], axis=2)
 
     x_out = x[:, out_step]
@@ -534,14 +685,51 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
     moment = np.einsum("bnij,bnj->bni", R, mat.kbt[:, None, :] * x_out[..., 3:])
     residual = _wrench_norm(res, designs.L[:, None]).max(axis=1)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
-    converged = ok & np.isfinite(residual)
+    status = np.zeros(b, dtype=np.int8)
+    status[~ok] = STATUS.index("newton_failed")
     if not opts.linearized:  # the linearized model reports its residual but is not an equilibrium
-        converged &= residual <= opts.residual_tol * scale
-    converged &= np.isfinite(tendons).all(axis=(1, 2, 3))
+        status[(status == 0) & ~(residual <= opts.residual_tol * scale)] = STATUS.index("residual_too_large")
+    status[~(np.isfinite(tendons).all(axis=(1, 2, 3)) & np.isfinite(residual))] = STATUS.index("not_finite")
     return RodSolution(
         s=designs.L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons,
-        force=force, moment=moment, converged=converged, residual=residual, iterations=iters,
-        jacobian=pose_jacobian,
+        force=force, moment=moment, converged=status == 0, residual=residual, iterations=iters,
+        jacobian=pose_jacobian, status=status,
+    ), x
+
+
+def _solve_compiled(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndarray, out0: np.ndarray,
+                    opts: SolverOptions, threads: int) -> RodSolution:
+    """The numba kernel (:mod:`tdcr.physics._kernel`) on ``threads`` threads (0: all)."""
+    import numba
+
+    from tdcr.physics._compiled import kernel
+
+    b, n, n_t = designs.n_designs, sigma_out.shape[0], designs.n_tendons
+    backbone, rotation = np.empty((b, n, 3)), np.empty((b, n, 3, 3))
+    strains, tendons = np.empty((b, n, 6)), np.empty((b, n, n_t, 3))
+    status, level = np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64)
+    residual, iterations, estimate = np.empty(b), np.empty(b, dtype=np.int64), np.empty(b)
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    wanted = min(threads or os.cpu_count() or 1, numba.config.NUMBA_NUM_THREADS, max(b, 1))
+    previous = numba.get_num_threads()
+    numba.set_num_threads(wanted)
+    try:
+        kernel.solve_batch(f64(designs.E), f64(designs.r), f64(designs.L), f64(designs.offset), f64(designs.pitch),
+                           f64(designs.tension), f64(edges0), np.asarray(out0, dtype=np.int64), f64(sigma_out),
+                           opts.newton_tol, opts.max_newton, opts.step_tol, opts.max_level, backbone, rotation,
+                           strains, tendons, status, residual, iterations, level, estimate)
+    finally:
+        numba.set_num_threads(previous)
+    mat = material(designs)
+    force = np.einsum("bnij,bnj->bni", rotation, mat.kse[:, None, :] * (strains[..., :3] - _E3))
+    moment = np.einsum("bnij,bnj->bni", rotation, mat.kbt[:, None, :] * strains[..., 3:])
+    status = status.astype(np.int8)
+    scale = np.maximum(designs.tension.sum(axis=1), 1.0)
+    status[(status == 0) & ~(residual <= opts.residual_tol * scale)] = STATUS.index("residual_too_large")
+    return RodSolution(
+        s=designs.L[:, None] * sigma_out[None, :], backbone=backbone, rotation=rotation, tendons=tendons,
+        force=force, moment=moment, converged=status == 0, residual=residual, iterations=iterations,
+        status=status, error_estimate=estimate, steps=(len(edges0) - 1) * 2**level,
     )
 
 

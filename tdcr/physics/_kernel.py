@@ -1,0 +1,492 @@
+"""The compiled tendon-only kernel (numba): the solver's method, one design per thread.
+
+Same method as the vectorised path in :mod:`tdcr.physics.cosserat` (whose docstring gives the
+equations): at every node, Newton with an Armijo line search on Phi (eq. PHI) for the strains
+x = (nu, kappa) solving (W1, W2); then the 4th-order Magnus integrator (eq. MAG) on SE(3).
+Differences are in the order of work only: nodes are solved in order of s, each Newton starting
+from the strains of the node before (fewer iterations), and the step is chosen per design:
+
+* level 0 integrates on the caller's step grid (``edges``, outputs at ``out_step``), level m on
+  that grid with every step split into 2^m;
+* after level m >= 1 the error of the tendon positions at the outputs is estimated by
+  Richardson's rule for a 4th-order method, est = ||T_m - T_{m-1}|| / (15 ||T_m||) (relative l2,
+  the project's error measure), and the design stops at the first level with est <= ``step_tol``
+  or at ``max_level``.  Level m+1 reuses all strains of level m (its edges are level m's edges and
+  midpoints).
+
+Floating-point errors follow IEEE (``error_model='numpy'``): a division by zero gives inf or NaN,
+which the status flags, as in the vectorised path; it never raises.
+
+Import this module only through :mod:`tdcr.physics._compiled`, which falls back to the
+vectorised path when numba is not installed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+#: status codes per design (``tdcr.physics.cosserat.STATUS``)
+OK, NEWTON_FAILED, NOT_FINITE, STEP_TOL_NOT_MET = 0, 1, 2, 3
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tendon(nu0, nu1, nu2, k0, k1, k2, ox, oy, dx, dy):
+    """g_i = nu + kappa x rho_i + rho_i' with rho_i = (ox, oy, 0), rho_i' = (dx, dy, 0)."""
+    return nu0 - k2 * oy + dx, nu1 + k2 * ox + dy, nu2 + k0 * oy - k1 * ox
+
+
+@njit(cache=True, error_model="numpy")
+def _potential(x, rho, drho, tau, kse, kbt):
+    """Phi of eq. (PHI) at strains ``x`` (6,)."""
+    phi = 0.5 * (kse[0] * x[0] ** 2 + kse[1] * x[1] ** 2 + kse[2] * (x[2] - 1.0) ** 2)
+    phi += 0.5 * (kbt[0] * x[3] ** 2 + kbt[1] * x[4] ** 2 + kbt[2] * x[5] ** 2)
+    for i in range(tau.shape[0]):
+        g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+        phi += tau[i] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+    return phi
+
+
+@njit(cache=True, error_model="numpy")
+def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av):
+    """Residual of (W1, W2) into ``res`` (6,) and (if ``want_jac``) its Jacobian, the Hessian of
+    Phi, into ``jac`` (6, 6): J = diag(K_se, K_bt) + sum_i w_i (A_i^T A_i - a_i a_i^T)."""
+    res[0] = kse[0] * x[0]
+    res[1] = kse[1] * x[1]
+    res[2] = kse[2] * (x[2] - 1.0)
+    res[3] = kbt[0] * x[3]
+    res[4] = kbt[1] * x[4]
+    res[5] = kbt[2] * x[5]
+    if want_jac:
+        for a in range(6):
+            for b in range(6):
+                jac[a, b] = 0.0
+        jac[0, 0], jac[1, 1], jac[2, 2] = kse[0], kse[1], kse[2]
+        jac[3, 3], jac[4, 4], jac[5, 5] = kbt[0], kbt[1], kbt[2]
+    for i in range(tau.shape[0]):
+        ox, oy = rho[i, 0], rho[i, 1]
+        g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], ox, oy, drho[i, 0], drho[i, 1])
+        gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+        c0, c1, c2 = oy * t2, -ox * t2, ox * t1 - oy * t0  # rho_i x t_i
+        ti = tau[i]
+        res[0] += ti * t0
+        res[1] += ti * t1
+        res[2] += ti * t2
+        res[3] += ti * c0
+        res[4] += ti * c1
+        res[5] += ti * c2
+        if want_jac:
+            w = ti / gn
+            av[0], av[1], av[2], av[3], av[4], av[5] = t0, t1, t2, c0, c1, c2
+            for a in range(6):
+                wa = w * av[a]
+                for b in range(a, 6):
+                    jac[a, b] -= wa * av[b]
+            # + w A^T A with A = [I, -hat(rho)]: [[I, -hat(rho)], [hat(rho), |rho|^2 I - rho rho^T]]
+            jac[0, 0] += w
+            jac[1, 1] += w
+            jac[2, 2] += w
+            # upper block -hat(rho), rho = (ox, oy, 0): hat = [[0,0,oy],[0,0,-ox],[-oy,ox,0]]
+            jac[0, 5] -= w * oy
+            jac[1, 5] += w * ox
+            jac[2, 3] += w * oy
+            jac[2, 4] -= w * ox
+            jac[3, 3] += w * oy * oy
+            jac[4, 4] += w * ox * ox
+            jac[3, 4] -= w * ox * oy
+            jac[5, 5] += w * (ox * ox + oy * oy)
+    if want_jac:
+        for a in range(6):
+            for b in range(a + 1, 6):
+                jac[b, a] = jac[a, b]
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_spd(jac, rhs, out, d, low, y):
+    """``out`` = jac^-1 rhs for SPD ``jac`` (6, 6) by Cholesky after Jacobi scaling; False if not
+    positive definite or not finite.  ``d`` (6,), ``low`` (6, 6), ``y`` (6,) are workspace."""
+    n = 6
+    for a in range(n):
+        if not (jac[a, a] > 0.0) or not math.isfinite(jac[a, a]):
+            return False
+        d[a] = 1.0 / math.sqrt(jac[a, a])
+    for a in range(n):
+        for b in range(a + 1):
+            s = jac[a, b] * d[a] * d[b]
+            for k in range(b):
+                s -= low[a, k] * low[b, k]
+            if a == b:
+                if not (s > 0.0):
+                    return False
+                low[a, a] = math.sqrt(s)
+            else:
+                low[a, b] = s / low[b, b]
+    for a in range(n):
+        s = rhs[a] * d[a]
+        for k in range(a):
+            s -= low[a, k] * y[k]
+        y[a] = s / low[a, a]
+    for a in range(n - 1, -1, -1):
+        s = y[a]
+        for k in range(a + 1, n):
+            s -= low[k, a] * y[k]
+        y[a] = s / low[a, a]
+    for a in range(n):
+        out[a] = y[a] * d[a]
+        if not math.isfinite(out[a]):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low):
+    """Damped Newton on (W1, W2) at one node, in place on ``x`` (6,).  Returns
+    ``(converged, iterations, residual)``, residual = sqrt(|F|^2 + |M / L|^2) of the result, N.
+    ``work`` (6, 6) and ``jac``, ``low`` (6, 6) are workspace."""
+    res, step, trial, av, d, y = work[0], work[1], work[2], work[3], work[4], work[5]
+    sqrt_tol = math.sqrt(tol)
+    converged = False
+    it = 0
+    while it < max_iter:
+        _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, True, av)
+        if not _solve_spd(jac, res, step, d, low, y):
+            break
+        it += 1
+        for a in range(6):
+            step[a] = -step[a]
+        size = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+        size += radius * math.sqrt(step[3] ** 2 + step[4] ** 2 + step[5] ** 2)
+        alpha = 1.0
+        if size > 1e-3:  # Armijo on Phi, only far from the root (as the vectorised path)
+            phi0 = _potential(x, rho, drho, tau, kse, kbt)
+            slope = 0.0
+            for a in range(6):
+                slope += res[a] * step[a]
+            slack = 1e-13 * (abs(phi0) + 1.0)
+            for _ in range(40):
+                for a in range(6):
+                    trial[a] = x[a] + alpha * step[a]
+                if _potential(trial, rho, drho, tau, kse, kbt) <= phi0 + 1e-4 * alpha * slope + slack:
+                    break
+                alpha *= 0.5
+        for a in range(6):
+            x[a] += alpha * step[a]
+        if not math.isfinite(size):
+            break
+        if alpha == 1.0 and size < sqrt_tol:
+            converged = True
+            break
+    _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, False, av)
+    residual = math.sqrt(res[0] ** 2 + res[1] ** 2 + res[2] ** 2
+                         + (res[3] ** 2 + res[4] ** 2 + res[5] ** 2) / (length * length))
+    return converged, it, residual
+
+
+@njit(cache=True, error_model="numpy")
+def _routing(sigma, length, offset, pitch, rho, drho):
+    """rho_i(s) and rho_i'(s) (x, y components; z is 0) at s = sigma L, each (N_t, 2)."""
+    n_t = offset.shape[0]
+    for i in range(n_t):
+        phi = 2.0 * math.pi * i / n_t + pitch[i] * sigma * length
+        c, s = math.cos(phi), math.sin(phi)
+        rho[i, 0], rho[i, 1] = offset[i] * c, offset[i] * s
+        drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * s, offset[i] * pitch[i] * c
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_nodes(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
+    """Newton at the nodes ``sigmas[order]`` in that order, each from the strains of the node before
+    (``x_nodes`` (M, 6) holds the start of the first).  Returns (all converged, max iterations,
+    max residual)."""
+    n_t = offset.shape[0]
+    rho = np.empty((n_t, 2))
+    drho = np.empty((n_t, 2))
+    work, jac, low = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+    ok = True
+    iters = 0
+    worst = 0.0
+    for j in range(order.shape[0]):
+        k = order[j]
+        _routing(sigmas[k], length, offset, pitch, rho, drho)
+        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low)
+        ok = ok and conv
+        iters = max(iters, it)
+        if not (r <= worst):  # NaN-propagating max
+            worst = r
+    return ok, iters, worst
+
+
+@njit(cache=True, error_model="numpy")
+def _exp_coefficients(theta):
+    if theta < 1e-2:
+        t2 = theta * theta
+        return (1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0,
+                1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0)
+    s, c = math.sin(theta), math.cos(theta)
+    return s / theta, (1.0 - c) / (theta * theta), (theta - s) / (theta * theta * theta)
+
+
+@njit(cache=True, error_model="numpy")
+def _magnus(edges, x_edge, x_mid, length, out_step, pos_out, rot_out):
+    """eq. (MAG) along the steps: Omega = h/6 (xi_0 + 4 xi_m + xi_1) + h^2/12 [xi_0, xi_1],
+    g_{k+1} = g_k exp(Omega); poses at the edges ``out_step`` into pos_out (n, 3), rot_out (n, 3, 3)."""
+    k_steps = edges.shape[0] - 1
+    rot = np.eye(3)
+    pos = np.zeros(3)
+    new_rot = np.empty((3, 3))
+    ex = np.empty((3, 3))
+    order = np.argsort(out_step)  # outputs in order of their edge (-1: not wanted)
+    n_out = out_step.shape[0]
+    q = 0
+    while q < n_out and out_step[order[q]] < 0:
+        q += 1
+    while q < n_out and out_step[order[q]] == 0:  # outputs at s = 0 (edge 0)
+        pos_out[order[q], :] = 0.0
+        rot_out[order[q]] = np.eye(3)
+        q += 1
+    for k in range(k_steps):
+        h = (edges[k + 1] - edges[k]) * length
+        a0, a1 = x_edge[k], x_edge[k + 1]
+        m = x_mid[k]
+        # bracket [xi0, xi1] = (w0 x v1 - w1 x v0, w0 x w1)
+        cv0 = a0[4] * a1[2] - a0[5] * a1[1] - (a1[4] * a0[2] - a1[5] * a0[1])
+        cv1 = a0[5] * a1[0] - a0[3] * a1[2] - (a1[5] * a0[0] - a1[3] * a0[2])
+        cv2 = a0[3] * a1[1] - a0[4] * a1[0] - (a1[3] * a0[1] - a1[4] * a0[0])
+        cw0 = a0[4] * a1[5] - a0[5] * a1[4]
+        cw1 = a0[5] * a1[3] - a0[3] * a1[5]
+        cw2 = a0[3] * a1[4] - a0[4] * a1[3]
+        h12 = h * h / 12.0
+        v0 = h * (a0[0] + 4.0 * m[0] + a1[0]) / 6.0 + h12 * cv0
+        v1 = h * (a0[1] + 4.0 * m[1] + a1[1]) / 6.0 + h12 * cv1
+        v2 = h * (a0[2] + 4.0 * m[2] + a1[2]) / 6.0 + h12 * cv2
+        w0 = h * (a0[3] + 4.0 * m[3] + a1[3]) / 6.0 + h12 * cw0
+        w1 = h * (a0[4] + 4.0 * m[4] + a1[4]) / 6.0 + h12 * cw1
+        w2 = h * (a0[5] + 4.0 * m[5] + a1[5]) / 6.0 + h12 * cw2
+        theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        ca, cb, cc = _exp_coefficients(theta)
+        # W = hat(w), W2 = W W: R = I + A W + B W^2, V = I + B W + C W^2, step p = V v
+        ww00, ww11, ww22 = -(w1 * w1 + w2 * w2), -(w0 * w0 + w2 * w2), -(w0 * w0 + w1 * w1)
+        ww01, ww02, ww12 = w0 * w1, w0 * w2, w1 * w2
+        ex[0, 0] = 1.0 + cb * ww00
+        ex[1, 1] = 1.0 + cb * ww11
+        ex[2, 2] = 1.0 + cb * ww22
+        ex[0, 1] = -ca * w2 + cb * ww01
+        ex[1, 0] = ca * w2 + cb * ww01
+        ex[0, 2] = ca * w1 + cb * ww02
+        ex[2, 0] = -ca * w1 + cb * ww02
+        ex[1, 2] = -ca * w0 + cb * ww12
+        ex[2, 1] = ca * w0 + cb * ww12
+        p0 = (1.0 + cc * ww00) * v0 + (-cb * w2 + cc * ww01) * v1 + (cb * w1 + cc * ww02) * v2
+        p1 = (cb * w2 + cc * ww01) * v0 + (1.0 + cc * ww11) * v1 + (-cb * w0 + cc * ww12) * v2
+        p2 = (-cb * w1 + cc * ww02) * v0 + (cb * w0 + cc * ww12) * v1 + (1.0 + cc * ww22) * v2
+        for a in range(3):
+            pos[a] += rot[a, 0] * p0 + rot[a, 1] * p1 + rot[a, 2] * p2
+        for a in range(3):
+            for b in range(3):
+                new_rot[a, b] = rot[a, 0] * ex[0, b] + rot[a, 1] * ex[1, b] + rot[a, 2] * ex[2, b]
+        rot[:, :] = new_rot
+        while q < n_out and out_step[order[q]] == k + 1:
+            pos_out[order[q], :] = pos
+            rot_out[order[q], :, :] = rot
+            q += 1
+
+
+@njit(cache=True, error_model="numpy")
+def _output_offsets(sigma_out, length, offset, pitch):
+    """rho_i at the outputs (x, y; z is 0), m, (n, N_t, 2)."""
+    n_t = offset.shape[0]
+    out = np.empty((sigma_out.shape[0], n_t, 2))
+    for j in range(sigma_out.shape[0]):
+        for i in range(n_t):
+            phi = 2.0 * math.pi * i / n_t + pitch[i] * sigma_out[j] * length
+            out[j, i, 0], out[j, i, 1] = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _tendon_positions(pos, rot, rho_out, out):
+    """p + R rho_i at the outputs, (n, N_t, 3), from rho_out (n, N_t, 2)."""
+    for j in range(rho_out.shape[0]):
+        for i in range(rho_out.shape[1]):
+            rx, ry = rho_out[j, i, 0], rho_out[j, i, 1]
+            for a in range(3):
+                out[j, i, a] = pos[j, a] + rot[j, a, 0] * rx + rot[j, a, 1] * ry
+
+
+@njit(cache=True, error_model="numpy")
+def _coarse_estimate(edges, xs, length, out_step, rho_out, fine):
+    """Richardson estimate of the error of the solution ``fine`` (n, N_t, 3) on ``edges`` (K+1,)
+    with nodes ``xs`` (2K+1, 6), at no new Newton solve: the coarse solution joins each two
+    consecutive steps of equal width into one (its midpoint node is their shared edge) and keeps a
+    step without an equal neighbour as it is (a shared step adds nothing to the difference).
+    Compared at the outputs on coarse edges: ||T_fine - T_coarse|| / (15 ||T_fine||)."""
+    k_steps = edges.shape[0] - 1
+    c_edges = np.empty(k_steps + 1)
+    c_xe = np.empty((k_steps + 1, 6))
+    c_xm = np.empty((k_steps, 6))
+    to_coarse = np.full(k_steps + 1, -1, dtype=np.int64)
+    c_edges[0], c_xe[0], to_coarse[0] = edges[0], xs[0], 0
+    kc, k = 0, 0
+    while k < k_steps:
+        w0 = edges[k + 1] - edges[k]
+        if k + 1 < k_steps and abs((edges[k + 2] - edges[k + 1]) - w0) <= 1e-12 * w0:
+            c_xm[kc] = xs[2 * k + 2]  # the shared edge is the coarse midpoint
+            k += 2
+        else:
+            c_xm[kc] = xs[2 * k + 1]
+            k += 1
+        kc += 1
+        c_edges[kc], c_xe[kc], to_coarse[k] = edges[k], xs[2 * k], kc
+    n_out, n_t = rho_out.shape[0], rho_out.shape[1]
+    c_out = np.empty(n_out, dtype=np.int64)
+    for j in range(n_out):
+        c_out[j] = to_coarse[out_step[j]]
+    pos = np.zeros((n_out, 3))
+    rot = np.zeros((n_out, 3, 3))
+    _magnus(c_edges[:kc + 1], c_xe[:kc + 1], c_xm[:kc], length, c_out, pos, rot)
+    coarse = np.empty((n_out, n_t, 3))
+    _tendon_positions(pos, rot, rho_out, coarse)
+    diff, norm = 0.0, 0.0
+    for j in range(n_out):
+        if c_out[j] < 0:
+            continue
+        for i in range(n_t):
+            for a in range(3):
+                diff += (fine[j, i, a] - coarse[j, i, a]) ** 2
+                norm += fine[j, i, a] ** 2
+    if norm == 0.0:
+        return math.sqrt(diff) / 15.0
+    return math.sqrt(diff / norm) / 15.0
+
+
+@njit(cache=True, error_model="numpy")
+def solve_design(E, r, length, offset, pitch, tau, edges0, out_step0, sigma_out, tol, max_iter, step_tol,
+                 max_level, pos_out, rot_out, x_out, tendons_out):
+    """One design (SI units; ``offset``, ``pitch``, ``tau`` (N_t,)).  Writes backbone (n, 3), frames
+    (n, 3, 3), strains (n, 6) and tendon positions (n, N_t, 3) at the outputs; returns
+    ``(status, residual N, Newton iterations, level, error estimate)``."""
+    g = E / (2.0 * 1.3)
+    area = math.pi * r * r
+    inertia = math.pi * r ** 4 / 4.0
+    kse = np.array([g * area, g * area, E * area])
+    kbt = np.array([E * inertia, E * inertia, g * 2.0 * inertia])
+    n_out = sigma_out.shape[0]
+    n_t = offset.shape[0]
+    k0 = edges0.shape[0] - 1
+    ok = True
+    iters = 0
+    worst = 0.0
+    # level 0: edges and midpoints in order of s, the first from the undeformed strains
+    edges = edges0.copy()
+    sig = np.empty(2 * k0 + 1)  # interleaved: edge 0, mid 0, edge 1, ...
+    for k in range(k0):
+        sig[2 * k] = edges[k]
+        sig[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
+    sig[2 * k0] = edges[k0]
+    xs = np.zeros((2 * k0 + 1, 6))
+    xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
+    order = np.arange(2 * k0 + 1)
+    n_ok, it, res = _solve_nodes_chain(sig, xs, length, offset, pitch, tau, kse, kbt, r, tol, max_iter, order)
+    ok = ok and n_ok
+    iters = max(iters, it)
+    worst = max(worst, res) if res == res else res
+    out_step = out_step0.copy()
+    _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
+    rho_out = _output_offsets(sigma_out, length, offset, pitch)
+    prev = np.empty((n_out, n_t, 3))
+    _tendon_positions(pos_out, rot_out, rho_out, prev)
+    tendons_out[:, :, :] = prev
+    level = 0
+    estimate = _coarse_estimate(edges, xs, length, out_step, rho_out, prev)
+    while level < max_level and not (estimate <= step_tol):
+        # refine: the new edges are the old edges and midpoints; new midpoints by Newton
+        level += 1
+        k_steps = sig.shape[0] - 1
+        edges = sig.copy()
+        new_sig = np.empty(2 * k_steps + 1)
+        new_xs = np.empty((2 * k_steps + 1, 6))
+        for k in range(k_steps):
+            new_sig[2 * k] = sig[k]
+            new_sig[2 * k + 1] = 0.5 * (sig[k] + sig[k + 1])
+            new_xs[2 * k] = xs[k]
+            new_xs[2 * k + 1] = 0.5 * (xs[k] + xs[k + 1])  # start: the neighbours' mean (error O(h^2))
+        new_sig[2 * k_steps] = sig[k_steps]
+        new_xs[2 * k_steps] = xs[k_steps]
+        mids = np.arange(1, 2 * k_steps + 1, 2)
+        n_ok, it, res = _solve_nodes(new_sig, new_xs, length, offset, pitch, tau, kse, kbt, r, tol, max_iter, mids)
+        ok = ok and n_ok
+        iters = max(iters, it)
+        worst = max(worst, res) if res == res else res
+        sig, xs = new_sig, new_xs
+        out_step = out_step * 2
+        _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
+        _tendon_positions(pos_out, rot_out, rho_out, tendons_out)
+        diff, norm = 0.0, 0.0
+        for j in range(n_out):
+            for i in range(n_t):
+                for a in range(3):
+                    diff += (tendons_out[j, i, a] - prev[j, i, a]) ** 2
+                    norm += tendons_out[j, i, a] ** 2
+                    prev[j, i, a] = tendons_out[j, i, a]
+        estimate = math.sqrt(diff / norm) / 15.0 if norm > 0.0 else math.sqrt(diff) / 15.0
+    # strains at the outputs: the output edges of the last level (node 2 e is edge e)
+    for j in range(n_out):
+        x_out[j, :] = xs[2 * out_step[j]]
+    status = OK
+    finite = math.isfinite(worst)
+    for j in range(n_out):
+        for i in range(n_t):
+            for a in range(3):
+                finite = finite and math.isfinite(tendons_out[j, i, a])
+    if not finite:
+        status = NOT_FINITE
+    elif not ok:
+        status = NEWTON_FAILED
+    elif not (estimate <= step_tol):
+        status = STEP_TOL_NOT_MET
+    return status, worst, iters, level, estimate
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
+    """As :func:`_solve_nodes`, each node starting from the solved strains of the nodes before
+    (linear extrapolation from the last two)."""
+    n_t = offset.shape[0]
+    rho = np.empty((n_t, 2))
+    drho = np.empty((n_t, 2))
+    work, jac, low = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+    ok = True
+    iters = 0
+    worst = 0.0
+    for j in range(order.shape[0]):
+        k = order[j]
+        if j == 1:
+            x_nodes[k, :] = x_nodes[order[0]]
+        elif j > 1:  # linear extrapolation from the two nodes before (start error O(h^2))
+            k1, k2 = order[j - 1], order[j - 2]
+            span = sigmas[k1] - sigmas[k2]
+            f = (sigmas[k] - sigmas[k1]) / span if span > 0.0 else 0.0
+            for a in range(6):
+                x_nodes[k, a] = x_nodes[k1, a] + f * (x_nodes[k1, a] - x_nodes[k2, a])
+        _routing(sigmas[k], length, offset, pitch, rho, drho)
+        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low)
+        ok = ok and conv
+        iters = max(iters, it)
+        if not (r <= worst):
+            worst = r
+    return ok, iters, worst
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def solve_batch(features_e, features_r, features_l, offsets, pitches, tensions, edges0, out_step0, sigma_out,
+                tol, max_iter, step_tol, max_level, backbone, rotation, strains, tendons,
+                status, residual, iterations, level, estimate):
+    """:func:`solve_design` for every design of a batch, over numba's threads."""
+    for b in prange(features_e.shape[0]):
+        st, res, it, lev, est = solve_design(features_e[b], features_r[b], features_l[b], offsets[b], pitches[b],
+                                             tensions[b], edges0, out_step0, sigma_out, tol, max_iter, step_tol,
+                                             max_level, backbone[b], rotation[b], strains[b], tendons[b])
+        status[b], residual[b], iterations[b], level[b], estimate[b] = st, res, it, lev, est
