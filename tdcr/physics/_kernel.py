@@ -450,28 +450,64 @@ def solve_design(E, r, length, offset, pitch, tau, edges0, out_step0, sigma_out,
     return status, worst, iters, level, estimate
 
 
+#: the chain recomputes the tendon angles exactly every this many nodes (between: angle addition)
+_RESYNC = 16
+
+
 @njit(cache=True, error_model="numpy")
 def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
     """As :func:`_solve_nodes`, each node starting from the solved strains of the nodes before
-    (linear extrapolation from the last two)."""
+    (Lagrange extrapolation from the last three).  The tendon angles advance by angle addition
+    between nodes (a rotation per distinct spacing), recomputed exactly every ``_RESYNC`` nodes."""
     n_t = offset.shape[0]
     rho = np.empty((n_t, 2))
     drho = np.empty((n_t, 2))
     work, jac, low = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+    cos_phi, sin_phi = np.empty(n_t), np.empty(n_t)
+    cos_d, sin_d = np.empty(n_t), np.empty(n_t)
+    last_delta = -1.0
     ok = True
     iters = 0
     worst = 0.0
     for j in range(order.shape[0]):
         k = order[j]
+        if j % _RESYNC == 0:
+            for i in range(n_t):
+                phi = 2.0 * math.pi * i / n_t + pitch[i] * sigmas[k] * length
+                cos_phi[i], sin_phi[i] = math.cos(phi), math.sin(phi)
+        else:
+            delta = sigmas[k] - sigmas[order[j - 1]]
+            if abs(delta - last_delta) > 1e-14 * abs(delta):
+                for i in range(n_t):
+                    cos_d[i], sin_d[i] = math.cos(pitch[i] * delta * length), math.sin(pitch[i] * delta * length)
+                last_delta = delta
+            for i in range(n_t):
+                c = cos_phi[i] * cos_d[i] - sin_phi[i] * sin_d[i]
+                sin_phi[i] = sin_phi[i] * cos_d[i] + cos_phi[i] * sin_d[i]
+                cos_phi[i] = c
+        for i in range(n_t):
+            rho[i, 0], rho[i, 1] = offset[i] * cos_phi[i], offset[i] * sin_phi[i]
+            drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sin_phi[i], offset[i] * pitch[i] * cos_phi[i]
         if j == 1:
             x_nodes[k, :] = x_nodes[order[0]]
-        elif j > 1:  # linear extrapolation from the two nodes before (start error O(h^2))
+        elif j == 2:  # linear extrapolation from the two nodes before (start error O(h^2))
             k1, k2 = order[j - 1], order[j - 2]
             span = sigmas[k1] - sigmas[k2]
             f = (sigmas[k] - sigmas[k1]) / span if span > 0.0 else 0.0
             for a in range(6):
                 x_nodes[k, a] = x_nodes[k1, a] + f * (x_nodes[k1, a] - x_nodes[k2, a])
-        _routing(sigmas[k], length, offset, pitch, rho, drho)
+        elif j > 2:  # quadratic (Lagrange) extrapolation from the three nodes before (start error O(h^3))
+            k1, k2, k3 = order[j - 1], order[j - 2], order[j - 3]
+            s0, s1, s2, s3 = sigmas[k], sigmas[k1], sigmas[k2], sigmas[k3]
+            d12, d13, d23 = s1 - s2, s1 - s3, s2 - s3
+            if d12 > 0.0 and d13 > 0.0 and d23 > 0.0:
+                l1 = (s0 - s2) * (s0 - s3) / (d12 * d13)
+                l2 = -(s0 - s1) * (s0 - s3) / (d12 * d23)
+                l3 = (s0 - s1) * (s0 - s2) / (d13 * d23)
+            else:
+                l1, l2, l3 = 1.0, 0.0, 0.0
+            for a in range(6):
+                x_nodes[k, a] = l1 * x_nodes[k1, a] + l2 * x_nodes[k2, a] + l3 * x_nodes[k3, a]
         conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low)
         ok = ok and conv
         iters = max(iters, it)
