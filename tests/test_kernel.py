@@ -98,3 +98,78 @@ def test_without_numba_the_fallback_gives_the_same_results(designs, tmp_path):
     compiled = solve(designs, SIGMA)
     assert fallback["status"] == compiled.status.tolist() and fallback["steps"] == compiled.steps.tolist()
     assert relative_l2(np.load(tmp_path / "t.npy"), compiled.tendons).max() < SAME_METHOD_RTOL
+
+
+# --------------------------------------------------------------------------- external loads
+
+from tdcr.designs import DesignBatch, ExternalLoads  # noqa: E402
+
+
+def loaded_space(n: int, seed: int) -> ExternalLoads:
+    """The issue's loaded design space: |g| = 9.81 m/s^2 in any direction, density 6,450-8,000
+    kg/m^3, tip force up to 0.02 N and tip moment up to 0.002 N m in any direction."""
+    rng = np.random.default_rng(seed)
+
+    def sphere(k):
+        v = rng.normal(size=(k, 3))
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    return ExternalLoads(gravity=9.81 * sphere(n), density=rng.uniform(6450, 8000, n),
+                         tip_force=sphere(n) * rng.uniform(0, 0.02, n)[:, None],
+                         tip_moment=sphere(n) * rng.uniform(0, 0.002, n)[:, None])
+
+
+def test_loaded_kernel_meets_1e_6_against_its_own_10x_finer_solve():
+    d, loads = sample_designs(200, seed=3), loaded_space(200, 4)
+    sol = solve(d, SIGMA, loads=loads, workers=2)
+    fine = solve(d, SIGMA, loads=loads, options=SolverOptions(max_step_loads=1 / 1230, max_level=0, step_tol=np.inf))
+    error = relative_l2(sol.tendons, fine.tendons)
+    assert sol.converged.all() and (sol.status == 0).all()
+    assert error.max() <= 1e-6 and (sol.error_estimate <= SolverOptions().step_tol).all()
+    big = error > 1e-9
+    ratio = sol.error_estimate[big] / error[big]
+    assert big.sum() > 20 and ratio.min() > 0.5 and ratio.max() < 2.0
+    np.testing.assert_allclose(np.linalg.det(sol.rotation), 1.0, atol=1e-10)
+
+
+def test_loaded_kernel_solves_the_vectorised_paths_discrete_problem():
+    """Same RK4 grid, no step control: the kernel (variational shooting Jacobian) and the vectorised
+    path (finite differences, load continuation) converge to the same discrete equilibrium."""
+    d, loads = sample_designs(40, seed=8), loaded_space(40, 9)
+    fixed = SolverOptions(max_step_loads=1 / 100, max_level=0, step_tol=np.inf)
+    fast = solve(d, SIGMA, loads=loads, options=fixed)
+    slow = solve(d, SIGMA, loads=loads, options=replace(fixed, kernel="numpy"))
+    assert fast.converged.all() and slow.converged.all()
+    assert relative_l2(fast.tendons, slow.tendons).max() < 1e-8
+
+
+def test_the_slender_bent_designs_the_old_fixed_step_got_wrong():
+    """r = 0.5 mm, L = 0.31-0.35 m, 5 N on one tendon, horizontal gravity: the old fixed step L/100
+    is off by ~1e-5 here; the controlled step is within 1e-6 and says so."""
+    rng = np.random.default_rng(9)
+    m = 12
+    f = np.zeros((m, 15))
+    f[:, 0], f[:, 1], f[:, 2] = rng.uniform(15.5e9, 45.5e9, m), 0.0005, rng.uniform(0.31, 0.35, m)
+    f[:, 3:7], f[:, 7:11], f[:, 11] = rng.uniform(0.005, 0.01, (m, 4)), rng.uniform(-20, 20, (m, 4)), 5.0
+    d = DesignBatch.from_features(f)
+    loads = ExternalLoads(gravity=np.tile([9.81, 0.0, 0.0], (m, 1)), density=np.full(m, 7800.0))
+    sol = solve(d, SIGMA, loads=loads)
+    fine = solve(d, SIGMA, loads=loads, options=SolverOptions(max_step_loads=1 / 2000, max_level=0, step_tol=np.inf))
+    old = solve(d, SIGMA, loads=loads, options=SolverOptions(max_level=0, step_tol=np.inf))
+    assert sol.converged.all() and relative_l2(sol.tendons, fine.tendons).max() <= 1e-6
+    assert (sol.steps > 123).any()  # the controller refined some
+    assert relative_l2(old.tendons, fine.tendons).max() > 3e-6
+
+
+def test_euler_buckling_is_flagged_as_several_equilibria():
+    """A compressive tip force on a straight rod: below Euler's load pi^2 EI / (4 L^2) one
+    equilibrium (converged); above it the straight shape is one of several (flagged)."""
+    e, r, length = 30e9, 0.0005, 0.3
+    critical = np.pi**2 * e * np.pi * r**4 / 4 / (4 * length**2)
+    d = DesignBatch(E=[e, e], r=[r, r], L=[length, length], offset=[[0.008] * 4] * 2, pitch=[[0.0] * 4] * 2,
+                    tension=[[0.0] * 4] * 2)
+    loads = ExternalLoads(tip_force=np.array([[0, 0, -0.5 * critical], [0, 0, -1.5 * critical]]))
+    sol = solve(d, SIGMA, loads=loads)
+    assert sol.status.tolist() == [0, STATUS.index("multiple_equilibria")]
+    assert sol.converged.tolist() == [True, False]
+    np.testing.assert_allclose(sol.backbone[:, -1, :2], 0.0, atol=1e-12)  # the straight shape, flagged

@@ -28,6 +28,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+#: the right-hand side of (W1, W2) without external loads
+_NO_TARGET = np.zeros(6)
 #: status codes per design (``tdcr.physics.cosserat.STATUS``)
 OK, NEWTON_FAILED, NOT_FINITE, STEP_TOL_NOT_MET = 0, 1, 2, 3
 
@@ -39,18 +41,20 @@ def _tendon(nu0, nu1, nu2, k0, k1, k2, ox, oy, dx, dy):
 
 
 @njit(cache=True, error_model="numpy")
-def _potential(x, rho, drho, tau, kse, kbt):
-    """Phi of eq. (PHI) at strains ``x`` (6,)."""
+def _potential(x, rho, drho, tau, kse, kbt, target):
+    """Phi of eq. (PHI) minus target . x at strains ``x`` (6,) (target: body-frame (R^T N, R^T M))."""
     phi = 0.5 * (kse[0] * x[0] ** 2 + kse[1] * x[1] ** 2 + kse[2] * (x[2] - 1.0) ** 2)
     phi += 0.5 * (kbt[0] * x[3] ** 2 + kbt[1] * x[4] ** 2 + kbt[2] * x[5] ** 2)
     for i in range(tau.shape[0]):
         g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
         phi += tau[i] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+    for a in range(6):
+        phi -= target[a] * x[a]
     return phi
 
 
 @njit(cache=True, error_model="numpy")
-def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av):
+def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av, target):
     """Residual of (W1, W2) into ``res`` (6,) and (if ``want_jac``) its Jacobian, the Hessian of
     Phi, into ``jac`` (6, 6): J = diag(K_se, K_bt) + sum_i w_i (A_i^T A_i - a_i a_i^T)."""
     res[0] = kse[0] * x[0]
@@ -98,6 +102,8 @@ def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av):
             jac[4, 4] += w * ox * ox
             jac[3, 4] -= w * ox * oy
             jac[5, 5] += w * (ox * ox + oy * oy)
+    for a in range(6):
+        res[a] -= target[a]
     if want_jac:
         for a in range(6):
             for b in range(a + 1, 6):
@@ -105,9 +111,9 @@ def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_spd(jac, rhs, out, d, low, y):
-    """``out`` = jac^-1 rhs for SPD ``jac`` (6, 6) by Cholesky after Jacobi scaling; False if not
-    positive definite or not finite.  ``d`` (6,), ``low`` (6, 6), ``y`` (6,) are workspace."""
+def _factor_spd(jac, d, low):
+    """Cholesky factor ``low`` (6, 6) of D jac D with the Jacobi scaling ``d`` (6,), D = diag(d);
+    False if ``jac`` is not positive definite or not finite."""
     n = 6
     for a in range(n):
         if not (jac[a, a] > 0.0) or not math.isfinite(jac[a, a]):
@@ -124,6 +130,13 @@ def _solve_spd(jac, rhs, out, d, low, y):
                 low[a, a] = math.sqrt(s)
             else:
                 low[a, b] = s / low[b, b]
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_factored(d, low, rhs, out, y):
+    """``out`` = jac^-1 rhs from :func:`_factor_spd`'s factor; False if not finite."""
+    n = 6
     for a in range(n):
         s = rhs[a] * d[a]
         for k in range(a):
@@ -142,16 +155,24 @@ def _solve_spd(jac, rhs, out, d, low, y):
 
 
 @njit(cache=True, error_model="numpy")
-def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low):
-    """Damped Newton on (W1, W2) at one node, in place on ``x`` (6,).  Returns
-    ``(converged, iterations, residual)``, residual = sqrt(|F|^2 + |M / L|^2) of the result, N.
-    ``work`` (6, 6) and ``jac``, ``low`` (6, 6) are workspace."""
+def _solve_spd(jac, rhs, out, d, low, y):
+    """``out`` = jac^-1 rhs for SPD ``jac`` (6, 6) by Cholesky after Jacobi scaling; False if not
+    positive definite or not finite.  ``d`` (6,), ``low`` (6, 6), ``y`` (6,) are workspace."""
+    return _factor_spd(jac, d, low) and _solve_factored(d, low, rhs, out, y)
+
+
+@njit(cache=True, error_model="numpy")
+def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low, target, final_factor):
+    """Damped Newton on (W1, W2) (right-hand side ``target`` (6,)) at one node, in place on ``x``
+    (6,).  Returns ``(converged, iterations, residual)``, residual = sqrt(|F|^2 + |M / L|^2) of the
+    result, N.  ``work`` (6, 6) and ``jac``, ``low`` (6, 6) are workspace; with ``final_factor``
+    the Jacobian at the result is left factored in ``low`` and ``work[4]`` (:func:`_factor_spd`)."""
     res, step, trial, av, d, y = work[0], work[1], work[2], work[3], work[4], work[5]
     sqrt_tol = math.sqrt(tol)
     converged = False
     it = 0
     while it < max_iter:
-        _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, True, av)
+        _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, True, av, target)
         if not _solve_spd(jac, res, step, d, low, y):
             break
         it += 1
@@ -161,7 +182,7 @@ def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, ja
         size += radius * math.sqrt(step[3] ** 2 + step[4] ** 2 + step[5] ** 2)
         alpha = 1.0
         if size > 1e-3:  # Armijo on Phi, only far from the root (as the vectorised path)
-            phi0 = _potential(x, rho, drho, tau, kse, kbt)
+            phi0 = _potential(x, rho, drho, tau, kse, kbt, target)
             slope = 0.0
             for a in range(6):
                 slope += res[a] * step[a]
@@ -169,7 +190,7 @@ def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, ja
             for _ in range(40):
                 for a in range(6):
                     trial[a] = x[a] + alpha * step[a]
-                if _potential(trial, rho, drho, tau, kse, kbt) <= phi0 + 1e-4 * alpha * slope + slack:
+                if _potential(trial, rho, drho, tau, kse, kbt, target) <= phi0 + 1e-4 * alpha * slope + slack:
                     break
                 alpha *= 0.5
         for a in range(6):
@@ -179,7 +200,9 @@ def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, ja
         if alpha == 1.0 and size < sqrt_tol:
             converged = True
             break
-    _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, False, av)
+    _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, final_factor, av, target)
+    if final_factor and not _factor_spd(jac, d, low):
+        converged = False
     residual = math.sqrt(res[0] ** 2 + res[1] ** 2 + res[2] ** 2
                          + (res[3] ** 2 + res[4] ** 2 + res[5] ** 2) / (length * length))
     return converged, it, residual
@@ -211,7 +234,8 @@ def _solve_nodes(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, radius, 
     for j in range(order.shape[0]):
         k = order[j]
         _routing(sigmas[k], length, offset, pitch, rho, drho)
-        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low)
+        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low,
+                              _NO_TARGET, False)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):  # NaN-propagating max
@@ -508,7 +532,8 @@ def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, ra
                 l1, l2, l3 = 1.0, 0.0, 0.0
             for a in range(6):
                 x_nodes[k, a] = l1 * x_nodes[k1, a] + l2 * x_nodes[k2, a] + l3 * x_nodes[k3, a]
-        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low)
+        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low,
+                              _NO_TARGET, False)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):
@@ -526,3 +551,369 @@ def solve_batch(features_e, features_r, features_l, offsets, pitches, tensions, 
                                              tensions[b], edges0, out_step0, sigma_out, tol, max_iter, step_tol,
                                              max_level, backbone[b], rotation[b], strains[b], tendons[b])
         status[b], residual[b], iterations[b], level[b], estimate[b] = st, res, it, lev, est
+
+
+# --------------------------------------------------------------------------- external loads
+#
+# With gravity and tip loads the moment about p(s) depends on the shape: shooting on M(0) (3
+# unknowns), RK4 on y = (p, R, M) with M' = -p' x N (eq. MT), N(s) = F_tip + f_g (L - s), the
+# strains at every stage from (W1, W2) with the right-hand side (R^T N, R^T M).  The shooting
+# Jacobian dM(L)/dM(0) comes from the variational equations integrated with the same RK4 stages
+# (the exact derivative of the discrete map):
+#   d target = (dR^T N, dR^T M + R^T dM),  dx = J^-1 d target  (J: the Hessian of Phi at the stage),
+#   dp' = dR nu + R dnu,  dR' = dR hat(kappa) + R hat(dkappa),  dM' = -dp' x N.
+
+#: loaded-solver status codes beyond the tendon-only ones
+SHOOTING_FAILED, MULTIPLE_EQUILIBRIA = 5, 6
+
+
+@njit(cache=True, error_model="numpy")
+def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, tau, kse, kbt, radius, f_tip, f_g,
+           tol, max_iter, ws, fp, frot, fmom, fdp, fdrot, fdmom):
+    """Derivatives of (p, R, M) (and their tangents) at arclength ``s`` m; strains into ``x`` (warm).
+    Returns (converged, residual)."""
+    rho, drho, work, jac, low, target, dtarget, dx = ws
+    n_t = offset.shape[0]
+    for i in range(n_t):
+        phi = 2.0 * math.pi * i / n_t + pitch[i] * s
+        c, sn = math.cos(phi), math.sin(phi)
+        rho[i, 0], rho[i, 1] = offset[i] * c, offset[i] * sn
+        drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sn, offset[i] * pitch[i] * c
+    n0 = f_tip[0] + f_g[0] * (length - s)
+    n1 = f_tip[1] + f_g[1] * (length - s)
+    n2 = f_tip[2] + f_g[2] * (length - s)
+    for a in range(3):
+        target[a] = rot[0, a] * n0 + rot[1, a] * n1 + rot[2, a] * n2
+        target[3 + a] = rot[0, a] * mom[0] + rot[1, a] * mom[1] + rot[2, a] * mom[2]
+    conv, _, res = _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low, target, want_var)
+    for a in range(3):
+        fp[a] = rot[a, 0] * x[0] + rot[a, 1] * x[1] + rot[a, 2] * x[2]
+    k0, k1, k2 = x[3], x[4], x[5]
+    for a in range(3):  # R hat(kappa)
+        frot[a, 0] = rot[a, 1] * k2 - rot[a, 2] * k1
+        frot[a, 1] = rot[a, 2] * k0 - rot[a, 0] * k2
+        frot[a, 2] = rot[a, 0] * k1 - rot[a, 1] * k0
+    fmom[0] = -(fp[1] * n2 - fp[2] * n1)
+    fmom[1] = -(fp[2] * n0 - fp[0] * n2)
+    fmom[2] = -(fp[0] * n1 - fp[1] * n0)
+    if want_var:
+        d, y = work[4], work[5]
+        for q in range(3):  # the three directions of dM(0)
+            for a in range(3):
+                dtarget[a] = drot[q, 0, a] * n0 + drot[q, 1, a] * n1 + drot[q, 2, a] * n2
+                dtarget[3 + a] = (drot[q, 0, a] * mom[0] + drot[q, 1, a] * mom[1] + drot[q, 2, a] * mom[2]
+                                  + rot[0, a] * dmom[q, 0] + rot[1, a] * dmom[q, 1] + rot[2, a] * dmom[q, 2])
+            if not _solve_factored(d, low, dtarget, dx, y):
+                conv = False
+            for a in range(3):
+                fdp[q, a] = (drot[q, a, 0] * x[0] + drot[q, a, 1] * x[1] + drot[q, a, 2] * x[2]
+                             + rot[a, 0] * dx[0] + rot[a, 1] * dx[1] + rot[a, 2] * dx[2])
+            for a in range(3):
+                fdrot[q, a, 0] = (drot[q, a, 1] * k2 - drot[q, a, 2] * k1) + (rot[a, 1] * dx[5] - rot[a, 2] * dx[4])
+                fdrot[q, a, 1] = (drot[q, a, 2] * k0 - drot[q, a, 0] * k2) + (rot[a, 2] * dx[3] - rot[a, 0] * dx[5])
+                fdrot[q, a, 2] = (drot[q, a, 0] * k1 - drot[q, a, 1] * k0) + (rot[a, 0] * dx[4] - rot[a, 1] * dx[3])
+            fdmom[q, 0] = -(fdp[q, 1] * n2 - fdp[q, 2] * n1)
+            fdmom[q, 1] = -(fdp[q, 2] * n0 - fdp[q, 0] * n2)
+            fdmom[q, 2] = -(fdp[q, 0] * n1 - fdp[q, 1] * n0)
+    return conv, res
+
+
+@njit(cache=True, error_model="numpy")
+def _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, f_g, tol, max_iter, want_var,
+                out_step, pos_out, rot_out, x_out, jac_out):
+    """One RK4 integration from M(0) = ``m0`` over ``edges`` (fractions of L).  Writes the tip
+    moment's Jacobian dM(L)/dM(0) into ``jac_out`` (3, 3) (if ``want_var``) and poses and strains
+    at the edges ``out_step`` (entries < 0 skipped).  Returns (M(L) (3,), converged, residual)."""
+    n_t = offset.shape[0]
+    ws = (np.empty((n_t, 2)), np.empty((n_t, 2)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)),
+          np.empty(6), np.empty(6), np.empty(6))
+    p, rot, mom = np.zeros(3), np.eye(3), m0.copy()
+    dp, drot, dmom = np.zeros((3, 3)), np.zeros((3, 3, 3)), np.zeros((3, 3))
+    for q in range(3):
+        dmom[q, q] = 1.0
+    x = np.zeros(6)
+    x[2] = 1.0
+    xs = np.empty(6)
+    f = [(np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((3, 3)))
+         for _ in range(4)]
+    tp, trot, tmom = np.empty(3), np.empty((3, 3)), np.empty(3)
+    tdp, tdrot, tdmom = np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((3, 3))
+    ok = True
+    worst = 0.0
+    n_out = out_step.shape[0]
+    k_steps = edges.shape[0] - 1
+    for k in range(k_steps + 1):
+        s0 = edges[k] * length
+        # stage 1 (also the strains at the edge, for the outputs)
+        c, r = _stage(s0, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, tau, kse, kbt, radius,
+                      f_tip, f_g, tol, max_iter, ws, f[0][0], f[0][1], f[0][2], f[0][3], f[0][4], f[0][5])
+        ok = ok and c
+        if not (r <= worst):
+            worst = r
+        for j in range(n_out):
+            if out_step[j] == k:
+                pos_out[j, :] = p
+                rot_out[j, :, :] = rot
+                x_out[j, :] = x
+        if k == k_steps:
+            break
+        h = (edges[k + 1] - edges[k]) * length
+        xs[:] = x
+        for st in range(1, 4):
+            a = 0.5 * h if st < 3 else h
+            prev = f[st - 1]
+            for i in range(3):
+                tp[i] = p[i] + a * prev[0][i]
+                tmom[i] = mom[i] + a * prev[2][i]
+                for j2 in range(3):
+                    trot[i, j2] = rot[i, j2] + a * prev[1][i, j2]
+            if want_var:
+                for q in range(3):
+                    for i in range(3):
+                        tdp[q, i] = dp[q, i] + a * prev[3][q, i]
+                        tdmom[q, i] = dmom[q, i] + a * prev[5][q, i]
+                        for j2 in range(3):
+                            tdrot[q, i, j2] = drot[q, i, j2] + a * prev[4][q, i, j2]
+            cur = f[st]
+            c, r = _stage(s0 + (0.5 * h if st < 3 else h), length, tp, trot, tmom, tdp, tdrot, tdmom, xs, want_var,
+                          offset, pitch, tau, kse, kbt, radius, f_tip, f_g, tol, max_iter, ws,
+                          cur[0], cur[1], cur[2], cur[3], cur[4], cur[5])
+            ok = ok and c
+            if not (r <= worst):
+                worst = r
+        w6 = h / 6.0
+        for i in range(3):
+            p[i] += w6 * (f[0][0][i] + 2.0 * f[1][0][i] + 2.0 * f[2][0][i] + f[3][0][i])
+            mom[i] += w6 * (f[0][2][i] + 2.0 * f[1][2][i] + 2.0 * f[2][2][i] + f[3][2][i])
+            for j2 in range(3):
+                rot[i, j2] += w6 * (f[0][1][i, j2] + 2.0 * f[1][1][i, j2] + 2.0 * f[2][1][i, j2] + f[3][1][i, j2])
+        if want_var:
+            for q in range(3):
+                for i in range(3):
+                    dp[q, i] += w6 * (f[0][3][q, i] + 2.0 * f[1][3][q, i] + 2.0 * f[2][3][q, i] + f[3][3][q, i])
+                    dmom[q, i] += w6 * (f[0][5][q, i] + 2.0 * f[1][5][q, i] + 2.0 * f[2][5][q, i] + f[3][5][q, i])
+                    for j2 in range(3):
+                        drot[q, i, j2] += w6 * (f[0][4][q, i, j2] + 2.0 * f[1][4][q, i, j2]
+                                                + 2.0 * f[2][4][q, i, j2] + f[3][4][q, i, j2])
+    if want_var:
+        for i in range(3):
+            for q in range(3):
+                jac_out[i, q] = dmom[q, i]
+    return mom, ok, worst
+
+
+@njit(cache=True, error_model="numpy")
+def _solve3(a, b, out):
+    """``out`` = a^-1 b for (3, 3) ``a`` by Cramer's rule; returns det(a)."""
+    det = (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]) - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+           + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+    for c in range(3):
+        num = a.copy()
+        for i in range(3):
+            num[i, c] = b[i]
+        out[c] = (num[0, 0] * (num[1, 1] * num[2, 2] - num[1, 2] * num[2, 1])
+                  - num[0, 1] * (num[1, 0] * num[2, 2] - num[1, 2] * num[2, 0])
+                  + num[0, 2] * (num[1, 0] * num[2, 1] - num[1, 1] * num[2, 0])) / det
+    return det
+
+
+@njit(cache=True, error_model="numpy")
+def _shoot(m0, lam, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, f_g, m_tip, tol, max_iter,
+           shoot_tol, max_shoot, scale, out_step, pos, rot, x, info, jac):
+    """Newton on M(L) = M_tip for M(0) (in place on ``m0``), loads scaled by ``lam``, with
+    backtracking on |M(L) - M_tip| when a step does not reduce it.  Every pass records the poses
+    and strains at ``out_step`` (< 0: skipped), so on success they are those of the result;
+    ``info`` (3,) receives the tip moment's mismatch (N m), the pass's local flag (1/0) and its
+    largest local residual (N), ``jac`` (3, 3) the shooting Jacobian dM(L)/dM(0) of the last pass.
+    Returns (converged, passes, det of the shooting Jacobian)."""
+    ft, fg, mt = lam * f_tip, lam * f_g, lam * m_tip
+    step, m_prev = np.zeros(3), m0.copy()
+    err_prev, alpha, det = np.inf, 1.0, np.nan
+    for it in range(max_shoot):
+        mom, ok, worst = _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, ft, fg, tol, max_iter,
+                                     True, out_step, pos, rot, x, jac)
+        err = math.sqrt((mom[0] - mt[0]) ** 2 + (mom[1] - mt[1]) ** 2 + (mom[2] - mt[2]) ** 2)
+        info[0], info[1], info[2] = err, 1.0 if ok else 0.0, worst
+        if not ok or not (err < err_prev) and it > 0:  # backtrack from the last accepted point
+            alpha *= 0.5
+            if alpha < 1.0 / 256.0:
+                return False, it + 1, det
+            for i in range(3):
+                m0[i] = m_prev[i] - alpha * step[i]
+            continue
+        resid = np.array([mom[0] - mt[0], mom[1] - mt[1], mom[2] - mt[2]])
+        det = _solve3(jac, resid, step)
+        if err <= shoot_tol * scale:
+            return True, it + 1, det
+        m_prev[:] = m0
+        err_prev, alpha = err, 1.0
+        for i in range(3):
+            m0[i] -= step[i]
+    return False, max_shoot, det
+
+
+@njit(cache=True, error_model="numpy")
+def _loaded_outputs(out_step, rho_out, pos, rot, tendons):
+    """Tendon positions at the outputs from the recorded poses, the frames first projected back
+    onto SO(3) (two Newton-Schulz steps; RK4 leaves them off by O(h^5))."""
+    for j in range(out_step.shape[0]):
+        if out_step[j] < 0:
+            continue
+        for _ in range(2):  # R <- 1.5 R - 0.5 R R^T R
+            r = rot[j].copy()
+            for a in range(3):
+                for b in range(3):
+                    acc = 0.0
+                    for c in range(3):
+                        rrt = r[a, 0] * r[c, 0] + r[a, 1] * r[c, 1] + r[a, 2] * r[c, 2]
+                        acc += rrt * r[c, b]
+                    rot[j, a, b] = 1.5 * r[a, b] - 0.5 * acc
+    _tendon_positions(pos, rot, rho_out, tendons)
+
+
+@njit(cache=True, error_model="numpy")
+def _masked_richardson(fine, coarse, out_step):
+    diff, norm = 0.0, 0.0
+    for j in range(fine.shape[0]):
+        if out_step[j] < 0:
+            continue
+        for i in range(fine.shape[1]):
+            for a in range(3):
+                diff += (fine[j, i, a] - coarse[j, i, a]) ** 2
+                norm += fine[j, i, a] ** 2
+    return math.sqrt(diff / norm) / 15.0 if norm > 0.0 else math.sqrt(diff) / 15.0
+
+
+@njit(cache=True, error_model="numpy")
+def solve_loaded_design(E, r, length, offset, pitch, tau, f_g, f_tip, m_tip, edges0, out_step0,
+                        sigma_out, tol, max_iter, shoot_tol, max_shoot, step_tol, max_level,
+                        pos_out, rot_out, x_out, tendons_out, shoot_jac):
+    """One design under its distributed weight ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N),
+    ``m_tip`` (N m).  ``edges0`` must end at 1 (the tip condition).  ``shoot_jac`` (3, 3) receives
+    the shooting Jacobian dM(L)/dM(0) at the result (the identity for the unloaded rod).
+    Returns (status, residual N, shooting passes, level, error estimate, M(0) x 3)."""
+    g = E / (2.0 * 1.3)
+    area = math.pi * r * r
+    inertia = math.pi * r ** 4 / 4.0
+    kse = np.array([g * area, g * area, E * area])
+    kbt = np.array([E * inertia, E * inertia, g * 2.0 * inertia])
+    scale = 0.0
+    for i in range(offset.shape[0]):
+        scale += tau[i] * offset[i]
+    scale += (math.sqrt(m_tip[0] ** 2 + m_tip[1] ** 2 + m_tip[2] ** 2)
+              + math.sqrt(f_tip[0] ** 2 + f_tip[1] ** 2 + f_tip[2] ** 2) * length
+              + math.sqrt(f_g[0] ** 2 + f_g[1] ** 2 + f_g[2] ** 2) * length * length + 1e-12)
+    rho_out = _output_offsets(sigma_out, length, offset, pitch)
+    n_out, n_t = sigma_out.shape[0], offset.shape[0]
+    k0 = edges0.shape[0] - 1
+    # first guess: the loads' moment about the base on the tendon-only shape (its tip from one pass)
+    tip_step = np.array([k0], dtype=np.int64)
+    tip_p, tip_r, tip_x = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6))
+    zero3 = np.zeros(3)
+    jac = np.empty((3, 3))
+    _shoot_pass(zero3.copy(), edges0, length, offset, pitch, tau, kse, kbt, r, zero3, zero3, tol, max_iter, False,
+                tip_step, tip_p, tip_r, tip_x, jac)
+    tip = tip_p[0]
+    m0 = np.empty(3)
+    half = 0.5 * length
+    m0[0] = tip[1] * f_tip[2] - tip[2] * f_tip[1] + m_tip[0] + half * (tip[1] * f_g[2] - tip[2] * f_g[1])
+    m0[1] = tip[2] * f_tip[0] - tip[0] * f_tip[2] + m_tip[1] + half * (tip[2] * f_g[0] - tip[0] * f_g[2])
+    m0[2] = tip[0] * f_tip[1] - tip[1] * f_tip[0] + m_tip[2] + half * (tip[0] * f_g[1] - tip[1] * f_g[0])
+    start = m0.copy()
+    info = np.empty(3)
+    none = np.full(n_out, -1, dtype=np.int64)  # continuation steps record nothing
+    ok, passes, det = _shoot(m0, 1.0, edges0, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g, m_tip, tol,
+                             max_iter, shoot_tol, max_shoot, scale, out_step0, pos_out, rot_out, x_out, info, shoot_jac)
+    for n_steps in (4, 16):  # load continuation from the tendon-only state when the direct Newton fails
+        if ok:
+            break
+        m0[:] = 0.0
+        for k in range(1, n_steps + 1):
+            for i in range(3):
+                m0[i] += start[i] / n_steps  # predictor: the first guess scales with the loads
+            ok, used, det = _shoot(m0, k / n_steps, edges0, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g,
+                                   m_tip, tol, max_iter, shoot_tol, max_shoot, scale,
+                                   out_step0 if k == n_steps else none, pos_out, rot_out, x_out, info, shoot_jac)
+            passes += used
+            if not ok:
+                break
+    _loaded_outputs(out_step0, rho_out, pos_out, rot_out, tendons_out)
+    mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
+    # the free estimate: the coarse grid joins pairs of equal steps (as the tendon-only kernel)
+    c_idx = np.empty(k0 + 1, dtype=np.int64)
+    to_coarse = np.full(k0 + 1, -1, dtype=np.int64)
+    c_idx[0], to_coarse[0], kc, k = 0, 0, 0, 0
+    while k < k0:
+        w0 = edges0[k + 1] - edges0[k]
+        if k + 1 < k0 and abs((edges0[k + 2] - edges0[k + 1]) - w0) <= 1e-12 * w0:
+            k += 2
+        else:
+            k += 1
+        kc += 1
+        c_idx[kc], to_coarse[k] = k, kc
+    c_edges = edges0[c_idx[:kc + 1]]
+    c_out = np.empty(n_out, dtype=np.int64)
+    for j in range(n_out):
+        c_out[j] = to_coarse[out_step0[j]]
+    c_pos, c_rot, c_x, coarse = (np.zeros((n_out, 3)), np.zeros((n_out, 3, 3)), np.zeros((n_out, 6)),
+                                 np.zeros((n_out, n_t, 3)))
+    c_m0 = m0.copy()
+    c_info = np.empty(3)
+    c_ok, used, _ = _shoot(c_m0, 1.0, c_edges, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g, m_tip, tol,
+                           max_iter, shoot_tol, max_shoot, scale, c_out, c_pos, c_rot, c_x, c_info, jac)
+    passes += used
+    _loaded_outputs(c_out, rho_out, c_pos, c_rot, coarse)
+    estimate = _masked_richardson(tendons_out, coarse, c_out) if c_ok else np.inf
+    level = 0
+    edges, out_step = edges0, out_step0.copy()
+    prev = tendons_out.copy()
+    while ok and level < max_level and not (estimate <= step_tol):
+        level += 1
+        finer = np.empty(2 * edges.shape[0] - 1)
+        for k in range(edges.shape[0] - 1):
+            finer[2 * k] = edges[k]
+            finer[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
+        finer[-1] = edges[-1]
+        edges, out_step = finer, out_step * 2
+        ok, used, det = _shoot(m0, 1.0, edges, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g, m_tip, tol,
+                               max_iter, shoot_tol, max_shoot, scale, out_step, pos_out, rot_out, x_out, info,
+                               shoot_jac)
+        passes += used
+        _loaded_outputs(out_step, rho_out, pos_out, rot_out, tendons_out)
+        mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
+        estimate = _masked_richardson(tendons_out, prev, out_step)
+        prev[:, :, :] = tendons_out
+    tip_residual = mismatch / length
+    residual = worst if worst > tip_residual else tip_residual
+    finite = math.isfinite(residual)
+    for j in range(n_out):
+        for i in range(n_t):
+            for a in range(3):
+                finite = finite and math.isfinite(tendons_out[j, i, a])
+    if not finite:
+        status = NOT_FINITE
+    elif not ok:
+        status = SHOOTING_FAILED
+    elif not local_ok:
+        status = NEWTON_FAILED
+    elif not (det > 0.0):
+        status = MULTIPLE_EQUILIBRIA
+    elif not (estimate <= step_tol):
+        status = STEP_TOL_NOT_MET
+    else:
+        status = OK
+    return status, residual, passes, level, estimate, m0[0], m0[1], m0[2]
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def solve_loaded_batch(e, r, length, offsets, pitches, tensions, f_g, f_tip, m_tip, edges0, out_step0,
+                       sigma_out, tol, max_iter, shoot_tol, max_shoot, step_tol, max_level, backbone, rotation,
+                       strains, tendons, status, residual, passes, level, estimate, m0, shoot_jac):
+    """:func:`solve_loaded_design` for every design of a batch, over numba's threads."""
+    for b in prange(e.shape[0]):
+        out = solve_loaded_design(e[b], r[b], length[b], offsets[b], pitches[b], tensions[b], f_g[b],
+                                  f_tip[b], m_tip[b], edges0, out_step0, sigma_out, tol, max_iter, shoot_tol,
+                                  max_shoot, step_tol, max_level, backbone[b], rotation[b], strains[b], tendons[b],
+                                  shoot_jac[b])
+        status[b], residual[b], passes[b], level[b], estimate[b] = out[0], out[1], out[2], out[3], out[4]
+        m0[b, 0], m0[b, 1], m0[b, 2] = out[5], out[6], out[7]

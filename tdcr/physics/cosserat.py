@@ -105,9 +105,12 @@ class RodSolution:
         residual: per-design wrench-balance residual, N (moments divided by L), ``(B,)``.
         iterations: per-design Newton (tendon-only) or shooting iterations, ``(B,)``.
         status: per-design outcome, an index into :data:`STATUS` ``(B,)``: 0 converged, 1 Newton
-            failed, 2 not finite, 3 step tolerance not met, 4 residual above tolerance.
+            failed, 2 not finite, 3 step tolerance not met, 4 residual above tolerance, 5 shooting
+            failed (loads), 6 several equilibria (loads: the shooting Jacobian dM(L)/dM(0), the
+            identity without loads, has a real eigenvalue <= 0 at the result, so one crossed zero
+            as the loads grew: a fold or a bifurcation, e.g. Euler buckling).
         error_estimate: per-design estimate of the relative l2 error of the tendon positions due
-            to the integration step, ``(B,)`` (NaN where not estimated: loads, linearized).
+            to the integration step, ``(B,)`` (NaN where not estimated: linearized, tip solves).
         steps: integration steps per design along [0, L], ``(B,)``.
         jacobian: with ``solve(..., jacobian=True)``, the sensitivity of the pose at each
             arclength to the tensions, base frame, ``(B, n, 6, N_t)``: rows 0-2 d p / d tau (m/N),
@@ -130,7 +133,8 @@ class RodSolution:
 
 
 #: Names of ``RodSolution.status`` codes (the compiled kernel uses the same codes).
-STATUS = ("converged", "newton_failed", "not_finite", "step_tol_not_met", "residual_too_large")
+STATUS = ("converged", "newton_failed", "not_finite", "step_tol_not_met", "residual_too_large", "shooting_failed",
+          "multiple_equilibria")
 
 
 @dataclass(frozen=True)
@@ -437,8 +441,7 @@ def solve(
     """
     opts = options or SolverOptions()
     threads = workers
-    compiled = (not jacobian and not opts.linearized and (loads is None or loads.is_zero())
-                and _compiled_kernel(opts) is not None)
+    compiled = not jacobian and not opts.linearized and _compiled_kernel(opts) is not None
     processes = 1 if compiled else min(workers or os.cpu_count() or 1, designs.n_designs // MIN_DESIGNS_PER_WORKER)
     if processes > 1:
         return _solve_in_processes(designs, s_fraction, loads, options, processes, jacobian)
@@ -450,6 +453,8 @@ def solve(
         raise ValueError("the linearized model covers tendon loads only")
     if jacobian and (opts.linearized or loads is not None and not loads.is_zero()):
         raise ValueError("the Jacobian covers the exact model under tendon loads only")
+    if loads is not None and not loads.is_zero() and _compiled_kernel(opts) is not None:
+        return _solve_loaded_compiled(designs, sigma_out, loads, opts, threads)
     base = _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian, threads=threads)
     if loads is None or loads.is_zero():
         return base
@@ -625,6 +630,54 @@ def _solve_adaptive(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndar
         steps[active] = len(edges) - 1
         active = active[estimate[active] > opts.step_tol]
     return _finish_status(RodSolution(**fields), estimate, steps, opts, estimated=True)
+
+
+def _solve_loaded_compiled(designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
+                           threads: int) -> RodSolution:
+    """The loaded shooting kernel (:func:`tdcr.physics._kernel.solve_loaded_design`) on ``threads``
+    threads (0: all): variational shooting Jacobian, load continuation when needed, RK4 with the
+    step controlled per design like the tendon-only kernel."""
+    import numba
+
+    from tdcr.physics._compiled import kernel
+
+    b, n, n_t = designs.n_designs, sigma_out.shape[0], designs.n_tendons
+    mat = material(designs)
+    f_g, f_tip, m_tip = loads.resolved(b, mat.area)
+    edges0, _, _ = _step_grid(np.append(sigma_out, 1.0), opts.max_step_loads)
+    out0 = np.searchsorted(edges0, sigma_out)
+    backbone, rotation = np.empty((b, n, 3)), np.empty((b, n, 3, 3))
+    strains, tendons = np.empty((b, n, 6)), np.empty((b, n, n_t, 3))
+    status, level, passes = np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64)
+    residual, estimate, m0, shoot_jac = np.empty(b), np.empty(b), np.empty((b, 3)), np.empty((b, 3, 3))
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    wanted = min(threads or os.cpu_count() or 1, numba.config.NUMBA_NUM_THREADS, max(b, 1))
+    previous = numba.get_num_threads()
+    numba.set_num_threads(wanted)
+    try:
+        kernel.solve_loaded_batch(f64(designs.E), f64(designs.r), f64(designs.L), f64(designs.offset),
+                                  f64(designs.pitch), f64(designs.tension), f64(f_g), f64(f_tip), f64(m_tip),
+                                  f64(edges0), np.asarray(out0, dtype=np.int64), f64(sigma_out), opts.newton_tol,
+                                  opts.max_newton, opts.shooting_tol, opts.max_shooting, opts.step_tol,
+                                  opts.max_level, backbone, rotation, strains, tendons, status, residual, passes,
+                                  level, estimate, m0, shoot_jac)
+    finally:
+        numba.set_num_threads(previous)
+    force = np.einsum("bnij,bnj->bni", rotation, mat.kse[:, None, :] * (strains[..., :3] - _E3))
+    moment = np.einsum("bnij,bnj->bni", rotation, mat.kbt[:, None, :] * strains[..., 3:])
+    status = status.astype(np.int8)
+    # J(lambda) = dM(L)/dM(0) is the identity without loads; a real eigenvalue <= 0 at the result means
+    # one crossed zero on the way: a fold or bifurcation, so several equilibria (e.g. Euler buckling).
+    with np.errstate(all="ignore"):
+        finite = np.isfinite(shoot_jac).all(axis=(1, 2))
+        eig = np.linalg.eigvals(np.where(finite[:, None, None], shoot_jac, np.eye(3)))
+    crossed = ((np.abs(eig.imag) <= 1e-12 * np.abs(eig).max(axis=1, keepdims=True)) & (eig.real <= 0)).any(axis=1)
+    status[(status == 0) & crossed] = STATUS.index("multiple_equilibria")
+    return RodSolution(
+        s=designs.L[:, None] * sigma_out[None, :], backbone=backbone, rotation=rotation, tendons=tendons,
+        force=force, moment=moment, converged=status == 0, residual=residual, iterations=passes,
+        status=status, error_estimate=estimate, steps=(len(edges0) - 1) * 2**level,
+    )
 
 
 def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOptions, *,
