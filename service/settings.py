@@ -35,9 +35,11 @@ class Settings(BaseSettings):
     exact_max_pending: int = Field(8, ge=1, description="/exact requests queued or running before 503")
     exact_timeout_s: float = Field(30.0, gt=0, description="per-request deadline of /exact before 504")
     exact_seconds_per_design: float = Field(
-        1e-3, gt=0, description="admission estimate of one tendon-loaded design at 42 points, s (measured: 0.7 ms)")
+        2e-4, gt=0, description="admission estimate of one tendon-loaded design at 42 points, s (measured with the "
+        "compiled kernel on one core: 0.075 ms)")
     exact_seconds_per_loaded_design: float = Field(
-        0.4, gt=0, description="admission estimate of one design with gravity or tip loads, s (measured: 0.4 s)")
+        1e-2, gt=0, description="admission estimate of one design with gravity or tip loads, s (measured with the "
+        "compiled kernel on one core: 3.6 ms)")
     exact_admission_factor: float = Field(
         3.0, gt=0, description="/exact refuses (413) work estimated at more than this times its deadline")
     workers: int = Field(1, ge=1, description="uvicorn worker processes (scale out with replicas instead)")

@@ -8,15 +8,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from tdcr.design_space import DEFAULT_POINTS
-from tdcr.physics import RodSolution, SolverOptions, solve
+from tdcr.physics import STATUS, RodSolution, SolverOptions, solve
 from tdcr.validation import Limits, ShapeRequest, validate_json
 
 
 @dataclass(frozen=True)
 class WorkBudget:
     """Admission by estimated solver time on one process: tendon-only designs cost
-    ``seconds_per_design`` at 42 points (scaling with more points), loaded designs (shooting)
-    ``seconds_per_loaded_design``; a request estimated over ``max_seconds`` is refused."""
+    ``seconds_per_design`` at 42 points, loaded designs (shooting) ``seconds_per_loaded_design``,
+    both scaling with more points (the step grid holds every requested arclength); a request
+    estimated over ``max_seconds`` is refused."""
 
     seconds_per_design: float
     seconds_per_loaded_design: float
@@ -26,7 +27,7 @@ class WorkBudget:
         """Estimated seconds of ``request``."""
         tendon_only = request.n_designs - request.n_loaded
         points = max(request.fractions.size, DEFAULT_POINTS) / DEFAULT_POINTS
-        return tendon_only * points * self.seconds_per_design + request.n_loaded * self.seconds_per_loaded_design
+        return points * (tendon_only * self.seconds_per_design + request.n_loaded * self.seconds_per_loaded_design)
 
 
 class TooMuchWork(ValueError):
@@ -57,7 +58,8 @@ def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None
     """Solve every design of ``request`` at its arclength fractions ``(n,)``; one dict per design, in order.
 
     Each dict holds ``s`` (m, (n,)), ``backbone`` ((n, 3) m), ``rotation`` ((n, 3, 3)),
-    ``tendons`` ((n, N_t, 3) m), ``converged`` and ``residual`` (N), as nested lists.
+    ``tendons`` ((n, N_t, 3) m), ``converged``, ``residual`` (N), ``status`` (a name of
+    :data:`tdcr.physics.STATUS`) and ``error_estimate`` (relative l2, or None), as nested lists.
     """
     results: list[dict | None] = [None] * request.n_designs
     # the tip Jacobian is that of s = L: solved as one more arclength when it is not asked for
@@ -91,9 +93,15 @@ def solution_to_dict(sol: RodSolution, j: int, *, points: int | None = None) -> 
     finite = bool(all(np.isfinite(v).all() for v in arrays.values()) and np.isfinite(sol.residual[j]))
     if not finite:
         arrays = {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in arrays.items()}
-    return {**{k: v.tolist() for k, v in arrays.items()},
-            "converged": bool(sol.converged[j]) and finite,
-            "residual": float(sol.residual[j]) if np.isfinite(sol.residual[j]) else NOT_FINITE_RESIDUAL}
+    out = {**{k: v.tolist() for k, v in arrays.items()},
+           "converged": bool(sol.converged[j]) and finite,
+           "residual": float(sol.residual[j]) if np.isfinite(sol.residual[j]) else NOT_FINITE_RESIDUAL}
+    if sol.status is not None:
+        out["status"] = STATUS[int(sol.status[j])] if finite else "not_finite"
+    if sol.error_estimate is not None:
+        estimate = float(sol.error_estimate[j])
+        out["error_estimate"] = estimate if np.isfinite(estimate) else None
+    return out
 
 
 def warm_up() -> bool:

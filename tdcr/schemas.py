@@ -160,6 +160,10 @@ class ExactShape(BaseModel):
     converged: bool = Field(description="the solver met its tolerances; false for a design it could not solve "
                                         "(then non-finite coordinates are returned as 0)")
     residual: float = Field(description="wrench-balance residual, N (1.8e308 when it is not finite)")
+    status: str = Field("converged", description="the solver's verdict: converged, newton_failed, not_finite, "
+                        "step_tol_not_met, residual_too_large, shooting_failed or multiple_equilibria")
+    error_estimate: float | None = Field(None, description="estimated relative l2 error of the tendon positions "
+                                         "due to the integration step (null where not estimated)")
     tip_jacobian: list[list[float]] | None = Field(None, description="(6, N_t) with jacobian: true")
 
 

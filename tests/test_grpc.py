@@ -235,8 +235,9 @@ def test_bad_tensors_get_a_clear_status(stub):
 def test_saturated_and_late_solver_calls(tiny_models):
     """Slow loaded solves against a 1 s deadline and one solver slot: one call runs past the deadline
     (DEADLINE_EXCEEDED), the other finds the slot taken (RESOURCE_EXHAUSTED); the server goes on."""
-    heavy = sample_designs(40, seed=3).features()
-    slow = _request("exact", heavy, gravity=np.tile([0.0, 9.81, 0.0], (40, 1)), density=np.full(40, 7800.0))
+    heavy = sample_designs(200, seed=3).features()  # 200 loaded designs at 400 points: seconds of the compiled solver
+    slow = _request("exact", heavy, s=np.linspace(0.0, 1.0, 400), gravity=np.tile([0.0, 9.81, 0.0], (200, 1)),
+                    density=np.full(200, 7800.0))
     with ServerProcess(tiny_models[1], exact_timeout_s=1, exact_max_pending=1, exact_admission_factor=100) as srv:
         with grpc.insecure_channel(srv.grpc_target) as channel:
             infer = pb_grpc.GRPCInferenceServiceStub(channel).ModelInfer

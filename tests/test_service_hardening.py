@@ -46,7 +46,7 @@ def _wait(condition, timeout_s: float = 30.0) -> bool:
 def server(tiny_models):
     # admission estimates made small, so that work past the deadline is admitted and killed
     srv = ServerProcess(tiny_models[1], exact_timeout_s=3, exact_workers=1, exact_max_pending=4,
-                        max_body_bytes=2_000_000, exact_seconds_per_loaded_design=0.001)
+                        max_body_bytes=2_000_000, exact_seconds_per_loaded_design=1e-4)
     yield srv
     srv.stop()
 
@@ -54,7 +54,8 @@ def server(tiny_models):
 def test_a_timed_out_request_stops_its_work(server, example_request):
     """The heavy request's worker is killed at the deadline, so a small request right after it is
     answered by a fresh worker instead of queueing behind the abandoned work."""
-    heavy = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 300, "points": 200}
+    # 1,000 loaded designs at 1,000 points: about 30 s of the compiled solver, far past the 3 s deadline
+    heavy = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 1000, "points": 1000}
     workers = solver_pids(server.proc.pid)
     assert workers
     r = httpx.post(server.url + "/exact", json=heavy, timeout=60)
@@ -209,11 +210,12 @@ def test_the_connection_cap_refuses_then_recovers(strict_server):
 
 
 def test_exact_refuses_work_its_deadline_cannot_cover(strict_server, example_request):
-    """Defaults: 0.4 s per loaded design, 30 s deadline, factor 3: 300 loaded designs are refused
-    after parsing, before any solver work; a bad load is a 422 naming the component."""
-    heavy = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 300}
+    """Defaults: 0.01 s per loaded design at 42 points, 30 s deadline, factor 3: 1,000 loaded designs
+    at 1,000 points (238 s) are refused after parsing, before any solver work; a bad load is a 422
+    naming the component."""
+    heavy = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 1000, "points": 1000}
     r = httpx.post(strict_server.url + "/exact", json=heavy, timeout=60)
-    assert r.status_code == 413 and "would take the solver about 120 s" in r.json()["message"]
+    assert r.status_code == 413 and "would take the solver about 238 s" in r.json()["message"], r.text
     bad = {"designs": [{**example_request["designs"][0], "tip_force": [1e6, 0.0, 0.0]}]}
     r = httpx.post(strict_server.url + "/exact", json=bad)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "designs", 0, "tip_force", 0]
