@@ -76,16 +76,26 @@ def _cmd_inverse(args) -> int:
 
 
 def _cmd_generate(args) -> int:
+    from tdcr.design_space import LoadSpace
     from training.dataset import DatasetMismatch, GenerateConfig, generate
 
     if args.n < 1 or args.shard_size < 1 or args.points < 2:
         raise UsageError("--n and --shard-size must be >= 1 and --points >= 2")
-    cfg = GenerateConfig(n=args.n, seed=args.seed, points=args.points, shard_size=args.shard_size)
+    try:
+        density = None if args.density is None else tuple(float(v) for v in args.density.split(","))
+        if density is not None and len(density) != 2:
+            raise ValueError(f"--density: LOW,HIGH in kg/m^3, got {args.density!r}")
+        loads = LoadSpace(gravity=args.gravity, gravity_magnitude=args.gravity_magnitude, density=density,
+                          tip_force=args.tip_force, tip_moment=args.tip_moment)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    cfg = GenerateConfig(n=args.n, seed=args.seed, points=args.points, shard_size=args.shard_size, loads=loads)
     try:
         meta = generate(args.out, cfg, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet)
     except DatasetMismatch as exc:
         raise UsageError(str(exc)) from None
-    print(json.dumps({k: meta[k] for k in ("n", "converged", "not_converged", "n_train", "n_test", "last_run")}))
+    print(json.dumps({k: meta[k] for k in ("n", "converged", "not_converged", "convergence_rate", "status_counts",
+                                           "n_train", "n_test", "last_run")}))
     return 0
 
 
@@ -312,6 +322,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shard-size", type=int, default=1000)
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
     p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler")
+    p.add_argument("--gravity", default="none",
+                   help="none (default), sphere (|g| = --gravity-magnitude, uniform direction) or X,Y,Z in m/s^2")
+    p.add_argument("--gravity-magnitude", type=float, default=9.81, help="|g| for --gravity sphere, m/s^2")
+    p.add_argument("--density", default=None, help="LOW,HIGH backbone density range, kg/m^3 (with --gravity)")
+    p.add_argument("--tip-force", type=float, default=0.0, help="largest tip force, N (uniform direction)")
+    p.add_argument("--tip-moment", type=float, default=0.0, help="largest tip moment, N m (uniform direction)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_generate)
 

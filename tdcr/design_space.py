@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.designs import DesignBatch, FeatureLayout
+from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
 
 #: Tendons of the trained surrogates (the solver takes any number >= 1).
 N_TENDONS = 4
@@ -123,6 +123,78 @@ def sample_ood_designs(n: int, bin_range: tuple[float, float], *, seed: int, n_t
     _, high = feature_bounds(n_tendons)
     p = rng.uniform(bin_range[0], bin_range[1], size=(n, high.size))
     return DesignBatch.from_features(high * (1.0 + p))
+
+
+@dataclass(frozen=True)
+class LoadSpace:
+    """A space of external loads to sample (all off by default; SI units).
+
+    Attributes:
+        gravity: ``'none'``, ``'sphere'`` (|g| = ``gravity_magnitude`` in a direction uniform on the
+            sphere) or a fixed vector ``'X,Y,Z'`` in m/s^2.
+        gravity_magnitude: |g| for ``'sphere'``, m/s^2.
+        density: ``(low, high)`` backbone density range, kg/m^3 (needed with gravity).
+        tip_force: largest tip force, N: |F| uniform in [0, tip_force], direction uniform on the sphere.
+        tip_moment: largest tip moment, N m, likewise.
+    """
+
+    gravity: str = "none"
+    gravity_magnitude: float = 9.81
+    density: tuple[float, float] | None = None
+    tip_force: float = 0.0
+    tip_moment: float = 0.0
+
+    def __post_init__(self):
+        fixed = self._fixed_gravity()
+        if fixed is not None and np.abs(fixed).max() > LOADS["gravity"].admissible[1]:
+            raise ValueError(f"gravity: each component must be in {list(LOADS['gravity'].admissible)} m/s^2")
+        if not 0.0 <= self.gravity_magnitude <= LOADS["gravity"].admissible[1]:
+            raise ValueError(f"gravity magnitude: must be in [0, {LOADS['gravity'].admissible[1]:g}] m/s^2")
+        if self.density is not None:
+            low, high = self.density
+            if not 0.0 < low <= high <= LOADS["density"].admissible[1]:
+                raise ValueError(f"density: need 0 < low <= high <= {LOADS['density'].admissible[1]:g} kg/m^3")
+        if self.gravity != "none" and self.density is None:
+            raise ValueError("gravity needs a density range")
+        if not 0.0 <= self.tip_force <= LOADS["tip_force"].admissible[1]:
+            raise ValueError(f"tip force: must be in [0, {LOADS['tip_force'].admissible[1]:g}] N")
+        if not 0.0 <= self.tip_moment <= LOADS["tip_moment"].admissible[1]:
+            raise ValueError(f"tip moment: must be in [0, {LOADS['tip_moment'].admissible[1]:g}] N m")
+
+    def _fixed_gravity(self) -> np.ndarray | None:
+        if self.gravity in ("none", "sphere"):
+            return None
+        try:
+            vector = np.array([float(v) for v in self.gravity.split(",")])
+        except ValueError:
+            vector = np.zeros(0)
+        if vector.shape != (3,) or not np.isfinite(vector).all():
+            raise ValueError(f"gravity: 'none', 'sphere' or 'X,Y,Z' in m/s^2, got {self.gravity!r}")
+        return vector
+
+    def is_zero(self) -> bool:
+        return self.gravity == "none" and self.tip_force == 0.0 and self.tip_moment == 0.0
+
+    def sample(self, n: int, *, seed: int) -> ExternalLoads | None:
+        """``n`` loads (seeded), or ``None`` when the space holds no load."""
+        if self.is_zero():
+            return None
+        rng = np.random.default_rng([seed, 0x10AD])
+
+        def directions() -> np.ndarray:
+            v = rng.normal(size=(n, 3))
+            return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+        gravity = density = None
+        if self.gravity == "sphere":
+            gravity = self.gravity_magnitude * directions()
+        elif self.gravity != "none":
+            gravity = np.tile(self._fixed_gravity(), (n, 1))
+        if gravity is not None:
+            density = rng.uniform(*self.density, size=n)
+        force = directions() * rng.uniform(0.0, self.tip_force, size=(n, 1))
+        moment = directions() * rng.uniform(0.0, self.tip_moment, size=(n, 1))
+        return ExternalLoads(gravity=gravity, density=density, tip_force=force, tip_moment=moment)
 
 
 def normalize(features: np.ndarray, n_tendons: int = N_TENDONS) -> np.ndarray:

@@ -171,3 +171,41 @@ def test_a_resumed_generation_removes_half_written_shards(tmp_path):
     dataset.shard_path(tmp_path / "d", 1).unlink()
     dataset.generate(tmp_path / "d", cfg, workers=1, progress=False)
     assert not stale.exists() and dataset.shard_path(tmp_path / "d", 1).exists()
+
+
+def test_generate_with_loads_records_them_and_solves_them(tmp_path):
+    """The loaded design space: gravity of 9.81 m/s^2 in any direction, density 6,450-8,000
+    kg/m^3, tip force <= 0.02 N and tip moment <= 0.002 N m; shards hold the loads, and each
+    design equals a direct solve with its loads."""
+    from tdcr.cli import main
+    from tdcr.designs import DesignBatch, ExternalLoads
+    from tdcr.physics import solve
+    from training import dataset
+
+    out = tmp_path / "loaded"
+    args = ["generate", "--n", "24", "--seed", "5", "--out", str(out), "--points", "12", "--shard-size", "10",
+            "--workers", "1", "--quiet", "--gravity", "sphere", "--density", "6450,8000", "--tip-force", "0.02",
+            "--tip-moment", "0.002"]
+    assert main(args) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["convergence_rate"] == 1.0 and meta["status_counts"] == {"converged": 24}
+    assert meta["loads"]["gravity"] == "sphere" and meta["loads"]["density"] == [6450.0, 8000.0]
+    data = dataset.load(out)
+    np.testing.assert_allclose(np.linalg.norm(data["gravity"], axis=1), 9.81)
+    assert ((6450 <= data["density"]) & (data["density"] <= 8000)).all()
+    assert (np.linalg.norm(data["tip_force"], axis=1) <= 0.02).all() and (data["error_estimate"] <= 3e-7).all()
+    loads = ExternalLoads(gravity=data["gravity"], density=data["density"], tip_force=data["tip_force"],
+                          tip_moment=data["tip_moment"])
+    direct = solve(DesignBatch.from_features(data["features"]), np.linspace(0, 1, 12), loads=loads)
+    np.testing.assert_allclose(direct.tendons, data["tendons"], rtol=0, atol=1e-15)
+    assert main(args) == 0  # resumes: nothing to do, same plan
+    assert main([*args[:-2], "--tip-moment", "0.003"]) == 2  # another plan in the same directory
+
+
+@pytest.mark.parametrize("bad", [["--gravity", "sphere"], ["--gravity", "1,2"], ["--tip-force", "1000"],
+                                 ["--gravity", "0,0,-9.81", "--density", "8000,10"]])
+def test_generate_refuses_bad_load_options(tmp_path, bad, capsys):
+    from tdcr.cli import main
+
+    assert main(["generate", "--n", "2", "--out", str(tmp_path / "x"), "--quiet", *bad]) == 2
+    assert capsys.readouterr().err.strip()

@@ -15,7 +15,16 @@ Each shard holds, for its ``b`` designs (float64, SI units):
     backbone   (b, n, 3)        backbone positions, m
     rotation   (b, n, 3, 3)     frames, body axes as columns
     converged  (b,)             solver flag
+    status     (b,)             solver status code (``tdcr.physics.STATUS``)
     residual   (b,)             wrench residual, N
+    error_estimate (b,)         estimated relative l2 error of the tendon positions (step control)
+
+Datasets made with loads (``GenerateConfig.loads``) also hold, per design:
+
+    gravity    (b, 3)           m/s^2, base frame (zeros without gravity)
+    density    (b,)             kg/m^3 (zeros without gravity)
+    tip_force  (b, 3)           N, base frame
+    tip_moment (b, 3)           N m, base frame
 """
 
 from __future__ import annotations
@@ -30,11 +39,13 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch
-from tdcr.physics import SolverOptions, solve
+from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.physics import STATUS, SolverOptions, solve
 
 FORMAT_VERSION = 1
 _ARRAYS = ("index", "features", "s", "tendons", "backbone", "rotation", "converged", "residual")
+#: arrays of newer or loaded datasets, read where a shard has them
+_OPTIONAL = ("status", "error_estimate", "gravity", "density", "tip_force", "tip_moment")
 
 
 @dataclass(frozen=True)
@@ -46,6 +57,7 @@ class GenerateConfig:
     points: int = design_space.DEFAULT_POINTS
     shard_size: int = 1000
     test_fraction: float = 0.2
+    loads: design_space.LoadSpace = design_space.LoadSpace()
 
     @property
     def n_shards(self) -> int:
@@ -56,15 +68,31 @@ class DatasetMismatch(ValueError):
     """An existing output directory was made with other settings."""
 
 
-def solve_shard(features: np.ndarray, index: np.ndarray, points: int) -> dict[str, np.ndarray]:
-    """Solve one shard of designs ``(b, 3 + 3 N_t)``; returns the shard's arrays (see module doc)."""
+def solve_shard(features: np.ndarray, index: np.ndarray, points: int,
+                loads: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Solve one shard of designs ``(b, 3 + 3 N_t)`` (and their ``loads``, arrays as in the module
+    doc); returns the shard's arrays."""
     designs = DesignBatch.from_features(features)
-    sol = solve(designs, np.linspace(0.0, 1.0, points))
-    return {
+    external = None if loads is None else ExternalLoads(**{k: v for k, v in loads.items() if v is not None})
+    sol = solve(designs, np.linspace(0.0, 1.0, points), loads=external)
+    arrays = {
         "index": index, "features": features, "s": sol.s, "tendons": sol.tendons,
         "backbone": sol.backbone, "rotation": sol.rotation, "converged": sol.converged,
-        "residual": sol.residual,
+        "status": sol.status, "residual": sol.residual, "error_estimate": sol.error_estimate,
     }
+    if loads is not None:
+        b = features.shape[0]
+        arrays.update(gravity=np.zeros((b, 3)) if loads["gravity"] is None else loads["gravity"],
+                      density=np.zeros(b) if loads["density"] is None else loads["density"],
+                      tip_force=loads["tip_force"], tip_moment=loads["tip_moment"])
+    return arrays
+
+
+def _load_rows(loads: ExternalLoads | None, rows: slice) -> dict[str, np.ndarray] | None:
+    if loads is None:
+        return None
+    return {k: None if getattr(loads, k) is None else np.asarray(getattr(loads, k))[rows]
+            for k in ("gravity", "density", "tip_force", "tip_moment")}
 
 
 def shard_path(out: Path, k: int) -> Path:
@@ -90,7 +118,7 @@ def _plan(out: Path, cfg: GenerateConfig) -> None:
     """Create the directory and its plan file, or check that an existing one matches ``cfg``."""
     (out / "shards").mkdir(parents=True, exist_ok=True)
     plan_file = out / "plan.json"
-    plan = {"format_version": FORMAT_VERSION, **asdict(cfg)}
+    plan = json.loads(json.dumps({"format_version": FORMAT_VERSION, **asdict(cfg)}))  # tuples as JSON lists
     if plan_file.exists():
         old = json.loads(plan_file.read_text())
         if old != plan:
@@ -122,7 +150,9 @@ def generate(
     done_designs = cfg.n - sum(len(range(cfg.n)[_shard_range(cfg, k)]) for k in todo)
     bar = _progress_bar(cfg.n, done_designs, progress)
     started = time.perf_counter()
-    jobs = [(k, features[_shard_range(cfg, k)], np.arange(cfg.n)[_shard_range(cfg, k)]) for k in todo]
+    loads = cfg.loads.sample(cfg.n, seed=cfg.seed)
+    jobs = [(k, features[_shard_range(cfg, k)], np.arange(cfg.n)[_shard_range(cfg, k)],
+             _load_rows(loads, _shard_range(cfg, k))) for k in todo]
     for k, arrays in _run_jobs(jobs, cfg.points, workers=workers, scheduler=scheduler):
         _write_atomic(shard_path(out, k), arrays)
         if bar is not None:
@@ -154,26 +184,29 @@ def _run_jobs(jobs, points: int, *, workers: int | None, scheduler: str | None):
         from distributed import as_completed as dask_completed
 
         with Client(scheduler) as client:
-            futures = {client.submit(solve_shard, f, i, points, pure=False): k for k, f, i in jobs}
+            futures = {client.submit(solve_shard, f, i, points, ld, pure=False): k for k, f, i, ld in jobs}
             for fut in dask_completed(futures):
                 yield futures[fut], fut.result()
         return
     workers = workers or os.cpu_count() or 1
     if workers == 1:
-        for k, f, i in jobs:
-            yield k, solve_shard(f, i, points)
+        for k, f, i, ld in jobs:
+            yield k, solve_shard(f, i, points, ld)
         return
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(solve_shard, f, i, points): k for k, f, i in jobs}
+        futures = {pool.submit(solve_shard, f, i, points, ld): k for k, f, i, ld in jobs}
         for fut in as_completed(futures):
             yield futures[fut], fut.result()
 
 
 def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> dict:
     converged = 0
+    status = np.zeros(len(STATUS), dtype=np.int64)
     for k in range(cfg.n_shards):
         with np.load(shard_path(out, k)) as z:
             converged += int(z["converged"].sum())
+            if "status" in z:
+                status += np.bincount(z["status"].astype(np.int64), minlength=len(STATUS))
     perm = np.random.default_rng(cfg.seed + 1).permutation(cfg.n)
     n_test = int(round(cfg.test_fraction * cfg.n))
     np.savez(out / "split.npz", train=np.sort(perm[n_test:]), test=np.sort(perm[:n_test]))
@@ -188,6 +221,8 @@ def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> d
         "solver": asdict(SolverOptions()),
         "converged": converged,
         "not_converged": cfg.n - converged,
+        "convergence_rate": converged / cfg.n,
+        "status_counts": {name: int(c) for name, c in zip(STATUS, status, strict=True) if c},
         "n_train": cfg.n - n_test,
         "n_test": n_test,
         "last_run": {"designs_solved": solved, "seconds": round(elapsed, 3)},
@@ -203,8 +238,9 @@ def load(path: str | Path, split: str = "all", *, converged_only: bool = True) -
     parts = []
     for k in range(-(-meta["n"] // meta["shard_size"])):
         with np.load(shard_path(path, k)) as z:
-            parts.append({name: z[name] for name in _ARRAYS})
-    data = {name: np.concatenate([p[name] for p in parts]) for name in _ARRAYS}
+            parts.append({name: z[name] for name in (*_ARRAYS, *_OPTIONAL) if name in z})
+    names = [name for name in (*_ARRAYS, *_OPTIONAL) if all(name in p for p in parts)]
+    data = {name: np.concatenate([p[name] for p in parts]) for name in names}
     if split != "all":
         with np.load(path / "split.npz") as z:
             keep = np.isin(data["index"], z[split])
