@@ -105,8 +105,12 @@ def solution_to_dict(sol: RodSolution, j: int, *, points: int | None = None) -> 
 
 
 def warm_up() -> bool:
-    """Import and run the solver once (used to warm up worker processes)."""
+    """Import and run the solver once, tendon-only and loaded (warms worker processes up; compiles
+    the numba kernels into their cache on first use)."""
     from tdcr.design_space import sample_designs
+    from tdcr.designs import ExternalLoads
 
-    solve(sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5))
+    designs, sigma = sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5)
+    solve(designs, sigma)
+    solve(designs, sigma, loads=ExternalLoads(tip_force=np.array([[0.0, 0.01, 0.0]] * 2)))
     return True

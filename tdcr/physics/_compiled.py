@@ -1,13 +1,37 @@
-"""The compiled tendon-only path: numba when it is installed, else ``None`` (the solver then uses
-its vectorised numpy path, which implements the same method and step control; tested equal)."""
+"""The compiled solver kernels: numba when it is installed, else ``None`` (the solver then uses its
+vectorised numpy path, which implements the same method and step control; tested equal).
+
+numba's on-disk cache must be writable even to be read.  Where ``NUMBA_CACHE_DIR`` is not (the
+read-only image, whose kernels were compiled at build time), it is copied once to the temporary
+directory and used from there.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
+import tempfile
+
+
+def _writable_numba_cache() -> None:
+    path = os.environ.get("NUMBA_CACHE_DIR")
+    if not path or not os.path.isdir(path) or os.access(path, os.W_OK):
+        return
+    target = os.path.join(tempfile.gettempdir(), "tdcr-numba-cache")
+    if not os.path.isdir(target):
+        staging = f"{target}.{os.getpid()}"
+        shutil.copytree(path, staging)
+        with contextlib.suppress(OSError):  # another process was first: use its copy
+            os.rename(staging, target)
+        shutil.rmtree(staging, ignore_errors=True)
+    os.environ["NUMBA_CACHE_DIR"] = target
+
 
 try:  # numba is a dependency; this guard is the documented fallback for platforms without it
     if os.environ.get("TDCR_KERNEL", "numba") == "numpy":
         raise ImportError("TDCR_KERNEL=numpy")
+    _writable_numba_cache()
     from tdcr.physics import _kernel as kernel
 except ImportError:
     kernel = None
