@@ -2,7 +2,7 @@
 
     python benchmarks/frontier.py [--designs 2000] [--big 80000]
 
-Methods: the exact solver (as shipped: tendon loads, default step), the linearized reference (the
+Methods: the exact solver (as shipped: the compiled kernel, tendon loads, step control), the linearized reference (the
 strains of the undeformed tendon tangents, the operators' reference robot), and each of the four
 operators in onnxruntime.  Accuracy on ``--designs`` unseen Table I designs (seed 4242; the training
 sets used other seeds): relative l2 of the tendon paths (``tdcr.metrics.relative_l2``) against the

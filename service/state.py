@@ -11,7 +11,7 @@ from service.batching import Batcher
 from service.dataplane import DataPlane
 from service.metrics import Metrics
 from service.settings import Settings
-from service.solver_pool import SolverPool
+from service.solver_pool import SolverPool, exact_response
 from tdcr import design_space
 from tdcr.exact import TooMuchWork, answer_json
 from tdcr.inverse import answer_exact_json
@@ -45,6 +45,13 @@ class ServiceState:
         return await self.pool.run(answer_json, body, limits=settings.exact_limits(), budget=settings.exact_budget(),
                                    timeout=settings.exact_timeout_s, expected=(InvalidRequest, TooMuchWork))
 
+
+    async def exact_response(self, body: bytes) -> tuple[int, bytes]:
+        """As :meth:`solve_json`, the answer JSON-encoded in the solver process: ``(designs, body)``."""
+        settings = self.settings
+        return await self.pool.run(exact_response, body, limits=settings.exact_limits(),
+                                   budget=settings.exact_budget(), timeout=settings.exact_timeout_s,
+                                   expected=(InvalidRequest, TooMuchWork))
 
     async def inverse_json(self, body: bytes, starts: list | None = None) -> list[dict]:
         """/inverse with the exact model (or the exact polish of ``starts``) in a solver process

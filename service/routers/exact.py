@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 
-import orjson
 from fastapi import APIRouter, Request, Response
 
 from service.deps import State
@@ -41,9 +40,9 @@ async def exact(request: Request, state: State) -> Response:
         started = time.perf_counter()
         try:  # parsing, validation, admission and solving all run in a solver process
             with solver_errors(settings.exact_timeout_s):
-                results = await state.solve_json(body)
+                designs, answer = await state.exact_response(body)
         except InvalidRequest as exc:
             raise from_invalid(exc) from None
     state.metrics.latency.labels(HTTP, "/exact", "solver").observe(time.perf_counter() - started)
-    state.metrics.designs.labels(HTTP, "/exact", "solver").inc(len(results))
-    return Response(orjson.dumps({"results": results}), media_type="application/json")
+    state.metrics.designs.labels(HTTP, "/exact", "solver").inc(designs)
+    return Response(answer, media_type="application/json")
