@@ -199,7 +199,10 @@ def _cmd_study(args) -> int:
                           progress=(lambda _msg: None) if args.quiet else (lambda msg: print(msg, flush=True)))
     for name in names:  # `all`: in the order of STUDIES, under one --hours deadline
         result = studies.run_study(name, ctx, plot_only=args.plot_only)
+        table = result.pop("table")
         print(json.dumps({"study": name, "budget": budget.name, **result}), flush=True)
+        if not args.quiet:
+            print(table, flush=True)
     return 0
 
 

@@ -514,7 +514,8 @@ def ensure_dataset(ctx: Context) -> None:
 
 
 def run_study(name: str, ctx: Context, *, plot_only: bool = False) -> dict:
-    """Run (or resume) one study and redraw its plot; returns ``{"unfinished": runs, "png": path}``."""
+    """Run (or resume) one study and redraw its plot; returns ``{"unfinished": runs, "png": path,
+    "table": Markdown summary}``."""
     from training import study_plots
 
     if name not in RUNNERS:
@@ -523,8 +524,9 @@ def run_study(name: str, ctx: Context, *, plot_only: bool = False) -> dict:
     if not plot_only:
         ensure_dataset(ctx)
         unfinished = RUNNERS[name](ctx)
-    png = study_plots.plot(name, records(ctx.out / f"{name}.jsonl"), ctx.out / f"{name}.png")
-    return {"unfinished": unfinished, "png": None if png is None else str(png)}
+    recs = records(ctx.out / f"{name}.jsonl")
+    png = study_plots.plot(name, recs, ctx.out / f"{name}.png")
+    return {"unfinished": unfinished, "png": None if png is None else str(png), "table": study_plots.table(name, recs)}
 
 
 __all__ = ["BUDGETS", "Budget", "Context", "RunSpec", "STUDIES", "bending_angle", "records", "run_study",

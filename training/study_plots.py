@@ -189,3 +189,78 @@ def plot(name: str, records: list[dict], path: Path) -> Path | None:
     fig.savefig(path, dpi=110, metadata={"Software": None})  # no version string: re-runs give the same file
     plt.close(fig)
     return path
+
+
+# ---------------------------------------------------------------------------------------------
+# Markdown tables of the same records (docs/report.md quotes them)
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.3g}"
+
+
+def _mean_std_table(records: list[dict], x_key: str, x_label: str) -> str:
+    rows = ["| preset | model | " + x_label + " | seeds | mean rel. l2 (mean +- std over seeds) | p99 (seed mean) "
+            "| epochs |", "|---|---|---:|---:|---|---:|---:|"]
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for r in records:
+        groups[(r["preset"], r["model"], r[x_key])].append(r)
+    for (preset, model, x), rs in sorted(groups.items(), key=lambda kv: (PRESET_ORDER.index(kv[0][0]),
+                                                                          MODEL_ORDER.index(kv[0][1]), kv[0][2])):
+        means = np.array([r["test"]["mean"] for r in rs])
+        p99 = np.mean([r["test"]["p99"] for r in rs])
+        rows.append(f"| {preset} | {model} | {x:,} | {len(rs)} | {means.mean():.3g} +- {means.std():.2g} "
+                    f"| {p99:.3g} | {rs[0]['epochs']} |" if isinstance(x, int) else
+                    f"| {preset} | {model} | {x:g} | {len(rs)} | {means.mean():.3g} +- {means.std():.2g} "
+                    f"| {p99:.3g} | {rs[0]['epochs']} |")
+    return "\n".join(rows)
+
+
+def table(name: str, records: list[dict]) -> str:
+    """A Markdown summary of study ``name``'s records."""
+    if not records:
+        return "(no records yet)"
+    if name == "n-sweep":
+        return _mean_std_table(records, "n_train", "N")
+    if name == "dropout":
+        return _mean_std_table(records, "dropout", "q")
+    if name == "seeds":
+        return _mean_std_table(records, "n_train", "N")
+    if name == "ood":
+        lines = []
+        for protocol in ("paper", "widened"):
+            recs = [r for r in records if r["protocol"] == protocol]
+            if not recs:
+                continue
+            bins = list(dict.fromkeys(r["bin"] for r in recs))
+            labels = list(dict.fromkeys(r["model"] if r["preset"] == "-" else f"{r['model']} ({r['preset']})"
+                                        for r in recs))
+            cell = {(r["model"] if r["preset"] == "-" else f"{r['model']} ({r['preset']})", r["bin"]): r
+                    for r in recs}
+            lines += [f"{protocol} protocol, mean relative l2 (designs solved per bin: "
+                      f"{', '.join(str(cell[(labels[0], b)]['designs']) for b in bins)}):", "",
+                      "| model | " + " | ".join(bins) + " |", "|---|" + "---:|" * len(bins)]
+            lines += [f"| {label} | " + " | ".join(_fmt(cell[(label, b)]["error"]["mean"]) if (label, b) in cell
+                                                   else "-" for b in bins) + " |" for label in labels]
+            lines.append("")
+        return "\n".join(lines)
+    if name == "worst":
+        lines = ["| preset | model | mean | max | 20 worst: median bending angle (all) | mean abs pitch "
+                 "(all) rad/m | slenderness L/r (all) |", "|---|---|---:|---:|---|---|---|"]
+        for r in records:
+            c = r["common"]
+            lines.append(f"| {r['preset']} | {r['model']} | {r['error']['mean']:.3g} | {r['error']['max']:.3g} "
+                         f"| {c['bending_angle']['worst_median']:.3g} ({c['bending_angle']['all_median']:.3g}) "
+                         f"| {c['mean_abs_pitch']['worst_median']:.3g} ({c['mean_abs_pitch']['all_median']:.3g}) "
+                         f"| {c['slenderness']['worst_median']:.3g} ({c['slenderness']['all_median']:.3g}) |")
+        return "\n".join(lines)
+    if name == "timing":
+        lines = ["| kind | preset | model | N / designs | ours (s) | paper (s, RTX 4090) |",
+                 "|---|---|---|---:|---:|---:|"]
+        for r in records:
+            ours = r["seconds_per_epoch"] if r["kind"] == "training" else r["seconds"]
+            label = "s/epoch" if r["kind"] == "training" else "s"
+            lines.append(f"| {r['kind']} ({label}) | {r['preset']} | {r['model']} | {r['n']:,} | {ours:.3g} "
+                         f"| {_fmt(r.get('paper_seconds'))} |")
+        return "\n".join(lines)
+    raise ValueError(f"unknown study {name!r}")
