@@ -51,29 +51,28 @@ def _mean_std_lines(ax, records: list[dict], x_key: str) -> None:
                     label=f"{model} (seeds: {min(seeds)}-{max(seeds)})")
 
 
-def plot_n_sweep(records: list[dict]):
+def _per_preset_lines(records: list[dict], x_key: str, *, xscale: str, xlabel: str, title: str):
+    """One panel per preset: mean +- std over seeds of the held-out error against ``x_key``."""
     groups = _by_preset(records)
     fig, axes = _figure(len(groups))
     for ax, (preset, recs) in zip(axes, groups.items(), strict=True):
-        _mean_std_lines(ax, recs, "n_train")
-        ax.set(xscale="log", yscale="log", xlabel="training designs N", ylabel="held-out mean relative l2",
-               title=f"preset {preset}: error against N (mean +- std over seeds)")
+        _mean_std_lines(ax, recs, x_key)
+        n = max(r["n_train"] for r in recs)
+        ax.set(xscale=xscale, yscale="log", xlabel=xlabel, ylabel="held-out mean relative l2",
+               title=title.format(preset=preset, n=n))
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     return fig
+
+
+def plot_n_sweep(records: list[dict]):
+    return _per_preset_lines(records, "n_train", xscale="log", xlabel="training designs N",
+                             title="preset {preset}: error against N (mean +- std over seeds)")
 
 
 def plot_dropout(records: list[dict]):
-    groups = _by_preset(records)
-    fig, axes = _figure(len(groups))
-    for ax, (preset, recs) in zip(axes, groups.items(), strict=True):
-        _mean_std_lines(ax, recs, "dropout")
-        n = max(r["n_train"] for r in recs)
-        ax.set(yscale="log", xlabel="dropout probability q", ylabel="held-out mean relative l2",
-               title=f"preset {preset}: dropout at N = {n:,}")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-    return fig
+    return _per_preset_lines(records, "dropout", xscale="linear", xlabel="dropout probability q",
+                             title="preset {preset}: dropout at N = {n:,}")
 
 
 def plot_seeds(records: list[dict]):

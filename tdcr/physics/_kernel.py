@@ -387,6 +387,17 @@ def _coarse_estimate(edges, xs, length, out_step, rho_out, fine):
 
 
 @njit(cache=True, error_model="numpy")
+def _all_finite(residual, tendons):
+    """The residual and every tendon coordinate (n, N_t, 3) are finite."""
+    if not math.isfinite(residual):
+        return False
+    for v in tendons.ravel():
+        if not math.isfinite(v):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def solve_design(E, r, length, offset, pitch, tau, edges0, out_step0, sigma_out, tol, max_iter, step_tol,
                  max_level, pos_out, rot_out, x_out, tendons_out):
     """One design (SI units; ``offset``, ``pitch``, ``tau`` (N_t,)).  Writes backbone (n, 3), frames
@@ -448,24 +459,13 @@ def solve_design(E, r, length, offset, pitch, tau, edges0, out_step0, sigma_out,
         out_step = out_step * 2
         _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
         _tendon_positions(pos_out, rot_out, rho_out, tendons_out)
-        diff, norm = 0.0, 0.0
-        for j in range(n_out):
-            for i in range(n_t):
-                for a in range(3):
-                    diff += (tendons_out[j, i, a] - prev[j, i, a]) ** 2
-                    norm += tendons_out[j, i, a] ** 2
-                    prev[j, i, a] = tendons_out[j, i, a]
-        estimate = math.sqrt(diff / norm) / 15.0 if norm > 0.0 else math.sqrt(diff) / 15.0
+        estimate = _masked_richardson(tendons_out, prev, out_step)
+        prev[:, :, :] = tendons_out
     # strains at the outputs: the output edges of the last level (node 2 e is edge e)
     for j in range(n_out):
         x_out[j, :] = xs[2 * out_step[j]]
     status = OK
-    finite = math.isfinite(worst)
-    for j in range(n_out):
-        for i in range(n_t):
-            for a in range(3):
-                finite = finite and math.isfinite(tendons_out[j, i, a])
-    if not finite:
+    if not _all_finite(worst, tendons_out):
         status = NOT_FINITE
     elif not ok:
         status = NEWTON_FAILED
@@ -885,12 +885,7 @@ def solve_loaded_design(E, r, length, offset, pitch, tau, f_g, f_tip, m_tip, edg
         prev[:, :, :] = tendons_out
     tip_residual = mismatch / length
     residual = worst if worst > tip_residual else tip_residual
-    finite = math.isfinite(residual)
-    for j in range(n_out):
-        for i in range(n_t):
-            for a in range(3):
-                finite = finite and math.isfinite(tendons_out[j, i, a])
-    if not finite:
+    if not _all_finite(residual, tendons_out):
         status = NOT_FINITE
     elif not ok:
         status = SHOOTING_FAILED
