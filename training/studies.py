@@ -305,9 +305,11 @@ def study_n_sweep(ctx: Context) -> int:
 
 
 def study_dropout(ctx: Context) -> int:
+    """Dropout q at the largest N, seed 0; the cheap DeepONet runs first (a chunk that stops keeps
+    whole curves)."""
     b, n = ctx.budget, max(ctx.budget.n_values)
-    return _training_study(ctx, "dropout", [RunSpec(p, m, n, 0, b.epochs(m, n), q) for p in ctx.presets
-                                            for m in ctx.models for q in b.dropouts])
+    specs = [RunSpec(p, m, n, 0, b.epochs(m, n), q) for p in ctx.presets for m in ctx.models for q in b.dropouts]
+    return _training_study(ctx, "dropout", sorted(specs, key=lambda s: (family(s.model) == "fno", s.preset == "paper")))
 
 
 def study_seeds(ctx: Context) -> int:
