@@ -27,8 +27,12 @@ strains at the ends and middle of each step feed a fourth-order Magnus integrato
 
 With external loads, M(s) depends on the unknown shape: the solver shoots on
 M(0) (3 unknowns) with RK4 on (p, R, M), M' = -p' x N (eq. MT), the local
-strains again from (W1, W2), a finite-difference Newton iteration, and load
-continuation from the tendon-only solution.
+strains again from (W1, W2).  The compiled kernel (:mod:`tdcr.physics._kernel`)
+takes Newton's Jacobian from the variational equations and continues the loads
+only when needed; the numpy path here uses finite differences and load
+continuation from the tendon-only solution.  Both choose the step per design
+from a Richardson estimate (:func:`solve`, ``SolverOptions.step_tol``) -- the
+numpy loaded path excepted, which keeps the fixed step ``max_step_loads``.
 """
 
 from __future__ import annotations
@@ -60,10 +64,11 @@ class SolverOptions:
         shooting_tol: tip-moment tolerance of the shooting method, as a fraction of a
             reference moment (sum of tension x offset + |M_tip| + |F_tip| L + |f_g| L^2).
         max_shooting: shooting iterations per load step.
-        load_steps: load-continuation steps for external loads.
+        load_steps: load-continuation steps for external loads (numpy path; the kernel tries the
+            full load first, then 4, then 16 steps).
         residual_tol: a design whose wrench residual (N) exceeds this times its load
             scale is reported as not converged.
-        step_tol: per-design step control (tendon loads): the largest accepted estimate of the
+        step_tol: per-design step control: the largest accepted estimate of the
             relative l2 error of the tendon positions at the outputs due to the integration step
             (Richardson, see :func:`solve`); a design whose estimate stays above it after
             ``max_level`` halvings of the step is flagged (status ``step_tol_not_met``).
@@ -427,10 +432,11 @@ def solve(
         s_fraction: requested arclengths as fractions of L in [0, 1], ``(n,)``, any order.
         loads: optional gravity and tip loads; ``None`` means tendon loads only.
         options: numerical settings.
-        workers: cores to use (0: all).  The compiled tendon-only kernel runs ``workers`` threads
-            in this process; the other paths (loads, Jacobians, ``kernel='numpy'``) split the batch
-            over that many spawned processes, each with at least ``MIN_DESIGNS_PER_WORKER``
-            designs.  Designs are independent, so the result equals ``workers=1`` (to round-off).
+        workers: cores to use (0: all).  The compiled kernels (tendon loads and external loads)
+            run ``workers`` threads in this process; the numpy paths (Jacobians, the linearized
+            model, ``kernel='numpy'``) split the batch over that many spawned processes, each with
+            at least ``MIN_DESIGNS_PER_WORKER`` designs.  Designs are independent, so the result
+            equals ``workers=1`` (the kernels: bit for bit; processes: to round-off).
         jacobian: also the pose's sensitivity to the tensions (``RodSolution.jacobian``), exact
             by the implicit-function theorem at every node and a tangent carried through the
             Magnus steps (no finite differences).  Tendon loads only.
