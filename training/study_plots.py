@@ -58,7 +58,7 @@ def _per_preset_lines(records: list[dict], x_key: str, *, xscale: str, xlabel: s
     for ax, (preset, recs) in zip(axes, groups.items(), strict=True):
         _mean_std_lines(ax, recs, x_key)
         n = max(r["n_train"] for r in recs)
-        ax.set(xscale=xscale, yscale="log", xlabel=xlabel, ylabel="held-out mean relative l2",
+        ax.set(xscale=xscale, yscale="log", xlabel=xlabel, ylabel="held-out mean relative l2 (mean +- std, seeds)",
                title=title.format(preset=preset, n=n))
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
@@ -67,7 +67,7 @@ def _per_preset_lines(records: list[dict], x_key: str, *, xscale: str, xlabel: s
 
 def plot_n_sweep(records: list[dict]):
     return _per_preset_lines(records, "n_train", xscale="log", xlabel="training designs N",
-                             title="preset {preset}: error against N (mean +- std over seeds)")
+                             title="preset {preset}: error against N")
 
 
 def plot_dropout(records: list[dict]):
