@@ -173,3 +173,21 @@ def test_euler_buckling_is_flagged_as_several_equilibria():
     assert sol.status.tolist() == [0, STATUS.index("multiple_equilibria")]
     assert sol.converged.tolist() == [True, False]
     np.testing.assert_allclose(sol.backbone[:, -1, :2], 0.0, atol=1e-12)  # the straight shape, flagged
+
+
+def test_the_numpy_loaded_path_has_the_same_step_control():
+    """The fallback for loads: the same grids and refinements as the kernel.  Its estimates agree
+    to ~10 %, not to round-off: it projects R onto SO(3) after every RK4 step, the kernel only at
+    the outputs (two discretisations that differ at O(h^5))."""
+    rng = np.random.default_rng(9)
+    m = 6
+    f = np.zeros((m, 15))
+    f[:, 0], f[:, 1], f[:, 2] = rng.uniform(15.5e9, 45.5e9, m), 0.0005, rng.uniform(0.31, 0.35, m)
+    f[:, 3:7], f[:, 7:11], f[:, 11] = rng.uniform(0.005, 0.01, (m, 4)), rng.uniform(-20, 20, (m, 4)), 5.0
+    d = DesignBatch.from_features(f)
+    loads = ExternalLoads(gravity=np.tile([9.81, 0.0, 0.0], (m, 1)), density=np.full(m, 7800.0))
+    fast, slow = solve(d, SIGMA, loads=loads), solve(d, SIGMA, loads=loads, options=NUMPY)
+    assert fast.converged.all() and slow.converged.all() and (fast.steps > 123).any()
+    np.testing.assert_array_equal(fast.steps, slow.steps)
+    np.testing.assert_allclose(fast.error_estimate, slow.error_estimate, rtol=0.2)
+    assert relative_l2(fast.tendons, slow.tendons).max() < 1e-8

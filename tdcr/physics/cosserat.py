@@ -31,8 +31,8 @@ strains again from (W1, W2).  The compiled kernel (:mod:`tdcr.physics._kernel`)
 takes Newton's Jacobian from the variational equations and continues the loads
 only when needed; the numpy path here uses finite differences and load
 continuation from the tendon-only solution.  Both choose the step per design
-from a Richardson estimate (:func:`solve`, ``SolverOptions.step_tol``) -- the
-numpy loaded path excepted, which keeps the fixed step ``max_step_loads``.
+from a Richardson estimate (``SolverOptions.step_tol``); only the kernel flags
+several equilibria.
 """
 
 from __future__ import annotations
@@ -464,7 +464,7 @@ def solve(
     base = _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian, threads=threads)
     if loads is None or loads.is_zero():
         return base
-    return _solve_with_loads(designs, sigma_out, loads, opts, base)
+    return _solve_loads_adaptive(designs, sigma_out, loads, opts, base)
 
 
 def _solve_in_processes(designs: DesignBatch, s_fraction: np.ndarray, loads: ExternalLoads | None,
@@ -891,14 +891,54 @@ class _ShootingProblem:
     widths: np.ndarray  # (K,)
 
 
+def _take_solution(sol: RodSolution, rows: np.ndarray) -> RodSolution:
+    """The designs ``rows`` of a solution."""
+    return RodSolution(**{f.name: None if getattr(sol, f.name) is None else getattr(sol, f.name)[rows]
+                          for f in dataclasses.fields(RodSolution)})
+
+
+def _solve_loads_adaptive(designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
+                          base: RodSolution) -> RodSolution:
+    """The numpy loaded path with the kernel's step control: the base grid (<= ``max_step_loads``,
+    through every output and the tip), the estimate against the coarse grid of :func:`_coarse_grid`
+    (a second shooting solve here: the nodes are RK4 stages, not reusable), then halving while the
+    estimate is above ``step_tol``."""
+    edges, _, _ = _step_grid(np.append(sigma_out, 1.0), opts.max_step_loads)
+    out_step = np.searchsorted(edges, sigma_out)
+    sol = _solve_with_loads(designs, sigma_out, loads, opts, base, edges)
+    c_edges, _ = _coarse_grid(edges)
+    coarse = _solve_with_loads(designs, sigma_out, loads, opts, base, edges[c_edges])
+    on_coarse = np.isin(out_step, c_edges)
+    estimate = _richardson(sol.tendons[:, on_coarse], coarse.tendons[:, on_coarse])
+    estimate[~coarse.converged] = np.inf
+    fields = {f.name: getattr(sol, f.name).copy() for f in dataclasses.fields(RodSolution)
+              if getattr(sol, f.name) is not None}
+    steps = np.full(designs.n_designs, len(edges) - 1)
+    active = np.nonzero(sol.converged & (estimate > opts.step_tol))[0]
+    for _level in range(opts.max_level):
+        if active.size == 0:
+            break
+        edges = _refine(edges)
+        finer = _solve_with_loads(designs.take(active), sigma_out, loads.take(active), opts,
+                                  _take_solution(base, active), edges)
+        estimate[active] = _richardson(finer.tendons, fields["tendons"][active])
+        for name in fields:
+            fields[name][active] = getattr(finer, name)
+        steps[active] = len(edges) - 1
+        active = active[finer.converged & (estimate[active] > opts.step_tol)]
+    return _finish_status(RodSolution(**fields), estimate, steps, opts, estimated=True)
+
+
 def _solve_with_loads(
-    designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions, base: RodSolution
+    designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions, base: RodSolution,
+    edges: np.ndarray,
 ) -> RodSolution:
+    """Shooting with loads on the step grid ``edges`` (fractions of L, ending at 1, through every
+    output)."""
     b = designs.n_designs
     mat = material(designs)
     f_g, F, M = loads.resolved(b, mat.area)
-    # the tip condition sits at s = L: integrate to sigma = 1 whatever the requested points
-    edges, widths, _ = _step_grid(np.append(sigma_out, 1.0), opts.max_step_loads)
+    widths = np.diff(edges)
     starts, out_step = edges[:-1], np.searchsorted(edges, sigma_out)
     L = designs.L
     moment_scale = (designs.tension * designs.offset).sum(1) + np.linalg.norm(M, axis=1)
@@ -924,11 +964,13 @@ def _solve_with_loads(
     moment = np.einsum("bnij,bnj->bni", R, mat.kbt[:, None, :] * x[..., 3:])
     tip_res = traj["M"][:, -1] - M
     residual = np.linalg.norm(tip_res, axis=1) / L
-    converged = ok & traj["ok"] & np.isfinite(tendons).all(axis=(1, 2, 3))
+    converged = ok & traj["ok"]
     converged &= np.linalg.norm(tip_res, axis=1) <= 1e3 * opts.shooting_tol * moment_scale
+    status = np.where(converged, 0, STATUS.index("shooting_failed")).astype(np.int8)
+    status[~(np.isfinite(tendons).all(axis=(1, 2, 3)) & np.isfinite(residual))] = STATUS.index("not_finite")
     return RodSolution(
         s=L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons, force=force,
-        moment=moment, converged=converged, residual=residual, iterations=total_iters,
+        moment=moment, converged=status == 0, residual=residual, iterations=total_iters, status=status,
     )
 
 
