@@ -41,7 +41,9 @@ SURROGATE_OUTPUTS = {"backbone": ("FP32", [-1, -1, 3]), "rotation": ("FP32", [-1
 #: The solver's extra tensors.
 LOAD_INPUTS = {"gravity": ("FP64", [-1, 3]), "density": ("FP64", [-1]), "tip_force": ("FP64", [-1, 3]),
                "tip_moment": ("FP64", [-1, 3])}
-EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": ("BOOL", [-1]), "residual": ("FP64", [-1])}
+#: ``status``: an index into ``tdcr.physics.STATUS``; ``error_estimate``: -1 where there is none.
+EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": ("BOOL", [-1]), "residual": ("FP64", [-1]),
+                                     "status": ("INT32", [-1]), "error_estimate": ("FP64", [-1])}
 #: Inverse kinematics (/inverse with the exact model): one design, the targets of a path.
 INVERSE_INPUTS = {"design": ("FP64", [1, N_FEATURES]), "position": ("FP64", [-1, 3]), "direction": ("FP64", [-1, 3]),
                   "tension_max": ("FP64", [1])}

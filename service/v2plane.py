@@ -31,6 +31,7 @@ from service.state import ServiceState
 from tdcr.design_space import range_warnings
 from tdcr.designs import DesignBatch
 from tdcr.exact import TooMuchWork
+from tdcr.physics import STATUS
 from tdcr.schemas import EXACT_MODEL
 from tdcr.validation import OUTPUTS, InvalidRequest, validate_features
 
@@ -199,5 +200,8 @@ class V2Plane:
                   "tendons": ("FP32", np.array([r["tendons"] for r in results])),
                   "in_distribution": ("BOOL", np.array([not w for w in range_warnings(features)])),
                   "converged": ("BOOL", np.array([r["converged"] for r in results])),
-                  "residual": ("FP64", np.array([r["residual"] for r in results]))}
+                  "residual": ("FP64", np.array([r["residual"] for r in results])),
+                  "status": ("INT32", np.array([STATUS.index(r["status"]) for r in results], dtype=np.int32)),
+                  "error_estimate": ("FP64", np.array([-1.0 if r.get("error_estimate") is None
+                                                       else r["error_estimate"] for r in results]))}
         return {n: values[n] for n in request.outputs}, len(results)

@@ -200,6 +200,10 @@ def test_the_solver_as_a_model_equals_exact(server, stub):
     np.testing.assert_allclose(out["tendons"], np.array([x["tendons"] for x in ref]), rtol=1e-6, atol=1e-9)
     assert set(out) == {"tendons", "converged", "residual"} and out["converged"].all()
     assert out["residual"].dtype == np.float64
+    status = _outputs(stub.ModelInfer(_request("exact", features, outputs=["status", "error_estimate"],
+                                               gravity=gravity, density=np.array([7800.0, 6500.0]))))
+    assert status["status"].dtype == np.int32 and status["status"].tolist() == [0, 0]
+    np.testing.assert_allclose(status["error_estimate"], [x["error_estimate"] for x in ref], rtol=1e-12)
 
 
 def test_bad_tensors_get_a_clear_status(stub):

@@ -51,7 +51,7 @@ def _infer(url: str, model: str, features: np.ndarray, *, binary: bool, outputs=
     assert body["model_name"] == model
     out, offset = {}, length
     for o in body["outputs"]:
-        dtype = {"FP32": "<f4", "FP64": "<f8", "BOOL": "?"}[o["datatype"]]
+        dtype = {"FP32": "<f4", "FP64": "<f8", "BOOL": "?", "INT32": "<i4"}[o["datatype"]]
         if "parameters" in o:
             size = o["parameters"]["binary_data_size"]
             out[o["name"]] = np.frombuffer(r.content, dtype=dtype, count=size // np.dtype(dtype).itemsize,
@@ -99,6 +99,9 @@ def test_the_solver_as_a_model_equals_exact(server):
     np.testing.assert_allclose(out["tendons"], np.array([r["tendons"] for r in ref["results"]]), rtol=1e-6, atol=1e-9)
     assert out["converged"].all() and out["residual"].dtype == np.float64 and set(out) == {"tendons", "converged",
                                                                                             "residual"}
+    status = _infer(server.url, "exact", features, binary=False, outputs=["status", "error_estimate"])
+    assert status["status"].tolist() == [0, 0, 0]
+    np.testing.assert_allclose(status["error_estimate"], [x["error_estimate"] for x in ref["results"]], rtol=1e-12)
 
 
 def _post(server, model: str, request: dict) -> httpx.Response:
