@@ -230,6 +230,8 @@ def run_training(spec: RunSpec, data: Path, runs: Path, budget: Budget, stop_at:
     result_path = out / "result.json"
     if result_path.exists():
         return json.loads(result_path.read_text())
+    if stop_at is not None and time.time() >= stop_at:  # past the chunk's end: do not even start
+        return None
     cfg = make_config(spec.model, spec.preset, epochs=spec.epochs, n_train=spec.n_train, seed=spec.seed,
                       dropout=spec.dropout, patience=spec.epochs + 1)
     summary = train(cfg, data, out, progress=False, monitor_designs=budget.monitor_designs, stop_at=stop_at)
