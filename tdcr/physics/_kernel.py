@@ -40,6 +40,12 @@ def _tendon(nu0, nu1, nu2, k0, k1, k2, ox, oy, dx, dy):
     return nu0 - k2 * oy + dx, nu1 + k2 * ox + dy, nu2 + k0 * oy - k1 * ox
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _tendon_angle(i, n_t, pitch, s):
+    """Body-frame angle of tendon i at arclength ``s`` m: 2 pi i / N_t + pitch_i s (rad)."""
+    return 2.0 * math.pi * i / n_t + pitch * s
+
+
 @njit(cache=True, error_model="numpy")
 def _potential(x, rho, drho, tau, kse, kbt, target):
     """Phi of eq. (PHI) minus target . x at strains ``x`` (6,) (target: body-frame (R^T N, R^T M))."""
@@ -213,7 +219,7 @@ def _routing(sigma, length, offset, pitch, rho, drho):
     """rho_i(s) and rho_i'(s) (x, y components; z is 0) at s = sigma L, each (N_t, 2)."""
     n_t = offset.shape[0]
     for i in range(n_t):
-        phi = 2.0 * math.pi * i / n_t + pitch[i] * sigma * length
+        phi = _tendon_angle(i, n_t, pitch[i], sigma * length)
         c, s = math.cos(phi), math.sin(phi)
         rho[i, 0], rho[i, 1] = offset[i] * c, offset[i] * s
         drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * s, offset[i] * pitch[i] * c
@@ -325,7 +331,7 @@ def _output_offsets(sigma_out, length, offset, pitch):
     out = np.empty((sigma_out.shape[0], n_t, 2))
     for j in range(sigma_out.shape[0]):
         for i in range(n_t):
-            phi = 2.0 * math.pi * i / n_t + pitch[i] * sigma_out[j] * length
+            phi = _tendon_angle(i, n_t, pitch[i], sigma_out[j] * length)
             out[j, i, 0], out[j, i, 1] = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
     return out
 
@@ -497,7 +503,7 @@ def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, ra
         k = order[j]
         if j % _RESYNC == 0:
             for i in range(n_t):
-                phi = 2.0 * math.pi * i / n_t + pitch[i] * sigmas[k] * length
+                phi = _tendon_angle(i, n_t, pitch[i], sigmas[k] * length)
                 cos_phi[i], sin_phi[i] = math.cos(phi), math.sin(phi)
         else:
             delta = sigmas[k] - sigmas[order[j - 1]]
@@ -575,7 +581,7 @@ def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, t
     rho, drho, work, jac, low, target, dtarget, dx = ws
     n_t = offset.shape[0]
     for i in range(n_t):
-        phi = 2.0 * math.pi * i / n_t + pitch[i] * s
+        phi = _tendon_angle(i, n_t, pitch[i], s)
         c, sn = math.cos(phi), math.sin(phi)
         rho[i, 0], rho[i, 1] = offset[i] * c, offset[i] * sn
         drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sn, offset[i] * pitch[i] * c
