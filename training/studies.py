@@ -166,7 +166,8 @@ def machine() -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "threads_per_run": 1, "gpu": None,
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return {"cpu": cpu, "cores": os.cpu_count(), "threads_per_run": 1, "gpu": gpu,
             "python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__}
 
 

@@ -112,7 +112,7 @@ def _prefix_products(steps: torch.Tensor, block: int = 6) -> torch.Tensor:
     """
     k = int(steps.shape[2])  # a fixed grid: a constant in the exported graph
     blocks = math.ceil(k / block)
-    eye = torch.eye(3, dtype=steps.dtype)[:, :, None, None]
+    eye = torch.eye(3, dtype=steps.dtype, device=steps.device)[:, :, None, None]
     ones = torch.zeros_like(steps[:, :, :1]) + eye  # identities (3, 3, 1, B), broadcast (exports cleanly)
     pad = blocks * block - k
     if pad:
@@ -178,7 +178,7 @@ def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch
     Returns:
         ``(backbone (3, m, B) m, rotation (3, 3, m, B))``.
     """
-    grid = torch.linspace(0.0, 1.0, backbone.shape[1], dtype=sigma.dtype)
+    grid = torch.linspace(0.0, 1.0, backbone.shape[1], dtype=sigma.dtype, device=sigma.device)
     xi_nodes = strain_prior(features, grid, base_angle)
     return _partial_step(backbone, rotation, xi_nodes, features, sigma, base_angle,
                          tendon_trig(features, sigma, base_angle))
@@ -221,8 +221,8 @@ def _grid_trig(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Ten
     t = base_angle.shape[0]
     pitch_length = features.T[3 + t:3 + 2 * t, None, :] * features[:, 2]  # q_i L, (N_t, 1, B) rad
     h = grid[1] - grid[0]
-    inner = base_angle[:, None, None] + pitch_length * (grid[0] + h * torch.arange(block, dtype=grid.dtype))[:, None]
-    outer = pitch_length * ((h * block) * torch.arange(blocks, dtype=grid.dtype))[:, None]  # (N_t, blocks, B)
+    inner = base_angle[:, None, None] + pitch_length * (grid[0] + h * torch.arange(block, dtype=grid.dtype, device=grid.device))[:, None]
+    outer = pitch_length * ((h * block) * torch.arange(blocks, dtype=grid.dtype, device=grid.device))[:, None]  # (N_t, blocks, B)
     s_in, c_in = torch.sin(inner)[:, None], torch.cos(inner)[:, None]  # (N_t, 1, block, B)
     s_out, c_out = torch.sin(outer)[:, :, None], torch.cos(outer)[:, :, None]  # (N_t, blocks, 1, B)
     sin = (s_in * c_out + c_in * s_out).reshape(t, blocks * block, -1)
@@ -236,7 +236,7 @@ def _tendon_sum(x: torch.Tensor) -> torch.Tensor:
     """Sum over the leading tendon axis, ``(N_t, ...) -> (...)``, as one MatMul with a row of ones
     (onnxruntime's ReduceSum over a short leading axis is about 4x slower)."""
     t = x.shape[0]
-    total = torch.matmul(torch.ones(1, t, dtype=x.dtype), x.reshape(t, -1))
+    total = torch.matmul(torch.ones(1, t, dtype=x.dtype, device=x.device), x.reshape(t, -1))
     return total.reshape(x.shape[1:])
 
 

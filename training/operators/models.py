@@ -121,8 +121,8 @@ class _OperatorBase(nn.Module):
         if self.kind == "tendons":
             b, n = out.shape[0], out.shape[1]
             return self.geometry.undeformed_tendons(features, sigma) + length[..., None] * out.reshape(b, n, N_T, 3)
-        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)
-        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)
+        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype, device=out.device)
+        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype, device=out.device)
         s = features[:, 2:3] * sigma[None, :]  # (B, n)
         straight = torch.stack([torch.zeros_like(s), torch.zeros_like(s), s], dim=-1)
         backbone = straight + length * out[..., 0:3]
@@ -140,8 +140,8 @@ class _OperatorBase(nn.Module):
         if self.kind == "tendons":
             tendons = ref.tendons() + scale * out.reshape(N_T, 3, n, b)
             return kinematics.batch_first(tendons)
-        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype)[:, None, None]
-        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype)[:, None, None]
+        e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype, device=out.device)[:, None, None]
+        e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype, device=out.device)[:, None, None]
         backbone = ref.backbone + scale * out[0:3]
         correction = kinematics.gram_schmidt(e1 + _LINEARIZED_SCALE * out[3:6], e2 + _LINEARIZED_SCALE * out[6:9])
         rotation = kinematics.matmul3(ref.rotation, correction)
