@@ -99,7 +99,8 @@ def _inference_seconds(model_path: str, sizes: tuple[int, ...]) -> dict[int, flo
                 if device.type == "cuda":
                     torch.cuda.synchronize()
                 t0 = time.perf_counter()
-                ref = None if model.config.reference == "undeformed" else model.reference(x, getattr(model, "grid", sigma))
+                ref = (None if model.config.reference == "undeformed"
+                       else model.reference(x, getattr(model, "grid", sigma)))
                 model.tendons(x, sigma, ref)
                 if device.type == "cuda":
                     torch.cuda.synchronize()

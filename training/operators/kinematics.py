@@ -221,8 +221,9 @@ def _grid_trig(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Ten
     t = base_angle.shape[0]
     pitch_length = features.T[3 + t:3 + 2 * t, None, :] * features[:, 2]  # q_i L, (N_t, 1, B) rad
     h = grid[1] - grid[0]
-    inner = base_angle[:, None, None] + pitch_length * (grid[0] + h * torch.arange(block, dtype=grid.dtype, device=grid.device))[:, None]
-    outer = pitch_length * ((h * block) * torch.arange(blocks, dtype=grid.dtype, device=grid.device))[:, None]  # (N_t, blocks, B)
+    counts = torch.arange(max(block, blocks), dtype=grid.dtype, device=grid.device)
+    inner = base_angle[:, None, None] + pitch_length * (grid[0] + h * counts[:block])[:, None]
+    outer = pitch_length * ((h * block) * counts[:blocks])[:, None]  # (N_t, blocks, B)
     s_in, c_in = torch.sin(inner)[:, None], torch.cos(inner)[:, None]  # (N_t, 1, block, B)
     s_out, c_out = torch.sin(outer)[:, :, None], torch.cos(outer)[:, :, None]  # (N_t, blocks, 1, B)
     sin = (s_in * c_out + c_in * s_out).reshape(t, blocks * block, -1)
