@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.gpu_schedule", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="dataset with >= 80,000 training designs (generated if missing)")
     p.add_argument("--runs", default="runs/gpu")
-    p.add_argument("--out", default="docs/study/gpu.jsonl")
+    p.add_argument("--out", default=f"docs/study/{studies.GPU_RECORDS}")
     p.add_argument("--train-minutes", type=float, default=4.0)
     p.add_argument("--deadline-minutes", type=float, default=7.0)
     p.add_argument("--timing-n", type=int, nargs="*", default=list(TIMING_N))

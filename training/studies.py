@@ -69,6 +69,8 @@ PAPER_HARDWARE = "NVIDIA RTX 4090 (paper, JAX)"
 
 #: Widened-box OOD bins: fractions of each Table I range's width outside the box.
 WIDENED_BINS: tuple[tuple[float, float], ...] = ((0.0, 0.05), (0.05, 0.10), (0.10, 0.15), (0.15, 0.20))
+#: Records of ``training.gpu_schedule`` beside the studies' (the timing study plots them too).
+GPU_RECORDS = "gpu.jsonl"
 #: How many of the worst held-out designs the ``worst`` study lists per model.
 N_WORST = 20
 
@@ -530,6 +532,8 @@ def run_study(name: str, ctx: Context, *, plot_only: bool = False) -> dict:
         ensure_dataset(ctx)
         unfinished = RUNNERS[name](ctx)
     recs = records(ctx.out / f"{name}.jsonl")
+    if name == "timing":  # and the GPU's, where one was lent (python -m training.gpu_schedule)
+        recs += [r for r in records(ctx.out / GPU_RECORDS) if r["kind"] in ("training", "inference")]
     png = study_plots.plot(name, recs, ctx.out / f"{name}.png")
     return {"unfinished": unfinished, "png": None if png is None else str(png), "table": study_plots.table(name, recs)}
 

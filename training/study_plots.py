@@ -112,35 +112,47 @@ def plot_ood(records: list[dict]):
     return fig
 
 
+def _hardware(record: dict) -> str:
+    """Where a timing record was measured: the GPU (``training.gpu_schedule``) or this CPU."""
+    return record["machine"].get("gpu") or "CPU"
+
+
 def plot_timing(records: list[dict]):
-    fig, axes = _figure(2, width=6.0)
+    """Training seconds per epoch, one panel per hardware (CPU: one thread; GPU records come from
+    ``gpu.jsonl``), and inference against the batch size beside the paper's RTX 4090 figures."""
     train = [r for r in records if r["kind"] == "training"]
-    ax = axes[0]
-    for preset in PRESET_ORDER:
-        for model in MODEL_ORDER:
-            rs = sorted((r for r in train if r["preset"] == preset and r["model"] == model), key=lambda r: r["n"])
-            if rs:
-                ax.plot([r["n"] for r in rs], [r["seconds_per_epoch"] for r in rs], "-" if preset == "tuned" else ":",
-                        marker=_MARKERS[model], label=f"{model} ({preset})")
-    ax.set(xscale="log", yscale="log", xlabel="training designs N", ylabel="seconds per epoch (1 CPU thread)",
-           title="training: seconds per epoch")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=6, ncol=2)
-    ax = axes[1]
+    hardware = list(dict.fromkeys(_hardware(r) for r in train))
+    fig, axes = _figure(len(hardware) + 1, width=5.5)
+    for ax, hw in zip(axes, hardware, strict=False):
+        for preset in PRESET_ORDER:
+            for model in MODEL_ORDER:
+                rs = sorted((r for r in train if (r["preset"], r["model"], _hardware(r)) == (preset, model, hw)),
+                            key=lambda r: r["n"])
+                if rs:
+                    ax.plot([r["n"] for r in rs], [r["seconds_per_epoch"] for r in rs],
+                            "-" if preset == "tuned" else ":", marker=_MARKERS[model], label=f"{model} ({preset})")
+        ax.set(xscale="log", yscale="log", xlabel="training designs N", ylabel="seconds per epoch",
+               title=f"training on {hw}" + (" (1 thread)" if hw == "CPU" else ""))
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6, ncol=2)
+    ax = axes[-1]
     infer = [r for r in records if r["kind"] == "inference"]
     for model in MODEL_ORDER:
-        rs = sorted((r for r in infer if r["model"] == model), key=lambda r: r["n"])
-        if rs:
-            line = ax.plot([r["n"] for r in rs], [r["seconds"] for r in rs], "-", marker=_MARKERS[model],
-                           label=f"{model} (ours, CPU)")
-            paper = [(r["n"], r["paper_seconds"]) for r in rs if r["paper_seconds"] is not None]
-            if paper:
-                ax.plot(*zip(*paper, strict=True), "--", marker=_MARKERS[model], color=line[0].get_color(),
-                        alpha=0.6, label=f"{model} (paper, RTX 4090)")
-    ax.set(xscale="log", yscale="log", xlabel="designs per call", ylabel="seconds",
-           title="inference (42 points)")
+        color = None
+        for hw in dict.fromkeys(_hardware(r) for r in infer):
+            rs = sorted((r for r in infer if r["model"] == model and _hardware(r) == hw), key=lambda r: r["n"])
+            if rs:
+                line = ax.plot([r["n"] for r in rs], [r["seconds"] for r in rs], "-" if hw == "CPU" else "-.",
+                               marker=_MARKERS[model], color=color, label=f"{model} ({rs[0]['preset']}, {hw})")
+                color = line[0].get_color()
+        paper = sorted({(r["n"], r["paper_seconds"]) for r in infer
+                        if r["model"] == model and r["paper_seconds"] is not None})
+        if paper:
+            ax.plot(*zip(*paper, strict=True), "--", marker=_MARKERS[model], color=color, alpha=0.5,
+                    label=f"{model} (paper, RTX 4090)")
+    ax.set(xscale="log", yscale="log", xlabel="designs per call", ylabel="seconds", title="inference (42 points)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=6, ncol=2)
+    ax.legend(fontsize=5, ncol=2)
     return fig
 
 
@@ -254,16 +266,17 @@ def table(name: str, records: list[dict]) -> str:
                          f"| {c['slenderness']['worst_median']:.3g} ({c['slenderness']['all_median']:.3g}) |")
         return "\n".join(lines)
     if name == "timing":
-        lines = ["Training: seconds per epoch (one CPU thread), that times the paper's epoch count (20,000 "
+        lines = ["Training: seconds per epoch (CPU: one thread), that times the paper's epoch count (20,000 "
                  "DeepONet, 1,500 FNO), and the paper's total training time (RTX 4090).", "",
-                 "| preset | model | N | s / epoch | x paper's epochs (s) | paper total (s) |",
-                 "|---|---|---:|---:|---:|---:|"]
-        lines += [f"| {r['preset']} | {r['model']} | {r['n']:,} | {r['seconds_per_epoch']:.3g} "
+                 "| hardware | preset | model | N | s / epoch | x paper's epochs (s) | paper total (s) |",
+                 "|---|---|---|---:|---:|---:|---:|"]
+        lines += [f"| {_hardware(r)} | {r['preset']} | {r['model']} | {r['n']:,} | {r['seconds_per_epoch']:.3g} "
                   f"| {r['paper_schedule_seconds']:.3g} | {_fmt(r.get('paper_seconds'))} |"
                   for r in records if r["kind"] == "training"]
-        lines += ["", "Inference (shipped models, onnxruntime, 2 threads, best of the repeats) beside the paper's:", "",
-                  "| model | designs | ours (s) | paper (s, RTX 4090) |", "|---|---:|---:|---:|"]
-        lines += [f"| {r['model']} | {r['n']:,} | {r['seconds']:.3g} | {_fmt(r.get('paper_seconds'))} |"
-                  for r in records if r["kind"] == "inference"]
+        lines += ["", "Inference (CPU: the shipped models in onnxruntime, 2 threads; GPU: torch, the paper preset "
+                  "trained there; best of the repeats) beside the paper's:", "",
+                  "| hardware | model | designs | ours (s) | paper (s, RTX 4090) |", "|---|---|---:|---:|---:|"]
+        lines += [f"| {_hardware(r)} | {r['model']} | {r['n']:,} | {r['seconds']:.3g} "
+                  f"| {_fmt(r.get('paper_seconds'))} |" for r in records if r["kind"] == "inference"]
         return "\n".join(lines)
     raise ValueError(f"unknown study {name!r}")
