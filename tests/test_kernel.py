@@ -65,6 +65,18 @@ def test_step_control_meets_1e_6_on_every_design_and_estimates_its_error(designs
     assert relative_l2(base.tendons, fine.tendons).max() > 1e-6
 
 
+def test_the_vectorised_path_continues_along_s_where_newton_fails_from_the_base_strains():
+    """Design 48,464 of ``sample_designs(100_000, seed=0)`` (r 0.5 mm, L 0.118 m, 4.8 N, pitches
+    up to 20 rad/m; bending angle 5.9 rad): Newton from the strains at s = 0 failed at some node
+    (60 iterations, `newton_failed`) on the vectorised path, which the kernel's continuation in s
+    solves in 4; the vectorised path now retries such designs by continuation in s."""
+    design = sample_designs(100_000, seed=0).take(slice(48_464, 48_465))
+    fast, slow = solve(design, SIGMA), solve(design, SIGMA, options=NUMPY)
+    assert STATUS[fast.status[0]] == STATUS[slow.status[0]] == "converged"
+    np.testing.assert_array_equal(slow.steps, fast.steps)
+    assert relative_l2(slow.tendons, fast.tendons)[0] < SAME_METHOD_RTOL
+
+
 def test_a_status_per_design():
     d = sample_designs(6, seed=4)
     sol = solve(d, SIGMA, options=SolverOptions(max_newton=1))

@@ -348,6 +348,27 @@ def _newton(x: np.ndarray, nodes: _Nodes, opts: SolverOptions) -> tuple[np.ndarr
     return x, converged, iterations
 
 
+def _continue_along_s(x: np.ndarray, ok: np.ndarray, iters: np.ndarray, nodes: _Nodes, sigma_nodes: np.ndarray,
+                      x_base: np.ndarray, opts: SolverOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Solve again, by continuation in s, every design with a node whose Newton failed from the
+    base strains: its nodes in order of arclength, each started from the last converged node's
+    strains (the compiled kernel's strategy).  Strongly bent designs with helical tendons need it:
+    their strains drift far from those at s = 0, where Newton on (W1, W2) is slow to converge.
+
+    ``x`` ``(B m, 6)``, ``ok`` and ``iters`` ``(B m,)`` design-major; ``x_base`` ``(B, 6)``.
+    """
+    m = sigma_nodes.shape[0]
+    x, ok, iters = x.reshape(-1, m, 6).copy(), ok.reshape(-1, m).copy(), iters.reshape(-1, m).copy()
+    redo = np.nonzero(~ok.all(axis=1))[0]
+    last = x_base[redo].copy()  # (R, 6): the strains to start the next node from
+    for j in np.argsort(sigma_nodes, kind="stable"):
+        xj, okj, itj = _newton(last.copy(), nodes.take(redo * m + j), opts)
+        x[redo, j], ok[redo, j] = xj, okj
+        iters[redo, j] += itj
+        last[okj] = xj[okj]
+    return x.reshape(-1, 6), ok.reshape(-1), iters.reshape(-1)
+
+
 def _first_order_strains(nodes: _Nodes) -> np.ndarray:
     """Strains ``(P, 6)`` solving (W1, W2) with the tendon tangents t_i of the undeformed rod:
     nu = e3 - K_se^-1 sum_i tau_i t_i, kappa = -K_bt^-1 sum_i tau_i rho_i x t_i.  Exact to first
@@ -719,6 +740,8 @@ def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarra
         # start every node from the base strains (exact for parallel tendons, close otherwise)
         x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
         x, ok, iters = _newton(np.repeat(x_base, m, axis=0), nodes, opts)
+        if not ok.all():
+            x, ok, iters = _continue_along_s(x, ok, iters, nodes, sigma_nodes, x_base, opts)
     if warm is not None:
         warm.strains = x.copy() if ok.all() else None  # a failed solve is no place to start from
     dx = _strain_sensitivities(x, nodes).reshape(b, m, 6, -1) if jacobian else None
