@@ -128,25 +128,29 @@ def test_bad_study_arguments_exit_2(tmp_path, capsys):
     assert main(["study", "ood", "--models", "unet"]) == 2
 
 
-def test_the_gpu_schedule_script_records_every_phase_on_whatever_device_it_finds(tmp_path, tiny):
+def test_the_gpu_schedule_script_records_every_phase_on_whatever_device_it_finds(tmp_path, tiny, monkeypatch):
     """``training.gpu_schedule`` (run on a lent GPU for docs/study/gpu.jsonl) in seconds on this CPU:
     timing at one N, the paper schedule compressed into a second, inference at two batch sizes."""
     from training import gpu_schedule
 
     _study("seeds", tiny)  # makes the tiny dataset if the module's other tests did not
     out = tmp_path / "gpu.jsonl"
+    monkeypatch.setitem(studies.PAPER_EPOCHS, "deeponet", 3)  # --full runs here: 3, not 20,000 epochs
     assert gpu_schedule.main(["--data", str(tiny["data"]), "--runs", str(tmp_path / "runs"), "--out", str(out),
                               "--timing-n", "1", "--train-minutes", "0.01", "--deadline-minutes", "5",
-                              "--inference-sizes", "1", "3"]) == 0
+                              "--inference-sizes", "1", "3", "--full", "deeponet"]) == 0
     recs = studies.records(out)
     kinds = [r["kind"] for r in recs]
     n_models = len(studies.MODEL_NAMES)
     assert kinds.count("training") == len(studies.PRESET_NAMES) * n_models
-    assert kinds.count("schedule") == n_models and kinds.count("inference") == 2 * n_models
+    assert kinds.count("schedule") == n_models + 1 and kinds.count("inference") == 2 * n_models
+    full = recs[-1]  # --full deeponet: all of its (patched) schedule
+    assert (full["kind"], full["stop"], full["epochs"], full["side_by_side"]) == ("schedule", "epochs", 3, 1)
     for r in recs:
         assert r["study"] == "gpu" and r["machine"]["threads_per_run"] >= 1
-        if r["kind"] == "schedule":  # the paper's epochs, cut short by the time budget, then scored
-            assert r["stop"] == "time budget" and 1 <= r["epochs"] < r["paper_epochs"]
+        if r["kind"] == "schedule":  # scored on the held-out designs
             assert 0.0 < r["test"]["mean"] < 10.0 and r["test"]["n"] > 0
+            if r is not full:  # the paper's epochs, cut short by the time budget
+                assert r["stop"] == "time budget" and 1 <= r["epochs"] < r["paper_epochs"]
         else:
             assert (r["seconds_per_epoch"] if r["kind"] == "training" else r["seconds"]) > 0.0

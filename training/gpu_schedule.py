@@ -12,7 +12,9 @@ Three phases, each appending JSON lines (``study: "gpu"``, the machine and GPU i
    paper's cyclic schedule compressed into ``--train-minutes`` of wall-clock time
    (``TrainConfig.time_budget_min``), then scored on the held-out designs (relative l2);
 3. ``inference``: those trained models on the GPU (torch, float32) at 1, 1,000 and 80,000 designs,
-   the reference robot included, beside the paper's RTX 4090 table.
+   the reference robot included, beside the paper's RTX 4090 table;
+4. ``--full MODEL ...``: those models trained alone, in turn, with the paper's whole schedule
+   (20,000 / 1,500 epochs), however long it takes, and scored.
 
 Phases past ``--deadline-minutes`` (from the start) are skipped.  The numbers depend on wall-clock
 time (phase 2), so unlike ``tdcr study`` they are measurements, not reproducible to the bit.
@@ -62,8 +64,8 @@ def _epoch_seconds(preset: str, model: str, n: int, data: Path, runs: Path) -> d
 
 
 def _train_paper_schedule(model: str, data: str, runs: str, minutes: float) -> dict:
-    """One model of the paper preset, N = 80,000, its paper epochs compressed into ``minutes``;
-    returns the training summary and the held-out error.  Runs in its own process."""
+    """One model of the paper preset, N = 80,000, its paper epochs compressed into ``minutes``
+    (``None``: the whole schedule); returns the training summary and the held-out error."""
     from training.operators.train import load_trained, make_config, train
 
     out = Path(runs) / "schedule" / model
@@ -118,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--deadline-minutes", type=float, default=7.0)
     p.add_argument("--timing-n", type=int, nargs="*", default=list(TIMING_N))
     p.add_argument("--inference-sizes", type=int, nargs="*", default=list(INFERENCE_SIZES))
+    p.add_argument("--full", nargs="*", default=[], choices=studies.MODEL_NAMES,
+                   help="then train these models alone, in turn, with the paper's whole schedule")
     p.add_argument("--workers", type=int, default=None, help="processes generating the dataset")
     args = p.parse_args(argv)
     start = time.time()
@@ -147,21 +151,24 @@ def main(argv: list[str] | None = None) -> int:
                               "paper_hardware": studies.PAPER_HARDWARE})
                 print(f"timing {preset}/{model} N={n}: {t['seconds_per_epoch']:.4g} s/epoch", flush=True)
 
+    def keep(model: str, r: dict, minutes: float | None, side_by_side: int) -> None:
+        s = r["summary"]
+        _append(out, {"kind": "schedule", "preset": "paper", "model": model, "n": N_SCHEDULE,
+                      "train_minutes": minutes, "epochs": s["epochs"], "paper_epochs": studies.PAPER_EPOCHS[model],
+                      "train_seconds": s["train_seconds"], "stop": s["stop"], "side_by_side": side_by_side,
+                      "test": r["test"]})
+        print(f"schedule {model}: {s['epochs']} of {studies.PAPER_EPOCHS[model]} epochs, "
+              f"held-out mean {r['test']['mean']:.4g}", flush=True)
+
     trained = {}
-    if time.time() < deadline - 60.0 * args.train_minutes:
+    if args.train_minutes > 0 and time.time() < deadline - 60.0 * args.train_minutes:
         with ProcessPoolExecutor(len(studies.MODEL_NAMES), mp_context=get_context("spawn")) as pool:
             futures = {m: pool.submit(_train_paper_schedule, m, str(data), str(runs), args.train_minutes)
                        for m in studies.MODEL_NAMES}
             for model, future in futures.items():
                 r = future.result()
                 trained[model] = r["model_path"]
-                s = r["summary"]
-                _append(out, {"kind": "schedule", "preset": "paper", "model": model, "n": N_SCHEDULE,
-                              "train_minutes": args.train_minutes, "epochs": s["epochs"],
-                              "paper_epochs": studies.PAPER_EPOCHS[model], "train_seconds": s["train_seconds"],
-                              "stop": s["stop"], "side_by_side": len(studies.MODEL_NAMES), "test": r["test"]})
-                print(f"schedule {model}: {s['epochs']} of {studies.PAPER_EPOCHS[model]} epochs, "
-                      f"held-out mean {r['test']['mean']:.4g}", flush=True)
+                keep(model, r, args.train_minutes, len(studies.MODEL_NAMES))
 
     for model, path in trained.items():
         if time.time() > deadline:
@@ -172,6 +179,8 @@ def main(argv: list[str] | None = None) -> int:
                           "paper_seconds": studies.PAPER_INFERENCE_SECONDS[model].get(n),
                           "paper_hardware": studies.PAPER_HARDWARE})
             print(f"inference {model} {n}: {seconds * 1e3:.3g} ms", flush=True)
+    for model in args.full:  # no deadline: the whole schedule, however long it takes
+        keep(model, _train_paper_schedule(model, str(data), str(runs / "full"), None), None, 1)
     print(f"total {time.time() - start:.0f} s", flush=True)
     return 0
 
