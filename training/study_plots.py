@@ -211,19 +211,26 @@ def _fmt(x) -> str:
 
 
 def _mean_std_table(records: list[dict], x_key: str, x_label: str) -> str:
-    rows = ["| preset | model | " + x_label + " | seeds | mean rel. l2 (mean +- std over seeds) | p99 (seed mean) "
-            "| epochs |", "|---|---|---:|---:|---|---:|---:|"]
-    groups: dict[tuple, list[dict]] = defaultdict(list)
+    """One row per preset and model, one column per ``x_key`` value: the held-out mean relative l2
+    as mean +- std over seeds (number of seeds), and the 99th percentile at the largest x."""
+    xs = sorted({r[x_key] for r in records})
+    groups: dict[tuple, dict] = defaultdict(lambda: defaultdict(list))
     for r in records:
-        groups[(r["preset"], r["model"], r[x_key])].append(r)
-    for (preset, model, x), rs in sorted(groups.items(), key=lambda kv: (PRESET_ORDER.index(kv[0][0]),
-                                                                          MODEL_ORDER.index(kv[0][1]), kv[0][2])):
-        means = np.array([r["test"]["mean"] for r in rs])
-        p99 = np.mean([r["test"]["p99"] for r in rs])
-        rows.append(f"| {preset} | {model} | {x:,} | {len(rs)} | {means.mean():.3g} +- {means.std():.2g} "
-                    f"| {p99:.3g} | {rs[0]['epochs']} |" if isinstance(x, int) else
-                    f"| {preset} | {model} | {x:g} | {len(rs)} | {means.mean():.3g} +- {means.std():.2g} "
-                    f"| {p99:.3g} | {rs[0]['epochs']} |")
+        groups[(r["preset"], r["model"])][r[x_key]].append(r)
+    label = (lambda x: f"{x:,}") if all(isinstance(x, int) for x in xs) else (lambda x: f"{x:g}")
+    rows = ["| preset | model | " + " | ".join(f"{x_label} = {label(x)}" for x in xs) + f" | p99 at {label(xs[-1])} |",
+            "|---|---|" + "---|" * (len(xs) + 1)]
+    for (preset, model), by_x in sorted(groups.items(), key=lambda kv: (PRESET_ORDER.index(kv[0][0]),
+                                                                        MODEL_ORDER.index(kv[0][1]))):
+        cells = []
+        for x in xs:
+            rs = by_x.get(x, [])
+            means = np.array([r["test"]["mean"] for r in rs])
+            spread = f" +- {means.std():.2g}" if len(rs) > 1 else ""
+            cells.append(f"{means.mean():.3g}{spread} ({len(rs)})" if rs else "-")
+        last = by_x.get(xs[-1], [])
+        p99 = f"{np.mean([r['test']['p99'] for r in last]):.3g}" if last else "-"
+        rows.append(f"| {preset} | {model} | " + " | ".join(cells) + f" | {p99} |")
     return "\n".join(rows)
 
 
