@@ -150,7 +150,7 @@ def test_the_gpu_schedule_script_records_every_phase_on_whatever_device_it_finds
         assert r["study"] == "gpu" and r["machine"]["threads_per_run"] >= 1
         if r["kind"] == "schedule":  # scored on the held-out designs
             assert 0.0 < r["test"]["mean"] < 10.0 and r["test"]["n"] > 0
-            if r is not full:  # the paper's epochs, cut short by the time budget
-                assert r["stop"] == "time budget" and 1 <= r["epochs"] < r["paper_epochs"]
+            if r is not full:  # the paper's epochs (in their own processes: unpatched), cut short
+                assert r["stop"] == "time budget" and r["epochs"] >= 1
         else:
             assert (r["seconds_per_epoch"] if r["kind"] == "training" else r["seconds"]) > 0.0
