@@ -112,7 +112,7 @@ class Budget:
 
 
 BUDGETS = {
-    # about 5.5 CPU-hours on the 2-core development VM (docs/report.md lists the seeds of every point)
+    # 9.0 CPU-hours measured on the 2-core development VM (docs/report.md lists the seeds of every point)
     "full": Budget("full", 100_000, (1000, 5000, 10_000, 20_000, 40_000, 80_000),
                    epochs_at_max={"deeponet": 60, "fno": 6},
                    all_seeds_up_to={"deeponet": 80_000, "fno": 10_000}),
