@@ -20,8 +20,8 @@ import httpx
 import numpy as np
 import orjson
 
-from service.dataplane import DataPlane
 from service.process import ROOT, ServerProcess
+from tdcr import engine
 from tdcr.design_space import sample_designs
 from tdcr.runtime import Surrogate
 from tdcr.validation import Limits
@@ -34,15 +34,15 @@ def request_body(n: int) -> bytes:
 
 
 def in_process(body: bytes, repeats: int) -> np.ndarray:
-    plane = DataPlane({MODEL: Surrogate.load(ROOT / "models", MODEL)}, default_model=MODEL, limits=Limits())
+    model = Surrogate.load(ROOT / "models", MODEL)
 
     def once():
         t0 = time.perf_counter()
-        request = plane.prepare_json(body)
+        request = engine.prepare_json(body, limits=Limits())
         t1 = time.perf_counter()
-        prediction = plane.run(request)
+        prediction = engine.predict(model, request, model=MODEL)
         t2 = time.perf_counter()
-        plane.encode_json(prediction)
+        engine.encode_json(prediction)
         return t1 - t0, t2 - t1, time.perf_counter() - t2
 
     for _ in range(3):

@@ -27,7 +27,7 @@ from service.metrics import HTTP, Metrics
 from service.oip import InferenceRequest
 from service.routers import design_space, exact, health, inverse, models, predict, v2, viewer
 from service.settings import Settings
-from service.state import ServiceState, load_models, start_pool
+from service.state import ServiceState, load_models, start_solver
 from tdcr.schemas import ExactRequest, InverseRequest, PredictRequest
 
 log = logging.getLogger("tdcr.service")
@@ -42,8 +42,7 @@ class ExactAdmission:
         self.app, self.state = app, state
 
     async def __call__(self, scope, receive, send):
-        slots = self.state.exact_slots
-        if scope["type"] == "http" and scope["path"] == "/exact" and slots is not None and slots.locked():
+        if scope["type"] == "http" and scope["path"] == "/exact" and self.state.exact.saturated:
             self.state.metrics.errors.labels(HTTP, "/exact", "saturated").inc()
             return await _send_error(send, 503, "the solver is saturated; retry later",
                                      extra=[(b"connection", b"close"), (b"retry-after", b"1")])
@@ -153,13 +152,13 @@ def _error_response(request: Request, exc: ApiError) -> JSONResponse:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
-    state = ServiceState(settings=settings, metrics=Metrics.create())
+    state = ServiceState.create(settings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         load_models(state)
         try:
-            start_pool(state)
+            start_solver(state)
         except Exception as exc:  # noqa: BLE001 - reported by /readyz
             state.problems.append(f"solver pool: {exc}")
         grpc_server = GrpcServer(state) if settings.grpc_port else None
@@ -169,18 +168,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             except RuntimeError as exc:  # e.g. the port is taken: reported by /readyz
                 state.problems.append(f"gRPC server on {grpc_server.address}: {exc}")
                 grpc_server = None
-        state.ready = not state.problems and bool(state.models)
-        log.info("ready=%s models=%s problems=%s", state.ready, sorted(state.models), state.problems)
-        watcher = asyncio.create_task(state.pool.watch()) if state.pool is not None else None
+        state.plane.loaded = not state.problems and bool(state.surrogates)
+        log.info("ready=%s models=%s problems=%s", state.plane.loaded, sorted(state.repository.names()),
+                 state.problems)
+        pool = state.exact.pool
+        watcher = asyncio.create_task(pool.watch()) if pool is not None else None
         yield
         if grpc_server is not None:
             await grpc_server.stop()
         if watcher is not None:
             watcher.cancel()
-        for batcher in state.batchers.values():
-            batcher.close()
-        if state.pool is not None:
-            state.pool.close()
+        state.plane.close()
 
     docs = {} if settings.docs else {"docs_url": None, "redoc_url": None, "openapi_url": None}
     app = FastAPI(title="tdcr-surrogates", version=tdcr.__version__, lifespan=lifespan, **docs,

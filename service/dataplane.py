@@ -1,213 +1,79 @@
-"""The transport-neutral data plane: prepare -> run -> encode, shared by every endpoint and ``tdcr predict``.
+"""The one data plane: every transport (``/predict``, ``/exact``, ``/inverse``, OIP v2 over REST and
+gRPC) calls :meth:`DataPlane.infer`, as KServe's REST and gRPC servers call its ``DataPlane``.
 
-* **prepare**: bytes (a JSON body, or a ``.npy`` body with its query parameters) to a validated
-  :class:`tdcr.validation.ShapeRequest`, through the one validation path of :mod:`tdcr.validation`;
-* **run**: the request on a surrogate (``Predictor``: a :class:`tdcr.runtime.Surrogate`, or the
-  service's dynamic :class:`service.batching.Batcher` in front of one) to a :class:`Prediction`;
-* **encode**: a :class:`Prediction` to JSON (``PredictResponse``) or ``.npz`` bytes.
-
-Nothing here knows HTTP: errors are :class:`tdcr.validation.InvalidRequest` and
-:class:`ModelNotFound`, which each transport maps to its own status codes.
+It looks the model up in the :class:`service.model.ModelRepository` (a request names a model, or
+the default of the kind its transport serves), answers readiness and metadata, runs the model's
+``infer`` and records latency and designs in the metrics.  Errors leave it as
+:class:`service.model.InferenceError` only; each transport maps their kinds to its statuses in
+one place.
 """
 
 from __future__ import annotations
 
-import io
-import zipfile
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Protocol
+import time
 
-import numpy as np
-import orjson
-
-from tdcr.design_space import range_warnings
-from tdcr.designs import L_COLUMN
-from tdcr.inverse import tip_by_differences
-from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
-
-#: Media types of the binary path.
-NPY = "application/x-npy"
-NPZ = "application/x-npz"
-#: Query parameters of a ``.npy`` request.
-QUERY_FIELDS = ("model", "points", "s", "outputs")
-
-
-class Predictor(Protocol):
-    """What runs a surrogate: :meth:`tdcr.runtime.Surrogate.predict` or a batcher in front of it."""
-
-    def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]: ...
-
-
-class ModelNotFound(LookupError):
-    """A request named a model that is not loaded."""
-
-    def __init__(self, name: str, available: list[str]):
-        self.name, self.available = name, available
-        super().__init__(f"unknown model {quote(name)}; available: {available}")
-
-
-@dataclass(frozen=True)
-class Prediction:
-    """A surrogate's answer: ``model``; ``s`` ``(B, n)`` m; the wanted ``arrays`` (backbone
-    ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons ``(B, n, 4, 3)`` m; float32 from the graph,
-    float64 where post-processed: the pose fit of tendon models, FNO interpolation off the grid); and per
-    design the range ``warnings`` (empty: in distribution) and whether its answer is ``finite``
-    (far outside the trained ranges a network can overflow; such rows are zeros)."""
-
-    model: str
-    s: np.ndarray
-    arrays: dict[str, np.ndarray]
-    warnings: list[list[str]]
-    finite: np.ndarray  # (B,) the answer is finite (else its rows are zeros)
-    tip_jacobian: np.ndarray | None = None  # (B, 6, N_t) with "jacobian": true, by central differences
-
-    @property
-    def n_designs(self) -> int:
-        return len(self.warnings)
+import tdcr
+from service.metrics import Metrics
+from service.model import InferenceError, InferenceRequest, InferenceResponse, Kind, Model, ModelRepository
+from service.oip import EXTENSIONS, SERVER_NAME
+from tdcr.validation import InvalidRequest
 
 
 class DataPlane:
-    """Prepare, run and encode surrogate requests for a set of loaded models.
+    """Inference, readiness and metadata of the models of ``repository``; ``loaded``: the models
+    loaded as configured (no problem at startup)."""
 
-    ``predictors``: name -> :class:`Predictor`; ``default_model``: used when a request names
-    none; ``limits``: sizes per request.
-    """
+    def __init__(self, repository: ModelRepository, metrics: Metrics):
+        self.repository = repository
+        self.metrics = metrics
+        self.loaded = False
 
-    def __init__(self, predictors: Mapping[str, Predictor], *, default_model: str | None, limits: Limits):
-        self.predictors = predictors
-        self.default_model = default_model
-        self.limits = limits
+    # -- health and metadata ----------------------------------------------------------------------
 
-    # -- prepare --------------------------------------------------------------------------------
+    def server_ready(self) -> bool:
+        return self.loaded and all(m.ready() for m in self.repository)
 
-    def prepare_json(self, body: bytes | str | dict) -> ShapeRequest:
-        """A JSON ``PredictRequest`` (raw bytes or decoded), validated."""
-        return validate_json(body, target="surrogate", limits=self.limits)
-
-    def prepare_npy(self, body: bytes, params: Mapping[str, list[str]]) -> ShapeRequest:
-        """A ``.npy`` body of raw SI designs ``(B, 15)`` and the query ``params`` (name -> values)."""
-        problems = [Problem((k,), "may be given once", "repeated") for k in ("model", "points", "outputs")
-                    if len(params.get(k, [])) > 1]
-        points = _query_int(params, "points", problems)
-        s = _query_floats(params, "s", problems)
-        if problems:
-            raise InvalidRequest(problems)
-        features = read_npy(body)
-        outputs = params.get("outputs")
-        return validate_features(features, target="surrogate", points=points, s=s,
-                                 model=(params.get("model") or [None])[0],
-                                 outputs=None if outputs is None else outputs[0].split(","), limits=self.limits)
-
-    # -- run ------------------------------------------------------------------------------------
-
-    def resolve(self, name: str | None) -> tuple[str, Predictor]:
-        """The model a request names (or the default) and its predictor; :class:`ModelNotFound` else."""
-        name = name or self.default_model
-        if name not in self.predictors:
-            raise ModelNotFound(str(name), sorted(self.predictors))
-        return name, self.predictors[name]
-
-    def run(self, request: ShapeRequest) -> Prediction:
-        """Run a validated request on its model (blocking: call it off the event loop)."""
-        name, predictor = self.resolve(request.model)
-        features = request.features
-        with np.errstate(all="ignore"):  # overflow far outside the trained ranges is reported per design
-            out = predictor.predict(features, request.fractions, pose=request.pose)
-        arrays = {k: out[k] for k in request.outputs}
-        finite = np.ones(len(features), dtype=bool)
-        for v in arrays.values():
-            finite &= np.isfinite(v.reshape(len(features), -1)).all(axis=1)
-        if not finite.all():
-            arrays = {k: np.where(finite.reshape(-1, *[1] * (v.ndim - 1)), v, 0).astype(v.dtype)
-                      for k, v in arrays.items()}
-        s = features[:, L_COLUMN, None] * request.fractions[None, :]
-        tip_jacobian = None
-        if request.jacobian:
-            def tip_pose(batch: np.ndarray):
-                out = predictor.predict(batch, np.ones(1), pose=True)
-                return out["backbone"][:, -1].astype(np.float64), out["rotation"][:, -1].astype(np.float64)
-
-            with np.errstate(all="ignore"):
-                tip_jacobian = np.ascontiguousarray(np.nan_to_num(tip_by_differences(features, tip_pose)[2]))
-        return Prediction(model=name, s=s, arrays=arrays, warnings=range_warnings(features), finite=finite,
-                          tip_jacobian=tip_jacobian)
-
-    # -- encode ---------------------------------------------------------------------------------
+    def problems(self) -> list[str]:
+        """Why a model cannot answer now (e.g. a solver process being replaced)."""
+        return [p for m in self.repository if (p := m.health()) is not None]
 
     @staticmethod
-    def encode_json(prediction: Prediction) -> bytes:
-        """``PredictResponse`` JSON: per design s, backbone, rotation, tendons, in_distribution, warnings."""
-        arrays = {k: np.ascontiguousarray(v) for k, v in prediction.arrays.items()}  # orjson: C order only
-        s = np.ascontiguousarray(prediction.s)
-        finite = prediction.finite.tolist()
-        results = [{"s": s[j], **{k: v[j] for k, v in arrays.items()}, "in_distribution": not w, "warnings": w,
-                    "finite": finite[j]} for j, w in enumerate(prediction.warnings)]
-        if prediction.tip_jacobian is not None:
-            for result, jacobian in zip(results, prediction.tip_jacobian, strict=True):
-                result["tip_jacobian"] = jacobian
-        return orjson.dumps({"model": prediction.model, "results": results}, option=orjson.OPT_SERIALIZE_NUMPY)
+    def server_metadata() -> dict:
+        return {"name": SERVER_NAME, "version": tdcr.__version__, "extensions": EXTENSIONS}
 
-    @staticmethod
-    def encode_npz(prediction: Prediction) -> bytes:
-        """An uncompressed ``.npz`` (what ``np.savez`` writes; floats as float32) of s, the wanted
-        arrays and in_distribution ``(B,)``, each member written in one piece: 19-30 ms against
-        32 ms for ``np.savez``'s chunked writes of an 8192-design answer."""
-        arrays = {"s": prediction.s, "in_distribution": np.array([not w for w in prediction.warnings]),
-                  "finite": prediction.finite}
-        arrays |= prediction.arrays
-        if prediction.tip_jacobian is not None:
-            arrays["tip_jacobian"] = prediction.tip_jacobian
-        buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
-            for key, value in arrays.items():
-                value = np.ascontiguousarray(value, dtype=np.float32 if value.dtype.kind == "f" else value.dtype)
-                header = io.BytesIO()
-                np.lib.format.write_array_header_2_0(header, np.lib.format.header_data_from_array_1_0(value))
-                archive.writestr(f"{key}.npy", b"".join([header.getvalue(), memoryview(value).cast("B")]))
-        return buf.getvalue()
+    def model(self, name: str | None, *, kind: Kind | None = None, version: str | None = None) -> Model:
+        """The model ``name`` (None: the default of ``kind``); :class:`InferenceError` ``not_found`` else."""
+        return self.repository.get(name, kind=kind, version=version)
 
+    def model_ready(self, name: str, version: str | None = None) -> bool:
+        return self.model(name, version=version).ready()
 
-def read_npy(body: bytes) -> np.ndarray:
-    """The array of a ``.npy`` body, read in place: its header is checked against the body's
-    length before anything is allocated (``np.load`` would allocate what the header claims)."""
-    buf = io.BytesIO(body)
-    fmt = np.lib.format
-    try:
-        version = fmt.read_magic(buf)
-        reader = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(version)
-        if reader is None:
-            raise ValueError(f"unsupported .npy version {version}")
-        shape, fortran_order, dtype = reader(buf, max_header_size=1024)
-    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as exc:
-        raise InvalidRequest([Problem(("designs",), f"not a valid .npy array ({quote(str(exc))})", "npy")]) from None
-    count = int(np.prod(shape, dtype=object))
-    if dtype.hasobject or count * dtype.itemsize != len(body) - buf.tell():
-        raise InvalidRequest([Problem(("designs",), f"not a valid .npy array (header {dtype} {shape} does not "
-                                      f"match the {len(body) - buf.tell()} data bytes)", "npy")])
-    data = np.frombuffer(body, dtype=dtype, count=count, offset=buf.tell())
-    return data.reshape(shape, order="F" if fortran_order else "C")
+    def model_metadata(self, name: str, version: str | None = None) -> dict:
+        return self.model(name, version=version).metadata()
 
+    def check_capacity(self, kind: Kind) -> None:
+        """:class:`InferenceError` ``saturated`` if the default model of ``kind`` would refuse a
+        request now (checked before a body is read)."""
+        if self.model(None, kind=kind).saturated:
+            raise InferenceError("saturated", "the solver is saturated; retry later")
 
-def _query_int(params: Mapping[str, list[str]], key: str, problems: list[Problem]) -> int | None:
-    raw = params.get(key)
-    if not raw:
-        return None
-    try:
-        return int(raw[0])
-    except ValueError:
-        problems.append(Problem((key,), f"must be an integer, got {quote(raw[0])}", "int_parsing"))
-        return None
+    # -- inference ------------------------------------------------------------------------------
 
-
-def _query_floats(params: Mapping[str, list[str]], key: str, problems: list[Problem]) -> list[float] | None:
-    raw = params.get(key)
-    if not raw:
-        return None
-    values = []
-    for i, text in enumerate(raw):
+    async def infer(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,
+                    version: str | None = None, protocol: str, endpoint: str) -> InferenceResponse:
+        """``request`` on the model ``name`` (None: the default of ``kind``; given ``kind``, only a
+        model of that kind), with its latency and count under ``protocol`` and ``endpoint``."""
+        model = self.model(name, kind=kind, version=version)
+        started = time.perf_counter()
         try:
-            values.append(float(text))
-        except ValueError:
-            problems.append(Problem((key, i), f"must be a number, got {quote(text)}", "float_parsing"))
-    return values
+            response = await model.infer(request)
+        except InvalidRequest as exc:
+            kind = "too_large" if exc.too_large else "invalid"
+            raise InferenceError(kind, exc.message, tuple(exc.problems)) from None
+        self.metrics.latency.labels(protocol, endpoint, model.name).observe(time.perf_counter() - started)
+        self.metrics.designs.labels(protocol, endpoint, model.name).inc(response.count)
+        return response
+
+    def close(self) -> None:
+        for model in self.repository:
+            model.close()

@@ -2,15 +2,10 @@
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Collection, Iterator
-from contextlib import contextmanager
+from collections.abc import Collection
 
-from service.solver_pool import WorkerDied
-from tdcr.exact import TooMuchWork
+from service.model import InferenceError
 from tdcr.validation import InvalidRequest
-
-log = logging.getLogger("tdcr.service")
 
 
 class ApiError(Exception):
@@ -51,19 +46,16 @@ def require_json(content_type: str) -> None:
                        kind="media_type")
 
 
-@contextmanager
-def solver_errors(timeout_s: float) -> Iterator[None]:
-    """A solver process's failures as HTTP errors: more work than admitted 413, past the deadline
-    ``timeout_s`` 504 (the worker was killed: its work stops with the deadline), a dead or failing
-    worker 503."""
-    try:
-        yield
-    except TooMuchWork as exc:
-        raise ApiError(413, str(exc), kind="too_much_work") from None
-    except TimeoutError:
-        raise ApiError(504, f"the solver did not finish within {timeout_s} s", kind="deadline") from None
-    except WorkerDied as exc:
-        raise ApiError(503, str(exc), kind="unavailable") from None
-    except RuntimeError as exc:
-        log.error("solver failed: %s", exc)
-        raise ApiError(503, "the solver failed on this request", kind="solver") from None
+#: The data plane's error kinds -> the HTTP statuses of the service's own API (OIP REST: service.oip.HTTP_STATUS).
+STATUS = {"invalid": 422, "too_large": 413, "not_found": 404, "saturated": 503, "unavailable": 503, "deadline": 504}
+#: Metric labels of the kinds whose label differs.
+LABELS = {"invalid": "validation"}
+
+
+def from_inference(exc: InferenceError, *, query: Collection[str] = ()) -> ApiError:
+    """The HTTP error of a data-plane error: 422 / 413 naming every field (as :func:`from_invalid`),
+    404, 503 (with ``Retry-After`` when saturated) or 504."""
+    if exc.problems:
+        return from_invalid(InvalidRequest(exc.problems, too_large=exc.kind == "too_large"), query=query)
+    headers = {"retry-after": "1"} if exc.kind == "saturated" else None
+    return ApiError(STATUS[exc.kind], exc.message, kind=LABELS.get(exc.kind, exc.kind), headers=headers)

@@ -1,14 +1,11 @@
 """The Open Inference Protocol v2 over gRPC (``inference.GRPCInferenceService``), on ``grpc.aio`` in
-the event loop of the HTTP server: one process, one :class:`service.v2plane.V2Plane`, one dynamic
-batcher per model, one solver pool and one Prometheus registry (``protocol="grpc"``).
+the event loop of the HTTP server: one process, the one :class:`service.dataplane.DataPlane` (its
+models, their batchers and solver pool) and one Prometheus registry (``protocol="grpc"``).
+A thin codec: :class:`service.grpc_codec.GrpcCodec` reads and writes the wire.
 
 Also served: the standard health service ``grpc.health.v1.Health`` (``""``: live;
 ``inference.GRPCInferenceService``: ready, i.e. every model loaded and the solver pool up) and
 server reflection.
-
-Tensors come typed (``InferTensorContents``) or raw (``raw_input_contents``: flat row-major
-little-endian bytes, one buffer per input); the answer is raw when the request was, as Triton's
-(tritonclient reads outputs only from ``raw_output_contents``), else typed.
 
 Status codes: invalid tensors, and requests over the size limits -> ``INVALID_ARGUMENT``; an
 unknown model or version -> ``NOT_FOUND``; the solver saturated -> ``RESOURCE_EXHAUSTED``; the solver
@@ -21,19 +18,17 @@ from __future__ import annotations
 import asyncio
 import hmac
 import logging
-import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable
 
 import grpc
-import numpy as np
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
-from starlette.concurrency import run_in_threadpool
 
+from service.dataplane import DataPlane
+from service.grpc_codec import GrpcCodec, decode, encode, encode_raw  # noqa: F401 - the wire, re-exported
 from service.metrics import GRPC
-from service.oip import DATATYPES, InferRequest, OipError, check_input, check_request
+from service.model import InferenceError, InferenceRequest
 from service.state import ServiceState
-from service.v2plane import SOLVER_MODELS, VERSION, V2Plane
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 
@@ -44,99 +39,26 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["GRPCInferenceService"].full_name
 STATUS_CODES = {"invalid": grpc.StatusCode.INVALID_ARGUMENT, "too_large": grpc.StatusCode.INVALID_ARGUMENT,
                 "not_found": grpc.StatusCode.NOT_FOUND, "saturated": grpc.StatusCode.RESOURCE_EXHAUSTED,
                 "unavailable": grpc.StatusCode.UNAVAILABLE, "deadline": grpc.StatusCode.DEADLINE_EXCEEDED}
-#: The typed-contents field of each datatype.
-CONTENTS = {"BOOL": "bool_contents", "INT32": "int_contents", "INT64": "int64_contents",
-            "UINT8": "uint_contents", "FP32": "fp32_contents", "FP64": "fp64_contents"}
+#: The codec of every ModelInfer call.
+CODEC = GrpcCodec()
 #: How often the health service's readiness follows the service's.
 HEALTH_PERIOD_S = 0.5
 
 
-def decode(request: pb.ModelInferRequest, *, inputs: Mapping[str, tuple[str, list[int]]],
-           outputs: Mapping[str, tuple[str, list[int]]], required: tuple[str, ...] = ("design",)) -> InferRequest:
-    """A ``ModelInferRequest`` as an :class:`InferRequest` (outputs raw iff the inputs were)."""
-    raw = request.raw_input_contents
-    if raw and len(raw) != len(request.inputs):
-        raise OipError("invalid", f"raw_input_contents has {len(raw)} buffers for {len(request.inputs)} inputs")
-    arrays: dict[str, np.ndarray] = {}
-    for i, tensor in enumerate(request.inputs):
-        name, shape = tensor.name, list(tensor.shape)
-        dtype, count = check_input(name, tensor.datatype, shape, inputs=inputs, seen=arrays)
-        if raw:
-            if tensor.HasField("contents"):
-                raise OipError("invalid", f"input {name!r}: give raw_input_contents or contents, not both")
-            if len(raw[i]) != count * dtype.itemsize:
-                raise OipError("invalid", f"input {name!r}: {len(raw[i])} raw bytes do not match its shape "
-                                          f"{shape} of {tensor.datatype} ({count * dtype.itemsize} bytes)")
-            array = np.frombuffer(raw[i], dtype=dtype, count=count)
-        else:
-            values = getattr(tensor.contents, CONTENTS[tensor.datatype])
-            if len(values) != count:
-                raise OipError("invalid", f"input {name!r}: contents.{CONTENTS[tensor.datatype]} holds "
-                                          f"{len(values)} values, its shape {shape} needs {count}")
-            array = np.array(values, dtype=dtype)
-        arrays[name] = array.reshape(shape)
-    asked = [(o.name, bool(raw)) for o in request.outputs] or [(n, bool(raw)) for n in outputs]
-    wanted = check_request(arrays, asked, outputs=outputs, required=required)
-    return InferRequest(inputs=arrays, outputs=wanted, id=request.id[:64] or None)
-
-
-def encode(model: str, tensors: Mapping[str, tuple[str, np.ndarray]], *, raw: bool,
-           request_id: str | None) -> pb.ModelInferResponse | bytes:
-    """A ``ModelInferResponse`` of ``tensors`` (name -> (datatype, array)): typed, as a message, or
-    raw, already serialised (:func:`encode_raw`)."""
-    if raw:
-        return encode_raw(model, tensors, request_id=request_id)
-    response = pb.ModelInferResponse(model_name=model, model_version=VERSION, id=request_id or "")
-    for name, (datatype, array) in tensors.items():
-        array = np.ascontiguousarray(array, dtype=DATATYPES[datatype])
-        tensor = response.outputs.add(name=name, datatype=datatype, shape=array.shape)
-        getattr(tensor.contents, CONTENTS[datatype]).extend(array.reshape(-1).tolist())
-    return response
-
-
-#: The key of ``ModelInferResponse.raw_output_contents`` on the wire: field 6, length-delimited.
-RAW_OUTPUT_KEY = bytes([pb.ModelInferResponse.RAW_OUTPUT_CONTENTS_FIELD_NUMBER << 3 | 2])
-
-
-def _varint(value: int) -> bytes:
-    """A protobuf base-128 varint."""
-    out = bytearray()
-    while True:
-        byte, value = value & 0x7F, value >> 7
-        out.append(byte | (0x80 if value else 0))
-        if not value:
-            return bytes(out)
-
-
-def encode_raw(model: str, tensors: Mapping[str, tuple[str, np.ndarray]], *, request_id: str | None) -> bytes:
-    """The serialised ``ModelInferResponse`` with raw output contents, written straight from the
-    arrays: the message without the contents through protobuf, then each buffer as a
-    ``raw_output_contents`` field (key, varint length, bytes).  The bytes are those protobuf writes
-    for the same message (fields in number order; tested), with one copy of each array instead of
-    three (``tobytes``, the message's own, serialisation): 8,192 designs' tendons are 16.5 MB."""
-    head = pb.ModelInferResponse(model_name=model, model_version=VERSION, id=request_id or "")
-    parts = [b""]
-    for name, (datatype, array) in tensors.items():
-        array = np.ascontiguousarray(array, dtype=DATATYPES[datatype])
-        head.outputs.add(name=name, datatype=datatype, shape=array.shape)
-        parts += [RAW_OUTPUT_KEY, _varint(array.nbytes), memoryview(array.reshape(-1)).cast("B")]
-    parts[0] = head.SerializeToString()
-    return b"".join(parts)
-
-
 class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
-    """``inference.GRPCInferenceService`` over a :class:`V2Plane`; every call is counted in the
+    """``inference.GRPCInferenceService`` over the :class:`DataPlane`; every call is counted in the
     service's metrics with ``protocol="grpc"``."""
 
-    def __init__(self, plane: V2Plane):
+    def __init__(self, plane: DataPlane):
         self.plane = plane
-        self.metrics = plane.state.metrics
+        self.metrics = plane.metrics
 
     async def _answer(self, method: str, context: grpc.aio.ServicerContext, work: Callable[[], Awaitable]):
+        """``work()``'s answer; the one mapping of data-plane errors to gRPC statuses."""
         code = grpc.StatusCode.OK
         try:
             return await work()
-        except OipError as exc:
+        except InferenceError as exc:
             code = STATUS_CODES[exc.kind]
             self.metrics.errors.labels(GRPC, method, exc.kind).inc()
             await context.abort(code, exc.message)
@@ -179,29 +101,10 @@ class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
 
     async def ModelInfer(self, request, context):
         async def work():
-            started = time.perf_counter()
-            model = request.model_name
-            self.plane.check_model(model, request.model_version)
-            if model in SOLVER_MODELS:  # the solver request built off the loop, the solve in the pool
-                decoded = self._decode(model, request)
-                features, body = await run_in_threadpool(self.plane.solver_body, model, decoded)
-                tensors, n = await self.plane.solver(model, decoded, features, body)
-                response = encode(model, tensors, raw=bool(request.raw_input_contents), request_id=decoded.id)
-            else:  # decode, run and encode in one thread hop
-                response, n = await run_in_threadpool(self._surrogate, model, request)
-            self.metrics.latency.labels(GRPC, "ModelInfer", model).observe(time.perf_counter() - started)
-            self.metrics.designs.labels(GRPC, "ModelInfer", model).inc(n)
-            return response
+            answer = await self.plane.infer(request.model_name, InferenceRequest(request, CODEC),
+                                            version=request.model_version, protocol=GRPC, endpoint="ModelInfer")
+            return answer.body
         return await self._answer("ModelInfer", context, work)
-
-    def _decode(self, model: str, request: pb.ModelInferRequest) -> InferRequest:
-        inputs, outputs, required = self.plane.tensors(model)
-        return decode(request, inputs=inputs, outputs=outputs, required=required)
-
-    def _surrogate(self, model: str, request: pb.ModelInferRequest) -> tuple[pb.ModelInferResponse, int]:
-        decoded = self._decode(model, request)
-        tensors, n = self.plane.surrogate(model, decoded)
-        return encode(model, tensors, raw=bool(request.raw_input_contents), request_id=decoded.id), n
 
 
 def _serialize(response: pb.ModelInferResponse | bytes | object) -> bytes:
@@ -258,7 +161,7 @@ class GrpcServer:
     def __init__(self, state: ServiceState):
         settings = state.settings
         self.state = state
-        self.plane = V2Plane(state)
+        self.plane = state.plane
         self.server = grpc.aio.server(
             interceptors=[ApiKeyInterceptor(settings.api_keys)] if settings.api_keys else [],
             options=[("grpc.max_receive_message_length", settings.grpc_max_receive_bytes),

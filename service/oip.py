@@ -1,19 +1,26 @@
-"""The Open Inference Protocol v2 (KServe V2 / Triton) over REST: tensors in, tensors out.
+"""The Open Inference Protocol v2 (KServe V2 / Triton): its tensors, its REST codec, and what
+every OIP transport shares (:class:`OipCodec`: tensors to a model's task, answers to tensors).
 
 Specification: kserve/open-inference-protocol, ``specification/protocol/inference_rest.md``; the
 binary tensor extension: triton-inference-server/server, ``docs/protocol/extension_binary_data.md``.
 
-Models (every manifest operator, and the physics solver as ``exact``):
+Models and their tensors:
 
-* inputs: ``design`` FP64 or FP32 ``[-1, 15]`` (raw SI designs in the README's feature order) and
-  optionally ``s`` FP64 ``[-1]`` (fractions of L; default the 42-point grid); ``exact`` also takes
-  ``gravity`` ``[-1, 3]``, ``density`` ``[-1]``, ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``;
-* outputs (metres): ``backbone`` FP32 ``[-1, n, 3]``, ``rotation`` FP32 ``[-1, n, 3, 3]``, ``tendons``
-  FP32 ``[-1, n, 4, 3]``, ``in_distribution`` BOOL ``[-1]``; ``exact`` also ``converged`` BOOL and
-  ``residual`` FP64 ``[-1]``.
+* every operator (kind ``surrogate``): inputs ``design`` FP64 or FP32 ``[-1, 15]`` (raw SI designs
+  in the README's feature order) and optionally ``s`` FP64 ``[-1]`` (arclength fractions of L;
+  default the 42-point grid); outputs (metres) ``backbone`` FP32 ``[-1, n, 3]``, ``rotation`` FP32
+  ``[-1, n, 3, 3]``, ``tendons`` FP32 ``[-1, n, 4, 3]``, ``in_distribution`` BOOL ``[-1]``;
+* ``exact`` (the solver): also the inputs ``gravity`` ``[-1, 3]``, ``density`` ``[-1]``,
+  ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``, and the outputs ``converged`` BOOL,
+  ``residual`` FP64, ``status`` INT32 (an index into ``tdcr.physics.STATUS``) and
+  ``error_estimate`` FP64 (-1: none);
+* ``inverse`` (inverse kinematics with the exact model): inputs ``design`` ``[1, 15]``,
+  ``position`` ``[-1, 3]`` (the targets), optionally ``direction`` ``[-1, 3]`` and ``tension_max``
+  ``[1]``; outputs ``tensions`` FP64 ``[-1, 4]`` N, ``position`` (the tips reached), ``error`` (m)
+  and ``status`` INT32 (:data:`INVERSE_STATUS`).
 
 Decoded tensors go through the one validation path (:mod:`tdcr.validation`); errors are
-:class:`OipError` with a status and a message that names the tensor and the reason.
+:class:`service.model.InferenceError` with a message that names the tensor and the reason.
 """
 
 from __future__ import annotations
@@ -25,34 +32,54 @@ import numpy as np
 import orjson
 from pydantic import BaseModel, Field
 
+from service.model import VERSION, InferenceError, InverseAnswer, ModelSpec, Tensors, TensorSpec
 from tdcr.client import INFERENCE_HEADER_LENGTH
-from tdcr.design_space import N_FEATURES, N_TENDONS
-from tdcr.validation import quote
+from tdcr.design_space import N_FEATURES, N_TENDONS, range_warnings
+from tdcr.designs import DesignBatch
+from tdcr.engine import Prediction
+from tdcr.exact import ExactAnswer
+from tdcr.validation import (
+    INVERSE_DEFAULTS,
+    OUTPUTS,
+    InvalidRequest,
+    check_inverse,
+    quote,
+    validate_features,
+)
 
 #: OIP datatypes and their little-endian numpy types.
 DATATYPES: dict[str, np.dtype] = {
     "BOOL": np.dtype("?"), "UINT8": np.dtype("<u1"), "INT32": np.dtype("<i4"), "INT64": np.dtype("<i8"),
     "FP32": np.dtype("<f4"), "FP64": np.dtype("<f8"),
 }
-#: The surrogates' tensors: name -> (datatype, shape); ``n`` is the number of arclengths.
-SURROGATE_INPUTS = {"design": ("FP64", [-1, N_FEATURES]), "s": ("FP64", [-1])}
-SURROGATE_OUTPUTS = {"backbone": ("FP32", [-1, -1, 3]), "rotation": ("FP32", [-1, -1, 3, 3]),
-                     "tendons": ("FP32", [-1, -1, N_TENDONS, 3]), "in_distribution": ("BOOL", [-1])}
+#: The surrogates' tensors; ``n`` (-1) is the number of arclengths.
+SURROGATE_INPUTS = {"design": TensorSpec("FP64", (-1, N_FEATURES)), "s": TensorSpec("FP64", (-1,))}
+SURROGATE_OUTPUTS = {"backbone": TensorSpec("FP32", (-1, -1, 3)), "rotation": TensorSpec("FP32", (-1, -1, 3, 3)),
+                     "tendons": TensorSpec("FP32", (-1, -1, N_TENDONS, 3)),
+                     "in_distribution": TensorSpec("BOOL", (-1,))}
 #: The solver's extra tensors.
-LOAD_INPUTS = {"gravity": ("FP64", [-1, 3]), "density": ("FP64", [-1]), "tip_force": ("FP64", [-1, 3]),
-               "tip_moment": ("FP64", [-1, 3])}
-#: ``status``: an index into ``tdcr.physics.STATUS``; ``error_estimate``: -1 where there is none.
-EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": ("BOOL", [-1]), "residual": ("FP64", [-1]),
-                                     "status": ("INT32", [-1]), "error_estimate": ("FP64", [-1])}
+LOAD_INPUTS = {"gravity": TensorSpec("FP64", (-1, 3)), "density": TensorSpec("FP64", (-1,)),
+               "tip_force": TensorSpec("FP64", (-1, 3)), "tip_moment": TensorSpec("FP64", (-1, 3))}
+EXACT_INPUTS = SURROGATE_INPUTS | LOAD_INPUTS
+EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": TensorSpec("BOOL", (-1,)), "residual": TensorSpec("FP64", (-1,)),
+                                     "status": TensorSpec("INT32", (-1,)), "error_estimate": TensorSpec("FP64", (-1,))}
 #: Inverse kinematics (/inverse with the exact model): one design, the targets of a path.
-INVERSE_INPUTS = {"design": ("FP64", [1, N_FEATURES]), "position": ("FP64", [-1, 3]), "direction": ("FP64", [-1, 3]),
-                  "tension_max": ("FP64", [1])}
-INVERSE_OUTPUTS = {"tensions": ("FP64", [-1, N_TENDONS]), "position": ("FP64", [-1, 3]), "error": ("FP64", [-1]),
-                   "status": ("INT32", [-1])}
+INVERSE_INPUTS = {"design": TensorSpec("FP64", (1, N_FEATURES)), "position": TensorSpec("FP64", (-1, 3)),
+                  "direction": TensorSpec("FP64", (-1, 3)), "tension_max": TensorSpec("FP64", (1,))}
+INVERSE_OUTPUTS = {"tensions": TensorSpec("FP64", (-1, N_TENDONS)), "position": TensorSpec("FP64", (-1, 3)),
+                   "error": TensorSpec("FP64", (-1,)), "status": TensorSpec("INT32", (-1,))}
 #: The ``status`` output of the inverse model.
 INVERSE_STATUS = {"reached": 0, "closest": 1, "failed": 2}
 #: Header of the binary tensor extension.
 HEADER_LENGTH = INFERENCE_HEADER_LENGTH
+#: What the server says of itself (OIP server metadata).
+SERVER_NAME = "tdcr-surrogates"
+EXTENSIONS = ["binary_tensor_data"]
+#: Error kinds and their HTTP statuses over OIP REST (the gRPC binding maps the same kinds to its codes).
+HTTP_STATUS = {"invalid": 400, "not_found": 404, "too_large": 413, "saturated": 503, "unavailable": 503,
+               "deadline": 504}
+#: Output tensors: name -> (datatype, array).
+OutputTensors = dict[str, tuple[str, np.ndarray]]
 
 
 class RequestInput(BaseModel):
@@ -83,24 +110,6 @@ class OipErrorBody(BaseModel):
     error: str
 
 
-#: Error kinds and their HTTP statuses (the gRPC binding maps the same kinds to its status codes).
-HTTP_STATUS = {"invalid": 400, "not_found": 404, "too_large": 413, "saturated": 503, "unavailable": 503,
-               "deadline": 504}
-
-
-class OipError(Exception):
-    """A protocol error: its ``kind`` (a key of :data:`HTTP_STATUS`, also the metric label) and a
-    message naming the tensor and the reason."""
-
-    def __init__(self, kind: str, message: str):
-        super().__init__(message)
-        self.kind, self.message = kind, message
-
-    @property
-    def status(self) -> int:
-        return HTTP_STATUS[self.kind]
-
-
 @dataclass(frozen=True)
 class InferRequest:
     """A decoded inference request: input arrays by name, the outputs wanted (name -> binary/raw)."""
@@ -110,87 +119,82 @@ class InferRequest:
     id: str | None
 
 
-def tensor_metadata(tensors: Mapping[str, tuple[str, list[int]]]) -> list[dict]:
-    return [{"name": name, "datatype": dtype, "shape": shape} for name, (dtype, shape) in tensors.items()]
-
-
-def check_input(name, datatype, shape, *, inputs: Mapping[str, tuple[str, list[int]]],
-                seen: Mapping[str, np.ndarray]) -> tuple[np.dtype, int]:
+def check_input(name, datatype, shape, *, inputs: Tensors, seen: Mapping[str, np.ndarray]) -> tuple[np.dtype, int]:
     """The numpy type and element count of an input tensor's declared ``name``, ``datatype`` and
-    ``shape`` (any transport); :class:`OipError` naming the tensor and the reason else."""
+    ``shape`` (any transport); :class:`InferenceError` naming the tensor and the reason else."""
     if name not in inputs:
-        raise OipError("invalid", f"unexpected input {quote(name)}; this model takes {list(inputs)}")
+        raise InferenceError("invalid", f"unexpected input {quote(name)}; this model takes {list(inputs)}")
     if name in seen:
-        raise OipError("invalid", f"input {name!r} is given twice")
-    allowed = ("FP64", "FP32") if inputs[name][0] == "FP64" else (inputs[name][0],)
+        raise InferenceError("invalid", f"input {name!r} is given twice")
+    allowed = ("FP64", "FP32") if inputs[name].datatype == "FP64" else (inputs[name].datatype,)
     if datatype not in allowed:
-        raise OipError("invalid", f"input {name!r}: datatype must be one of {list(allowed)}, got {quote(datatype)}")
-    expected = inputs[name][1]
+        raise InferenceError("invalid", f"input {name!r}: datatype must be one of {list(allowed)}, "
+                                        f"got {quote(datatype)}")
+    expected = list(inputs[name].shape)
     if (not isinstance(shape, list) or len(shape) != len(expected)
             or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
             or any(e != -1 and d != e for d, e in zip(shape, expected, strict=True))):
-        raise OipError("invalid", f"input {name!r}: shape must be {expected} (-1: any), got {quote(shape)}")
+        raise InferenceError("invalid", f"input {name!r}: shape must be {expected} (-1: any), got {quote(shape)}")
     return DATATYPES[datatype], int(np.prod(shape, dtype=object))
 
 
 def check_request(arrays: Mapping[str, np.ndarray], outputs_asked: list[tuple[object, bool]], *,
-                  outputs: Mapping[str, tuple[str, list[int]]], required: tuple[str, ...] = ("design",)
-                  ) -> dict[str, bool]:
+                  outputs: Tensors, required: tuple[str, ...] = ("design",)) -> dict[str, bool]:
     """The outputs wanted (name -> binary/raw) from ``outputs_asked`` (name, binary) pairs, empty
-    for every output; :class:`OipError` for a missing input or an unknown output."""
+    for every output; :class:`InferenceError` for a missing input or an unknown output."""
     missing = [n for n in required if n not in arrays]
     if missing:
-        raise OipError("invalid", f"missing input(s) {missing}")
+        raise InferenceError("invalid", f"missing input(s) {missing}")
     wanted: dict[str, bool] = {}
     for name, binary in outputs_asked:
         if name not in outputs:
-            raise OipError("invalid", f"unknown output {quote(name)}; this model gives {list(outputs)}")
+            raise InferenceError("invalid", f"unknown output {quote(name)}; this model gives {list(outputs)}")
         wanted[name] = binary
     return wanted
 
 
-def decode(body: bytes, header_length: str | None, *, inputs: Mapping[str, tuple[str, list[int]]],
-           outputs: Mapping[str, tuple[str, list[int]]], required: tuple[str, ...] = ("design",)) -> InferRequest:
+def decode(body: bytes, header_length: str | None, *, inputs: Tensors, outputs: Tensors,
+           required: tuple[str, ...] = ("design",)) -> InferRequest:
     """An OIP REST inference request (JSON, or JSON followed by binary tensors)."""
     try:
         json_length = len(body) if header_length is None else int(header_length)
     except ValueError:
-        raise OipError("invalid", f"{HEADER_LENGTH} must be an integer, got {quote(header_length)}") from None
+        raise InferenceError("invalid", f"{HEADER_LENGTH} must be an integer, got {quote(header_length)}") from None
     if not 0 <= json_length <= len(body):
-        raise OipError("invalid", f"{HEADER_LENGTH} {json_length} is outside the body of {len(body)} bytes")
+        raise InferenceError("invalid", f"{HEADER_LENGTH} {json_length} is outside the body of {len(body)} bytes")
     try:
         request = orjson.loads(body[:json_length])
     except orjson.JSONDecodeError as exc:
-        raise OipError("invalid", f"the request is not valid JSON: {exc}") from None
+        raise InferenceError("invalid", f"the request is not valid JSON: {exc}") from None
     if not isinstance(request, dict) or not isinstance(request.get("inputs"), list):
-        raise OipError("invalid", "the request must be an object with a list of 'inputs'")
+        raise InferenceError("invalid", "the request must be an object with a list of 'inputs'")
     binary = memoryview(body)[json_length:]
     offset = 0
     arrays: dict[str, np.ndarray] = {}
     for spec in request["inputs"]:
         if not isinstance(spec, dict):
-            raise OipError("invalid", "each input must be an object")
+            raise InferenceError("invalid", "each input must be an object")
         name, datatype, shape = spec.get("name"), spec.get("datatype"), spec.get("shape")
         dtype, count = check_input(name, datatype, shape, inputs=inputs, seen=arrays)
         size = (spec.get("parameters") or {}).get("binary_data_size")
         if size is not None:
             if not isinstance(size, int) or size != count * dtype.itemsize or offset + size > len(binary):
-                raise OipError("invalid", f"input {name!r}: binary_data_size {quote(size)} does not match its "
+                raise InferenceError("invalid", f"input {name!r}: binary_data_size {quote(size)} does not match its "
                                           f"shape {shape} of {datatype} or the {len(binary) - offset} bytes left")
             array = np.frombuffer(binary, dtype=dtype, count=count, offset=offset)
             offset += size
         else:
             data = spec.get("data")
             if not isinstance(data, list):
-                raise OipError("invalid", f"input {name!r}: 'data' must be a list (or use binary_data_size)")
+                raise InferenceError("invalid", f"input {name!r}: 'data' must be a list (or use binary_data_size)")
             array = np.asarray(data, dtype=object).reshape(-1) if count else np.zeros(0)
             if array.size != count or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                                for v in array.tolist()):
-                raise OipError("invalid", f"input {name!r}: 'data' must hold {count} numbers, row-major")
+                raise InferenceError("invalid", f"input {name!r}: 'data' must hold {count} numbers, row-major")
             array = array.astype(dtype)
         arrays[name] = array.reshape(shape)
     if offset != len(binary):
-        raise OipError("invalid", f"{len(binary) - offset} bytes of binary data are not claimed by any input")
+        raise InferenceError("invalid", f"{len(binary) - offset} bytes of binary data are not claimed by any input")
     default_binary = bool((request.get("parameters") or {}).get("binary_data_output", False))
     asked = [(spec.get("name") if isinstance(spec, dict) else None,
               bool(((spec.get("parameters") if isinstance(spec, dict) else None) or {}).get("binary_data",
@@ -201,7 +205,7 @@ def decode(body: bytes, header_length: str | None, *, inputs: Mapping[str, tuple
     return InferRequest(inputs=arrays, outputs=wanted, id=None if request_id is None else str(request_id)[:64])
 
 
-def encode(model: str, tensors: Mapping[str, tuple[str, np.ndarray]], binary: Mapping[str, bool],
+def encode(model: str, tensors: OutputTensors, binary: Mapping[str, bool],
            request_id: str | None) -> tuple[bytes, int | None]:
     """The response body and, when any output is binary, the length of its JSON part."""
     outputs, blobs = [], []
@@ -215,6 +219,100 @@ def encode(model: str, tensors: Mapping[str, tuple[str, np.ndarray]], binary: Ma
         else:
             out["data"] = array.reshape(-1)
         outputs.append(out)
-    head = orjson.dumps({"model_name": model, "model_version": "1", "outputs": outputs,
+    head = orjson.dumps({"model_name": model, "model_version": VERSION, "outputs": outputs,
                          **({"id": request_id} if request_id is not None else {})}, option=orjson.OPT_SERIALIZE_NUMPY)
     return (head + b"".join(blobs), len(head)) if blobs else (head, None)
+
+
+# -- what every OIP transport shares: tensors to a model's task, its answer to tensors -------------
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """A decoded OIP request for one model: its validated ``task``, the input arrays, the outputs
+    wanted (name -> binary/raw) and the request id."""
+
+    task: object
+    request: InferRequest
+    model: str
+
+
+class OipCodec:
+    """The OIP's meaning, shared by REST (:class:`RestCodec`) and gRPC
+    (:class:`service.grpc_codec.GrpcCodec`): subclasses read and write the wire (``wire_decode``,
+    ``wire_encode``)."""
+
+    def wire_decode(self, payload, spec: ModelSpec) -> InferRequest:
+        raise NotImplementedError
+
+    def wire_encode(self, model: str, tensors: OutputTensors, request: InferRequest):
+        raise NotImplementedError
+
+    def decode(self, payload, spec: ModelSpec) -> Decoded:
+        request = self.wire_decode(payload, spec)
+        inputs = request.inputs
+        try:
+            if spec.kind == "inverse":
+                task = _inverse_problem(inputs)
+            else:
+                wanted = [n for n in request.outputs if n in OUTPUTS]
+                task = validate_features(inputs["design"], target="surrogate" if spec.kind == "surrogate" else "solver",
+                                         model=spec.name, s=inputs.get("s"), outputs=wanted or ["tendons"],
+                                         limits=spec.limits, loads={n: inputs[n] for n in LOAD_INPUTS if n in inputs})
+        except InvalidRequest as exc:
+            inputs_named = "input 'design' or 's'" if spec.kind == "surrogate" else "inputs"
+            raise InferenceError("too_large" if exc.too_large else "invalid", f"{inputs_named}: {exc.message}",
+                                 tuple(exc.problems)) from None
+        return Decoded(task=task, request=request, model=spec.name)
+
+    def encode(self, decoded: Decoded, answer):
+        tensors = answer_tensors(decoded, answer)
+        return self.wire_encode(decoded.model, {n: tensors[n] for n in decoded.request.outputs}, decoded.request)
+
+
+def _inverse_problem(inputs: Mapping[str, np.ndarray]):
+    """The inverse problem of the ``inverse`` model's tensors (exact model)."""
+    positions = np.asarray(inputs["position"], dtype=np.float64)
+    directions = inputs.get("direction")
+    if directions is not None and len(directions) != len(positions):
+        raise InferenceError("invalid", f"input 'direction' has {len(directions)} rows, "
+                                        f"'position' has {len(positions)}")
+    design = DesignBatch.from_features(np.asarray(inputs["design"], dtype=np.float64))
+    tension_max = inputs.get("tension_max")
+    return check_inverse(design, positions, np.full_like(positions, np.nan) if directions is None else directions,
+                         tension_max=INVERSE_DEFAULTS["tension_max"] if tension_max is None else float(tension_max[0]))
+
+
+def answer_tensors(decoded: Decoded, answer) -> OutputTensors:
+    """Every output tensor of a model's answer (name -> (datatype, array))."""
+    if isinstance(answer, Prediction):
+        return {"in_distribution": ("BOOL", np.array([not w for w in answer.warnings]))} | {
+            k: ("FP32", v) for k, v in answer.arrays.items()}
+    if isinstance(answer, ExactAnswer):
+        g = answer.arrays()
+        return {"backbone": ("FP32", g.backbone), "rotation": ("FP32", g.rotation), "tendons": ("FP32", g.tendons),
+                "in_distribution": ("BOOL", np.array([not w for w in range_warnings(decoded.task.features)])),
+                "converged": ("BOOL", g.converged), "residual": ("FP64", g.residual),
+                "status": ("INT32", g.status.astype(np.int32)),
+                "error_estimate": ("FP64", np.where(np.isnan(g.error_estimate), -1.0, g.error_estimate))}
+    if isinstance(answer, InverseAnswer):
+        r = answer.results
+        return {"tensions": ("FP64", np.array([x["tensions"] for x in r])),
+                "position": ("FP64", np.array([x["position"] for x in r])),
+                "error": ("FP64", np.array([x["error"] for x in r])),
+                "status": ("INT32", np.array([INVERSE_STATUS[x["status"]] for x in r], dtype=np.int32))}
+    raise TypeError(f"no tensors for {type(answer).__name__}")
+
+
+@dataclass(frozen=True)
+class RestCodec(OipCodec):
+    """OIP over REST: a JSON body, or JSON followed by binary tensors (``header_length``: the
+    JSON part's length, from the ``Inference-Header-Content-Length`` header)."""
+
+    header_length: str | None = None
+
+    def wire_decode(self, payload: bytes, spec: ModelSpec) -> InferRequest:
+        return decode(payload, self.header_length, inputs=spec.inputs, outputs=spec.outputs, required=spec.required)
+
+    def wire_encode(self, model: str, tensors: OutputTensors, request: InferRequest) -> tuple[bytes, int | None]:
+        return encode(model, tensors, request.outputs, request.id)

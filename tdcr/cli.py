@@ -37,7 +37,7 @@ def _cmd_solve(args) -> int:
         request = validate_json(_read_text(args.request), target="solver", limits=_unlimited())
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
-    json.dump({"results": solve_request(request)}, sys.stdout)
+    json.dump({"results": solve_request(request).results()}, sys.stdout)
     sys.stdout.write("\n")
     return 0
 
@@ -219,7 +219,7 @@ def _cmd_params(args) -> int:
 
 
 def _cmd_predict(args) -> int:
-    from service.dataplane import DataPlane, ModelNotFound
+    from tdcr import engine
     from tdcr.runtime import ManifestError, Surrogate
     from tdcr.validation import InvalidRequest
 
@@ -228,14 +228,15 @@ def _cmd_predict(args) -> int:
         model = Surrogate.load(args.models_dir, args.model)
     except ManifestError as exc:
         raise UsageError(f"{args.models_dir}: {exc}") from None
-    plane = DataPlane({args.model: model}, default_model=args.model, limits=_unlimited())
     try:
-        prediction = plane.run(plane.prepare_json(text))
+        request = engine.prepare_json(text, limits=_unlimited())
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
-    except ModelNotFound as exc:  # the request names another model than --model
-        raise UsageError(f"{args.request}: {exc} (choose it with --model)") from None
-    sys.stdout.buffer.write(plane.encode_json(prediction) + b"\n")
+    if request.model not in (None, args.model):  # the request names another model than --model
+        raise UsageError(f"{args.request}: unknown model {request.model!r}; available: [{args.model!r}] "
+                         "(choose it with --model)")
+    prediction = engine.predict(model, request, model=args.model)
+    sys.stdout.buffer.write(engine.encode_json(prediction) + b"\n")
     return 0
 
 

@@ -23,6 +23,9 @@ N_FEATURES = LAYOUT.width
 DEFAULT_POINTS = 42
 #: Hard upper limit of arclengths per request (a service may set a lower one).
 MAX_POINTS = 1000
+#: Arclength fractions within this of [0, 1] are rounding (a client's s / L at the tip can be
+#: 1.000000000001): every entry point clamps them onto [0, 1] and refuses farther ones.
+FRACTION_ROUNDING = 1e-9
 #: Most tendons per design a request may carry.
 MAX_TENDONS = 64
 

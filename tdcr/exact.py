@@ -1,14 +1,16 @@
-"""Exact (physics) answers to validated requests: solves each tendon-count group as one batch."""
+"""Exact (physics) answers to validated requests: admission by estimated work, each tendon-count
+group solved as one batch, the answer as arrays (:class:`ExactAnswer`) or JSON-ready dicts."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass
 
 import numpy as np
 
 from tdcr.design_space import DEFAULT_POINTS
-from tdcr.physics import STATUS, RodSolution, SolverOptions, solve
+from tdcr.physics import STATUS, RodSolution, SolverOptions, Status, solve
 from tdcr.validation import Limits, ShapeRequest, validate_json
 
 
@@ -42,66 +44,118 @@ class TooMuchWork(ValueError):
         return (TooMuchWork, (self.estimate, self.max_seconds))
 
 
+def admit(request: ShapeRequest, budget: WorkBudget | None) -> None:
+    """:class:`TooMuchWork` if ``request`` is estimated over ``budget`` (None: no budget)."""
+    if budget is not None and (estimate := budget.estimate(request)) > budget.max_seconds:
+        raise TooMuchWork(estimate, budget.max_seconds)
+
+
 def answer_json(body: bytes, *, limits: Limits, budget: WorkBudget | None = None) -> list[dict]:
-    """Validate a JSON ``SolveRequest`` and solve it: the whole of /exact's work, run in a solver
-    process so that parsing large bodies never costs the server's own interpreter.
+    """Validate a JSON ``SolveRequest``, admit it and solve it; one dict per design (``tdcr solve``).
 
     Raises :class:`tdcr.validation.InvalidRequest` or :class:`TooMuchWork`.
     """
     request = validate_json(body, target="solver", limits=limits)
-    if budget is not None and (estimate := budget.estimate(request)) > budget.max_seconds:
-        raise TooMuchWork(estimate, budget.max_seconds)
-    return solve_request(request)
-
-
-def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None) -> list[dict]:
-    """Solve every design of ``request`` at its arclength fractions ``(n,)``; one dict per design, in order.
-
-    Each dict holds ``s`` (m, (n,)), ``backbone`` ((n, 3) m), ``rotation`` ((n, 3, 3)),
-    ``tendons`` ((n, N_t, 3) m), ``converged``, ``residual`` (N), ``status`` (a name of
-    :data:`tdcr.physics.STATUS`) and ``error_estimate`` (relative l2, or None), as nested lists.
-    """
-    results: list[dict | None] = [None] * request.n_designs
-    # the tip Jacobian is that of s = L: solved as one more arclength when it is not asked for
-    fractions = request.fractions
-    tip = np.nonzero(fractions == 1.0)[0]
-    if request.jacobian and tip.size == 0:
-        fractions = np.append(fractions, 1.0)
-    tip_index = int(tip[0]) if tip.size else fractions.size - 1
-    n = request.fractions.size
-    for group in request.groups:
-        with np.errstate(all="ignore"):  # overflow of an extreme design is reported in its flags
-            sol = solve(group.designs, fractions, loads=group.loads, options=options, jacobian=request.jacobian)
-        for j, i in enumerate(group.rows):
-            results[i] = solution_to_dict(sol, j, points=n)
-            if request.jacobian:
-                results[i]["tip_jacobian"] = np.nan_to_num(sol.jacobian[j, tip_index]).tolist()
-    return results  # type: ignore[return-value]
+    admit(request, budget)
+    return solve_request(request).results()
 
 
 #: The residual reported for a design whose residual is not finite (JSON has no inf or NaN).
 NOT_FINITE_RESIDUAL = sys.float_info.max
 
 
-def solution_to_dict(sol: RodSolution, j: int, *, points: int | None = None) -> dict:
-    """Design ``j`` of a :class:`RodSolution` (its first ``points`` arclengths; all by default) as
-    JSON-ready lists, numbers only: a design with non-finite values is reported not converged, with
-    those values as 0 and the residual as :data:`NOT_FINITE_RESIDUAL`."""
-    n = slice(points)
-    arrays = {"s": sol.s[j, n], "backbone": sol.backbone[j, n], "rotation": sol.rotation[j, n],
-              "tendons": sol.tendons[j, n]}
-    finite = bool(all(np.isfinite(v).all() for v in arrays.values()) and np.isfinite(sol.residual[j]))
-    if not finite:
+@dataclass(frozen=True)
+class SolvedGroup:
+    """The designs of one tendon count: their request ``rows`` ``(b,)`` and their answer, numbers
+    only (a design with non-finite values is reported not converged, status ``not_finite``, those
+    values 0 and the residual :data:`NOT_FINITE_RESIDUAL`).
+
+    ``s`` ``(b, n)`` m; ``backbone`` ``(b, n, 3)`` m; ``rotation`` ``(b, n, 3, 3)``; ``tendons``
+    ``(b, n, N_t, 3)`` m; ``converged`` ``(b,)``; ``residual`` ``(b,)`` N; ``status`` ``(b,)`` indices
+    into :data:`tdcr.physics.STATUS`; ``error_estimate`` ``(b,)`` (NaN: none); ``tip_jacobian``
+    ``(b, 6, N_t)`` or None.
+    """
+
+    rows: np.ndarray
+    s: np.ndarray
+    backbone: np.ndarray
+    rotation: np.ndarray
+    tendons: np.ndarray
+    converged: np.ndarray
+    residual: np.ndarray
+    status: np.ndarray
+    error_estimate: np.ndarray
+    tip_jacobian: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, rows: np.ndarray, sol: RodSolution, *, points: int, tip_jacobian: np.ndarray | None) -> SolvedGroup:
+        """The first ``points`` arclengths of ``sol``, made finite."""
+        n = slice(points)
+        arrays = {"s": sol.s[:, n], "backbone": sol.backbone[:, n], "rotation": sol.rotation[:, n],
+                  "tendons": sol.tendons[:, n]}
+        finite = np.isfinite(sol.residual)
+        for v in arrays.values():
+            finite &= np.isfinite(v.reshape(len(v), -1)).all(axis=1)
         arrays = {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in arrays.items()}
-    out = {**{k: v.tolist() for k, v in arrays.items()},
-           "converged": bool(sol.converged[j]) and finite,
-           "residual": float(sol.residual[j]) if np.isfinite(sol.residual[j]) else NOT_FINITE_RESIDUAL}
-    if sol.status is not None:
-        out["status"] = STATUS[int(sol.status[j])] if finite else "not_finite"
-    if sol.error_estimate is not None:
-        estimate = float(sol.error_estimate[j])
-        out["error_estimate"] = estimate if np.isfinite(estimate) else None
-    return out
+        status = np.where(finite, sol.status, Status.NOT_FINITE).astype(np.int32)
+        return cls(rows=rows, **arrays, converged=sol.converged & finite,
+                   residual=np.where(finite, sol.residual, NOT_FINITE_RESIDUAL), status=status,
+                   error_estimate=np.where(np.isfinite(sol.error_estimate), sol.error_estimate, np.nan),
+                   tip_jacobian=tip_jacobian)
+
+
+@dataclass(frozen=True)
+class ExactAnswer:
+    """The solver's answer to a :class:`ShapeRequest`, by tendon-count group (:class:`SolvedGroup`)."""
+
+    groups: tuple[SolvedGroup, ...]
+
+    @property
+    def n_designs(self) -> int:
+        return sum(len(g.rows) for g in self.groups)
+
+    def results(self) -> list[dict]:
+        """One JSON-ready dict per design, in request order: ``s``, ``backbone``, ``rotation``,
+        ``tendons``, ``converged``, ``residual``, ``status`` (a name of :data:`STATUS`),
+        ``error_estimate`` (None: none) and, if asked, ``tip_jacobian``; as nested lists."""
+        results: list[dict | None] = [None] * self.n_designs
+        for g in self.groups:
+            for j, i in enumerate(g.rows.tolist()):
+                out = {"s": g.s[j].tolist(), "backbone": g.backbone[j].tolist(), "rotation": g.rotation[j].tolist(),
+                       "tendons": g.tendons[j].tolist(), "converged": bool(g.converged[j]),
+                       "residual": float(g.residual[j]), "status": STATUS[int(g.status[j])],
+                       "error_estimate": None if np.isnan(g.error_estimate[j]) else float(g.error_estimate[j])}
+                if g.tip_jacobian is not None:
+                    out["tip_jacobian"] = g.tip_jacobian[j].tolist()
+                results[i] = out
+        return results  # type: ignore[return-value]
+
+    def arrays(self) -> SolvedGroup:
+        """The answer as arrays in request order: every design must share one tendon count."""
+        if len(self.groups) != 1:
+            raise ValueError("the designs have different tendon counts")
+        g = self.groups[0]
+        order = np.argsort(g.rows, kind="stable")
+        return SolvedGroup(**{f.name: None if getattr(g, f.name) is None else getattr(g, f.name)[order]
+                              for f in dataclasses.fields(SolvedGroup)})
+
+
+def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None) -> ExactAnswer:
+    """Solve every design of ``request`` at its arclength fractions ``(n,)``, each tendon-count
+    group as one batch."""
+    # the tip Jacobian is that of s = L: solved as one more arclength when it is not asked for
+    fractions = request.fractions
+    tip = np.nonzero(fractions == 1.0)[0]
+    if request.jacobian and tip.size == 0:
+        fractions = np.append(fractions, 1.0)
+    tip_index = int(tip[0]) if tip.size else fractions.size - 1
+    groups = []
+    for group in request.groups:
+        with np.errstate(all="ignore"):  # overflow of an extreme design is reported in its flags
+            sol = solve(group.designs, fractions, loads=group.loads, options=options, jacobian=request.jacobian)
+        tip_jacobian = np.nan_to_num(sol.jacobian[:, tip_index]) if request.jacobian else None
+        groups.append(SolvedGroup.of(group.rows, sol, points=request.fractions.size, tip_jacobian=tip_jacobian))
+    return ExactAnswer(groups=tuple(groups))
 
 
 def warm_up() -> bool:

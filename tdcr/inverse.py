@@ -331,15 +331,13 @@ def answer(problem: InverseProblem, forward: Forward, *, starts: np.ndarray | No
 EVALUATIONS_PER_TARGET = 20
 
 
-def answer_exact_json(body: bytes, *, starts: list | None = None, max_seconds: float | None = None,
-                      seconds_per_design: float = 1e-3) -> list[dict]:
-    """/inverse with the exact model, from the JSON body: validation, admission and the solve,
-    run in a solver process; ``starts`` ``(T, N_t)``: polish these answers (of an operator).
-    Raises ``InvalidRequest`` or ``TooMuchWork``."""
+def answer_exact(problem: InverseProblem, *, starts: np.ndarray | None = None, max_seconds: float | None = None,
+                 seconds_per_design: float = 1e-3) -> list[dict]:
+    """A validated inverse problem with the exact model, admitted by its estimated work (run in a
+    solver process); ``starts`` ``(T, N_t)``: polish these answers (of an operator).
+    Raises :class:`tdcr.exact.TooMuchWork`."""
     from tdcr.exact import TooMuchWork
-    from tdcr.validation import validate_inverse
 
-    problem = validate_inverse(body)
     estimate = problem.n_targets * EVALUATIONS_PER_TARGET * 4 * seconds_per_design  # ~4 ms per evaluation
     if max_seconds is not None and estimate > max_seconds:
         raise TooMuchWork(estimate, max_seconds)

@@ -15,7 +15,7 @@ from typing import Annotated
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from tdcr.design_space import DEFAULT_POINTS, LOADS, MAX_POINTS, MAX_TENDONS, N_TENDONS, TABLE_I
+from tdcr.design_space import DEFAULT_POINTS, FRACTION_ROUNDING, LOADS, MAX_POINTS, MAX_TENDONS, N_TENDONS, TABLE_I
 
 #: Longest model name a request may carry.
 MAX_MODEL_NAME = 64
@@ -39,7 +39,9 @@ def _vector3(bound):
     return Annotated[list[item], Field(min_length=3, max_length=3)]
 
 
-_Fraction = Annotated[float, Field(strict=True, json_schema_extra={"minimum": 0.0, "maximum": 1.0})]
+#: An arclength fraction: [0, 1], within rounding (``FRACTION_ROUNDING``; clamped onto [0, 1]).
+_Fraction = Annotated[float, Field(strict=True, json_schema_extra={"minimum": -FRACTION_ROUNDING,
+                                                                   "maximum": 1.0 + FRACTION_ROUNDING})]
 
 
 class Tendon(BaseModel):

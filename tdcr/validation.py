@@ -15,7 +15,7 @@ Problems name the field as ``designs[3].tendons[1].tension`` and say why.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple
 
@@ -24,6 +24,7 @@ from pydantic import ValidationError
 
 from tdcr.design_space import (
     DEFAULT_POINTS,
+    FRACTION_ROUNDING,
     LOADS,
     MAX_POINTS,
     N_FEATURES,
@@ -32,7 +33,7 @@ from tdcr.design_space import (
     admissible_bounds,
 )
 from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
-from tdcr.schemas import EXACT_MODEL, MAX_MODEL_NAME, InverseRequest, PredictRequest, SolveRequest
+from tdcr.schemas import EXACT_MODEL, MAX_MODEL_NAME, MAX_TARGETS, InverseRequest, PredictRequest, SolveRequest
 
 #: What a request is for: the surrogates (4 tendons, no loads) or the physics solver.
 Target = Literal["surrogate", "solver"]
@@ -244,9 +245,10 @@ def _fractions(points: int | None, s: Sequence[float] | np.ndarray | None,
         return None, [Problem(("s",), f"must hold 1 to {limits.max_points} fractions, got {len(s)}", "points")]
     fractions = np.asarray(s, dtype=np.float64)
     with np.errstate(invalid="ignore"):
-        bad = np.nonzero(~((fractions >= 0.0) & (fractions <= 1.0)))[0]
-    return fractions, [Problem(("s", int(i)), f"must be a fraction of L in [0, 1], got {fractions[i]}", "fraction")
-                       for i in bad]
+        bad = np.nonzero(~((fractions >= -FRACTION_ROUNDING) & (fractions <= 1.0 + FRACTION_ROUNDING)))[0]
+    problems = [Problem(("s", int(i)), f"must be a fraction of L in [0, 1], got {fractions[i]}", "fraction")
+                for i in bad]
+    return (None if problems else np.clip(fractions, 0.0, 1.0)), problems
 
 
 def _check_sizes(n_designs: int, n_points: int, limits: Limits) -> None:
@@ -342,8 +344,11 @@ def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
 
 def validate_features(features: np.ndarray, *, target: Target = "surrogate", points: int | None = None,
                       s: Sequence[float] | np.ndarray | None = None, model: str | None = None,
-                      outputs: Iterable[str] | None = None, limits: Limits = Limits()) -> ShapeRequest:
-    """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body) with arclengths and options.
+                      outputs: Iterable[str] | None = None, limits: Limits = Limits(),
+                      loads: Mapping[str, np.ndarray] | None = None) -> ShapeRequest:
+    """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body or OIP tensors) with arclengths and
+    options; for the solver, ``loads``: any of ``gravity`` ``(B, 3)`` m/s^2, ``density`` ``(B,)``
+    kg/m^3, ``tip_force`` ``(B, 3)`` N, ``tip_moment`` ``(B, 3)`` N m.
 
     Raises :class:`InvalidRequest`.
     """
@@ -361,8 +366,37 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     _check_sizes(len(features), 0 if fractions is None else fractions.size, limits)
     wanted, more = check_outputs(outputs)
     problems += more + _check_model(model)
-    group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features), loads=None)
+    group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features),
+                        loads=_loads_from_arrays(loads, len(features), target, problems))
     return _checked([group], fractions, problems, model=model, outputs=wanted)
+
+
+#: The external loads' arrays and their trailing shapes.
+LOAD_SHAPES = {"gravity": (3,), "density": (), "tip_force": (3,), "tip_moment": (3,)}
+
+
+def _loads_from_arrays(loads: Mapping[str, np.ndarray] | None, n_designs: int, target: Target,
+                       problems: list[Problem]) -> ExternalLoads | None:
+    """:class:`ExternalLoads` from arrays by name (NaN gravity and density where absent, as from
+    JSON), or None without loads; a wrong name, shape or row count is a problem."""
+    if not loads:
+        return None
+    if target == "surrogate":
+        problems.append(Problem(tuple(loads)[:1], "the operators take no external loads; the solver does", "loads"))
+        return None
+    arrays = {}
+    for name, values in loads.items():
+        values = np.asarray(values, dtype=np.float64)
+        if name not in LOAD_SHAPES:
+            problems.append(Problem((name,), f"not a load; loads are {list(LOAD_SHAPES)}", "loads"))
+        elif values.shape != (n_designs, *LOAD_SHAPES[name]):
+            problems.append(Problem((name,), f"must have shape {[n_designs, *LOAD_SHAPES[name]]} (a row per design), "
+                                             f"got {list(values.shape)}", "shape"))
+        else:
+            arrays[name] = values
+    nan3, zero3 = np.full((n_designs, 3), np.nan), np.zeros((n_designs, 3))
+    return ExternalLoads(gravity=arrays.get("gravity", nan3), density=arrays.get("density", np.full(n_designs, np.nan)),
+                         tip_force=arrays.get("tip_force", zero3), tip_moment=arrays.get("tip_moment", zero3))
 
 
 @dataclass(frozen=True)
@@ -384,37 +418,56 @@ class InverseProblem:
 
 
 def validate_inverse(body: bytes | str | dict) -> InverseProblem:
-    """A JSON ``InverseRequest``: structure (pydantic; the design has no load fields), then the
-    design's values through the same checks as every design, 4 tendons for an operator, and
-    non-zero directions.
-    Raises :class:`InvalidRequest`."""
+    """A JSON ``InverseRequest``: structure (pydantic; the design has no load fields), then
+    :func:`check_inverse`.  Raises :class:`InvalidRequest`."""
     try:
         request = (InverseRequest.model_validate(body) if isinstance(body, dict)
                    else InverseRequest.model_validate_json(body))
     except ValidationError as exc:
         raise InvalidRequest(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"])
                              for e in exc.errors(include_input=False, include_url=False)) from None
-    group = _group_from_json([request.design], np.zeros(1, dtype=int))
-    problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(group.designs.features(),
-                                                                                         group.rows)]
-    if request.model != EXACT_MODEL and group.designs.n_tendons != N_TENDONS:
+    design = _group_from_json([request.design], np.zeros(1, dtype=int)).designs
+    directions = np.array([np.full(3, np.nan) if t.direction is None else t.direction for t in request.targets],
+                          dtype=np.float64)
+    return check_inverse(design, np.array([t.position for t in request.targets], dtype=np.float64), directions,
+                         tension_max=request.tension_max, model=request.model, polish=request.polish,
+                         tolerance=request.tolerance)
+
+
+#: The defaults of an inverse request (``tdcr.schemas.InverseRequest``).
+INVERSE_DEFAULTS = {name: InverseRequest.model_fields[name].default for name in ("tension_max", "tolerance")}
+
+
+def check_inverse(design: DesignBatch, positions: np.ndarray, directions: np.ndarray, *, tension_max: float,
+                  model: str = EXACT_MODEL, polish: bool = False,
+                  tolerance: float = INVERSE_DEFAULTS["tolerance"]) -> InverseProblem:
+    """The value checks of every inverse request (JSON or tensors): the design's values through the
+    same checks as every design, 4 tendons for an operator, ``positions`` ``(T, 3)`` m finite,
+    ``directions`` ``(T, 3)`` (NaN rows: none) finite and non-zero, ``tension_max`` in (0, 1000] N.
+    Raises :class:`InvalidRequest`."""
+    problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(design.features())]
+    if model != EXACT_MODEL and design.n_tendons != N_TENDONS:
         problems.append(Problem(("design", "tendons"), f"the operators take {N_TENDONS} tendons, got "
-                                                       f"{group.designs.n_tendons}", "tendon_count"))
-    positions = np.array([t.position for t in request.targets], dtype=np.float64)
-    directions = np.full_like(positions, np.nan)
-    for k, target in enumerate(request.targets):
+                                                       f"{design.n_tendons}", "tendon_count"))
+    high = TABLE_I["tension"].admissible[1]
+    if not 0.0 < tension_max <= high:
+        problems.append(Problem(("tension_max",), f"must be in (0, {high:g}] N, got {tension_max:.6g}", "out_of_range"))
+    if not 1 <= len(positions) <= MAX_TARGETS:
+        problems.append(Problem(("targets",), f"must hold 1 to {MAX_TARGETS} targets, got {len(positions)}",
+                                "targets"))
+    directions = np.array(directions, dtype=np.float64)
+    for k in range(len(positions)):
         if not np.isfinite(positions[k]).all():
             problems.append(Problem(("targets", k, "position"), "must be finite numbers", "finite_number"))
-        if target.direction is not None:
-            d = np.asarray(target.direction, dtype=np.float64)
-            if not np.isfinite(d).all() or not np.abs(d).max() > 0.0:
-                problems.append(Problem(("targets", k, "direction"), "must be a finite, non-zero vector",
-                                        "direction"))
-            else:
-                d = d / np.abs(d).max()  # scaled first: no overflow or underflow in the norm
-                directions[k] = d / np.linalg.norm(d)
+        d = directions[k]
+        if np.isnan(d).all():
+            continue
+        if not np.isfinite(d).all() or not np.abs(d).max() > 0.0:
+            problems.append(Problem(("targets", k, "direction"), "must be a finite, non-zero vector", "direction"))
+        else:
+            d = d / np.abs(d).max()  # scaled first: no overflow or underflow in the norm
+            directions[k] = d / np.linalg.norm(d)
     if problems:
         raise InvalidRequest(problems)
-    return InverseProblem(design=group.designs, positions=positions, directions=directions,
-                          tension_max=request.tension_max, model=request.model, polish=request.polish,
-                          tolerance=request.tolerance)
+    return InverseProblem(design=design, positions=positions, directions=directions, tension_max=float(tension_max),
+                          model=model, polish=polish, tolerance=float(tolerance))

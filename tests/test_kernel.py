@@ -1,29 +1,24 @@
-"""The compiled tendon-only kernel (numba) against the vectorised path (the same method and step
-control), per-design step control against a 16x finer solve, status codes, threads, and the
-fallback without numba."""
+"""The compiled kernels (numba) against the vectorised numpy path that computes Jacobians (the same
+method and step control), per-design step control against a 20x finer solve, status codes,
+threads, every output written, and the several-equilibria test."""
 
 from __future__ import annotations
-
-import json
-import os
-import subprocess
-import sys
-from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from tdcr import sample_designs
 from tdcr.metrics import relative_l2
-from tdcr.physics import SolverOptions, solve
-from tdcr.physics.cosserat import STATUS
+from tdcr.physics import SolverOptions, Status, cosserat, solve
 
-pytest.importorskip("numba")
-
-NUMPY = SolverOptions(kernel="numpy")
 SIGMA = np.linspace(0.0, 1.0, 42)
 #: the kernel and the vectorised path differ only in Newton's starting points and summation order
 SAME_METHOD_RTOL = 1e-10
+
+
+def vectorised(designs, fractions, **kwargs):
+    """The vectorised numpy path: the one that also computes the tension Jacobian."""
+    return solve(designs, fractions, jacobian=True, **kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +30,7 @@ def designs():
                                    np.concatenate([np.linspace(0, 0.2, 30), np.linspace(0.25, 1, 4)])],
                          ids=["42-points", "unsorted-duplicates", "tip", "non-uniform"])
 def test_kernel_equals_the_vectorised_path(designs, sigma):
-    fast, slow = solve(designs, sigma), solve(designs, sigma, options=NUMPY)
+    fast, slow = solve(designs, sigma), vectorised(designs, sigma)
     assert fast.status is not None and fast.error_estimate is not None
     np.testing.assert_array_equal(fast.status, slow.status)
     np.testing.assert_array_equal(fast.steps, slow.steps)
@@ -50,7 +45,7 @@ def test_kernel_equals_the_vectorised_path(designs, sigma):
 def test_step_control_meets_1e_6_on_every_design_and_estimates_its_error(designs):
     """Against the same method at a 20x finer fixed step (its own error is ~1e-5 of ours)."""
     sol = solve(designs, SIGMA)
-    fine = solve(designs, SIGMA, options=replace(NUMPY, max_step=1 / 820, max_level=0, step_tol=np.inf))
+    fine = solve(designs, SIGMA, options=SolverOptions(max_step=1 / 820, max_level=0, step_tol=np.inf))
     error = relative_l2(sol.tendons, fine.tendons)
     assert sol.converged.all() and error.max() <= 1e-6
     assert (sol.error_estimate <= SolverOptions().step_tol).all()
@@ -71,8 +66,8 @@ def test_the_vectorised_path_continues_along_s_where_newton_fails_from_the_base_
     (60 iterations, `newton_failed`) on the vectorised path, which the kernel's continuation in s
     solves in 4; the vectorised path now retries such designs by continuation in s."""
     design = sample_designs(100_000, seed=0).take(slice(48_464, 48_465))
-    fast, slow = solve(design, SIGMA), solve(design, SIGMA, options=NUMPY)
-    assert STATUS[fast.status[0]] == STATUS[slow.status[0]] == "converged"
+    fast, slow = solve(design, SIGMA), vectorised(design, SIGMA)
+    assert fast.status[0] == slow.status[0] == Status.CONVERGED
     np.testing.assert_array_equal(slow.steps, fast.steps)
     assert relative_l2(slow.tendons, fast.tendons)[0] < SAME_METHOD_RTOL
 
@@ -80,9 +75,9 @@ def test_the_vectorised_path_continues_along_s_where_newton_fails_from_the_base_
 def test_a_status_per_design():
     d = sample_designs(6, seed=4)
     sol = solve(d, SIGMA, options=SolverOptions(max_newton=1))
-    assert (sol.status == STATUS.index("newton_failed")).all() and not sol.converged.any()
+    assert (sol.status == Status.NEWTON_FAILED).all() and not sol.converged.any()
     sol = solve(d, SIGMA, options=SolverOptions(max_level=0, step_tol=1e-15))
-    assert (sol.status == STATUS.index("step_tol_not_met")).all() and not sol.converged.any()
+    assert (sol.status == Status.STEP_TOL_NOT_MET).all() and not sol.converged.any()
     assert np.isfinite(sol.tendons).all()  # the shape is still returned, flagged
     sol = solve(d, SIGMA)
     assert (sol.status == 0).all() and sol.converged.all() and (sol.residual < 1e-8).all()
@@ -94,22 +89,36 @@ def test_threads_give_the_same_bits(designs):
     np.testing.assert_array_equal(one.error_estimate, two.error_estimate)
 
 
-def test_without_numba_the_fallback_gives_the_same_results(designs, tmp_path):
-    """TDCR_KERNEL=numpy stands for a machine without numba: the vectorised path answers."""
-    script = (
-        "import json, sys, numpy as np\n"
-        "from tdcr import sample_designs\nfrom tdcr.physics import solve\nfrom tdcr.physics import _compiled\n"
-        "assert _compiled.kernel is None\n"
-        "sol = solve(sample_designs(300, seed=1), np.linspace(0, 1, 42))\n"
-        f"np.save({str(tmp_path / 't.npy')!r}, sol.tendons)\n"
-        "print(json.dumps({'status': sol.status.tolist(), 'steps': sol.steps.tolist()}))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", script], env={**os.environ, "TDCR_KERNEL": "numpy"},
-                         capture_output=True, text=True, check=True)
-    fallback = json.loads(out.stdout)
-    compiled = solve(designs, SIGMA)
-    assert fallback["status"] == compiled.status.tolist() and fallback["steps"] == compiled.steps.tolist()
-    assert relative_l2(np.load(tmp_path / "t.npy"), compiled.tendons).max() < SAME_METHOD_RTOL
+@pytest.mark.parametrize("loaded", [False, True], ids=["tendon-loads", "external-loads"])
+def test_every_output_of_the_kernels_is_written(loaded):
+    """The kernels write into preallocated arrays: each is filled with a sentinel first, and none
+    may be left (numba's parallel loops can drop item assignments, tdcr/physics/_kernel.py:_store)."""
+    d, fractions, opts = sample_designs(7, seed=2), np.linspace(0.0, 1.0, 9), SolverOptions()
+    mat = cosserat.material(d)
+    edges0, _, _ = cosserat._step_grid(np.append(fractions, 1.0) if loaded else fractions,
+                                       opts.max_step_loads if loaded else opts.max_step)
+    kernel, rods, grid, tols, out = cosserat._kernel_inputs(d, mat, edges0, fractions, opts, loaded=loaded)
+    for array in out:
+        array[...] = -7
+    if loaded:
+        f_g = np.tile([0.0, 0.0, -9.81 * 7800.0], (7, 1)) * mat.area[:, None]
+        kernel.solve_loaded_batch(rods, kernel.Loads(f_g=f_g, f_tip=np.zeros((7, 3)), m_tip=np.zeros((7, 3))),
+                                  grid, tols, out)
+    else:
+        kernel.solve_batch(rods, grid, tols, out)
+    for name, array in zip(out._fields, out, strict=True):
+        assert not (array == -7).any(), f"{name} was not written"
+    assert (out.status == Status.CONVERGED).all() and (out.iterations > 0).all() and (out.level >= 0).all()
+
+
+def test_several_equilibria_is_a_real_eigenvalue_at_or_below_zero():
+    rotation = np.array([[0.0, -2.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # eigenvalues +-2i and 1
+    jacobians = np.stack([np.eye(3), np.diag([-1.0, 1.0, 1.0]), np.diag([-1.0, -1.0, 1.0]), -rotation @ rotation,
+                          rotation, np.full((3, 3), np.nan)])
+    # identity; one crossing (det < 0); two (det > 0, which a determinant test misses); -R^2 has the
+    # real eigenvalue -1; R only a complex pair with real part 0 (no real eigenvalue <= 0) and 1;
+    # not finite
+    assert cosserat.several_equilibria(jacobians).tolist() == [False, True, True, True, False, True]
 
 
 # --------------------------------------------------------------------------- external loads
@@ -149,17 +158,6 @@ def test_loaded_kernel_meets_1e_6_against_its_own_10x_finer_solve():
     np.testing.assert_allclose(np.linalg.det(sol.rotation), 1.0, atol=1e-10)
 
 
-def test_loaded_kernel_solves_the_vectorised_paths_discrete_problem():
-    """Same RK4 grid, no step control: the kernel (variational shooting Jacobian) and the vectorised
-    path (finite differences, load continuation) converge to the same discrete equilibrium."""
-    d, loads = sample_designs(40, seed=8), loaded_space(40, 9)
-    fixed = SolverOptions(max_step_loads=1 / 100, max_level=0, step_tol=np.inf)
-    fast = solve(d, SIGMA, loads=loads, options=fixed)
-    slow = solve(d, SIGMA, loads=loads, options=replace(fixed, kernel="numpy"))
-    assert fast.converged.all() and slow.converged.all()
-    assert relative_l2(fast.tendons, slow.tendons).max() < 1e-8
-
-
 def test_the_slender_bent_designs_the_old_fixed_step_got_wrong():
     """r = 0.5 mm, L = 0.31-0.35 m, 5 N on one tendon, horizontal gravity: the old fixed step L/100
     is off by ~1e-5 here; the controlled step is within 1e-6 and says so."""
@@ -181,18 +179,6 @@ def test_euler_buckling_is_flagged_as_several_equilibria():
                     tension=[[0.0] * 4] * 2)
     loads = ExternalLoads(tip_force=np.array([[0, 0, -0.5 * critical], [0, 0, -1.5 * critical]]))
     sol = solve(d, SIGMA, loads=loads)
-    assert sol.status.tolist() == [0, STATUS.index("multiple_equilibria")]
+    assert sol.status.tolist() == [Status.CONVERGED, Status.MULTIPLE_EQUILIBRIA]
     assert sol.converged.tolist() == [True, False]
     np.testing.assert_allclose(sol.backbone[:, -1, :2], 0.0, atol=1e-12)  # the straight shape, flagged
-
-
-def test_the_numpy_loaded_path_has_the_same_step_control():
-    """The fallback for loads: the same grids and refinements as the kernel.  Its estimates agree
-    to ~10 %, not to round-off: it projects R onto SO(3) after every RK4 step, the kernel only at
-    the outputs (two discretisations that differ at O(h^5))."""
-    d, loads = slender_bent(6, seed=9)
-    fast, slow = solve(d, SIGMA, loads=loads), solve(d, SIGMA, loads=loads, options=NUMPY)
-    assert fast.converged.all() and slow.converged.all() and (fast.steps > 123).any()
-    np.testing.assert_array_equal(fast.steps, slow.steps)
-    np.testing.assert_allclose(fast.error_estimate, slow.error_estimate, rtol=0.2)
-    assert relative_l2(fast.tendons, slow.tendons).max() < 1e-8

@@ -19,10 +19,9 @@ def healthz() -> dict:
 @router.get("/readyz", summary="Readiness: every model loaded, checksum verified and warmed up",
             responses={503: {"description": "not ready"}})
 def readyz(state: State):
-    ready = state.ready and state.pool_healthy
-    problems = state.problems + ([] if state.pool_healthy else ["solver pool: a worker is being replaced"])
-    body = {"ready": ready, "models": sorted(state.models), "default_model": state.default_model,
-            "problems": problems}
+    ready = state.plane.server_ready()
+    body = {"ready": ready, "models": state.surrogates, "default_model": state.default_model,
+            "problems": state.problems + state.plane.problems()}
     return JSONResponse(body, status_code=200 if ready else 503)
 
 

@@ -11,5 +11,5 @@ router = APIRouter(tags=["models"])
 
 @router.get("/models", summary="The model manifest")
 def models(state: State) -> dict:
-    return {"default_model": state.default_model, "loaded": sorted(state.models),
+    return {"default_model": state.default_model, "loaded": state.surrogates,
             "models": state.manifest.get("models", {})}

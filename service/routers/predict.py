@@ -1,42 +1,32 @@
 """POST /predict: surrogate shapes for a batch of designs (JSON, or .npy in and .npz out).
 
-Thin: the data plane (service/dataplane.py) prepares, runs and encodes, off the event loop.
+A thin codec: the body is read and validated off the event loop (it names the model), then the
+data plane runs it on that surrogate (or the default) and :class:`service.codecs.PredictCodec`
+encodes the answer.
 """
 
 from __future__ import annotations
 
-import time
-
 from fastapi import APIRouter, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from service.dataplane import NPY, NPZ, QUERY_FIELDS, DataPlane, ModelNotFound
-from service.deps import Plane, State
-from service.errors import ApiError, from_invalid, require_json
+from service.codecs import PredictCodec
+from service.deps import State
+from service.errors import from_inference, from_invalid, require_json
 from service.metrics import HTTP
+from service.model import InferenceError, InferenceRequest
+from tdcr.engine import NPY, NPZ, QUERY_FIELDS, prepare_json, prepare_npy
 from tdcr.schemas import ErrorResponse, PredictResponse
-from tdcr.validation import InvalidRequest
+from tdcr.validation import InvalidRequest, Limits, ShapeRequest
 
 router = APIRouter(tags=["predict"])
 
 
-def _answer(plane: DataPlane, body: bytes, content_type: str, accept: str, params: dict[str, list[str]]):
-    """prepare -> run -> encode (blocking); ``(response, model, designs)``."""
-    binary = content_type.startswith(NPY)
-    if not binary:
-        require_json(content_type)
+def _prepare(body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits) -> ShapeRequest:
     try:
-        request = plane.prepare_npy(body, params) if binary else plane.prepare_json(body)
-        prediction = plane.run(request)
+        return prepare_npy(body, params, limits=limits) if binary else prepare_json(body, limits=limits)
     except InvalidRequest as exc:
         raise from_invalid(exc, query=QUERY_FIELDS if binary else ()) from None
-    except ModelNotFound as exc:
-        raise ApiError(404, str(exc), kind="not_found") from None
-    if NPZ in accept:
-        response = Response(plane.encode_npz(prediction), media_type=NPZ, headers={"X-TDCR-Model": prediction.model})
-    else:
-        response = Response(plane.encode_json(prediction), media_type="application/json")
-    return response, prediction.model, prediction.n_designs
 
 
 @router.post(
@@ -59,13 +49,20 @@ def _answer(plane: DataPlane, body: bytes, content_type: str, accept: str, param
         NPY: {"schema": {"type": "string", "format": "binary"}},
     }}},
 )
-async def predict(request: Request, state: State, plane: Plane) -> Response:
+async def predict(request: Request, state: State) -> Response:
+    content_type = request.headers.get("content-type", "")
+    binary = content_type.startswith(NPY)
+    if not binary:
+        require_json(content_type)
     body = await request.body()
     params = {k: request.query_params.getlist(k) for k in request.query_params}
-    started = time.perf_counter()
-    response, name, n = await run_in_threadpool(
-        _answer, plane, body, request.headers.get("content-type", ""),
-        request.headers.get("accept", ""), params)
-    state.metrics.latency.labels(HTTP, "/predict", name).observe(time.perf_counter() - started)
-    state.metrics.designs.labels(HTTP, "/predict", name).inc(n)
-    return response
+    shapes = await run_in_threadpool(_prepare, body, binary, params, state.settings.predict_limits())
+    npz = NPZ in request.headers.get("accept", "")
+    try:
+        answer = await state.plane.infer(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)),
+                                         kind="surrogate", protocol=HTTP, endpoint="/predict")
+    except InferenceError as exc:
+        raise from_inference(exc, query=QUERY_FIELDS if binary else ()) from None
+    if npz:
+        return Response(answer.body, media_type=NPZ, headers={"X-TDCR-Model": shapes.model or state.default_model})
+    return Response(answer.body, media_type="application/json")

@@ -1,5 +1,4 @@
-"""The compiled solver kernels: numba when it is installed, else ``None`` (the solver then uses its
-vectorised numpy path, which implements the same method and step control; tested equal).
+"""The compiled solver kernels (numba): the only importer of :mod:`tdcr.physics._kernel`.
 
 numba's on-disk cache must be writable even to be read.  Where ``NUMBA_CACHE_DIR`` is not (the
 read-only image, whose kernels were compiled at build time), it is copied once to the temporary
@@ -28,10 +27,5 @@ def _writable_numba_cache() -> None:
     os.environ["NUMBA_CACHE_DIR"] = target
 
 
-try:  # numba is a dependency; this guard is the documented fallback for platforms without it
-    if os.environ.get("TDCR_KERNEL", "numba") == "numpy":
-        raise ImportError("TDCR_KERNEL=numpy")
-    _writable_numba_cache()
-    from tdcr.physics import _kernel as kernel
-except ImportError:
-    kernel = None
+_writable_numba_cache()
+from tdcr.physics import _kernel as kernel  # noqa: E402, F401 - after the cache directory is usable

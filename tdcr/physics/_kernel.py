@@ -1,10 +1,11 @@
-"""The compiled tendon-only kernel (numba): the solver's method, one design per thread.
+"""The compiled solver kernels (numba), one design per thread: tendon loads (:func:`solve_batch`)
+and external loads (:func:`solve_loaded_batch`).
 
-Same method as the vectorised path in :mod:`tdcr.physics.cosserat` (whose docstring gives the
-equations): at every node, Newton with an Armijo line search on Phi (eq. PHI) for the strains
-x = (nu, kappa) solving (W1, W2); then the 4th-order Magnus integrator (eq. MAG) on SE(3).
-Differences are in the order of work only: nodes are solved in order of s, each Newton starting
-from the strains of the node before (fewer iterations), and the step is chosen per design:
+The method (:mod:`tdcr.physics.cosserat`'s docstring gives the equations): at every node, Newton
+with an Armijo line search on Phi (eq. PHI) for the strains x = (nu, kappa) solving (W1, W2); under
+tendon loads the 4th-order Magnus integrator (eq. MAG) on SE(3), under external loads shooting on
+M(0) with RK4 (eq. MT).  Nodes are solved in order of s, each Newton starting from the strains of
+the nodes before, and the step is chosen per design:
 
 * level 0 integrates on the caller's step grid (``edges``, outputs at ``out_step``), level m on
   that grid with every step split into 2^m;
@@ -17,21 +18,88 @@ from the strains of the node before (fewer iterations), and the step is chosen p
 Floating-point errors follow IEEE (``error_model='numpy'``): a division by zero gives inf or NaN,
 which the status flags, as in the vectorised path; it never raises.
 
-Import this module only through :mod:`tdcr.physics._compiled`, which falls back to the
-vectorised path when numba is not installed.
+Arguments come grouped as named tuples (:class:`Rods`, :class:`Grid`, :class:`Tolerances`,
+:class:`Shapes`, :class:`Loads`), built by :mod:`tdcr.physics.cosserat` and read by field name.
+Import this module only through :mod:`tdcr.physics._compiled` (numba's cache directory).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
 
+from tdcr.physics.status import Status
+
 #: the right-hand side of (W1, W2) without external loads
 _NO_TARGET = np.zeros(6)
-#: status codes per design (``tdcr.physics.cosserat.STATUS``)
-OK, NEWTON_FAILED, NOT_FINITE, STEP_TOL_NOT_MET = 0, 1, 2, 3
+#: status codes per design (:class:`tdcr.physics.status.Status`), as numba's compile-time integers
+OK, NEWTON_FAILED, NOT_FINITE = int(Status.CONVERGED), int(Status.NEWTON_FAILED), int(Status.NOT_FINITE)
+STEP_TOL_NOT_MET, SHOOTING_FAILED = int(Status.STEP_TOL_NOT_MET), int(Status.SHOOTING_FAILED)
+
+
+class Rods(NamedTuple):
+    """The designs of a batch, batch first: stiffness diagonals ``kse`` K_se (B, 3) N and ``kbt``
+    K_bt (B, 3) N m^2 (:func:`tdcr.physics.cosserat.material`), ``radius`` (B,) m, ``length``
+    (B,) m, tendon ``offset`` (B, N_t) m, ``pitch`` (B, N_t) rad/m and ``tension`` (B, N_t) N."""
+
+    kse: np.ndarray
+    kbt: np.ndarray
+    radius: np.ndarray
+    length: np.ndarray
+    offset: np.ndarray
+    pitch: np.ndarray
+    tension: np.ndarray
+
+
+class Grid(NamedTuple):
+    """The base step grid: ``edges`` (K+1,) fractions of L, the outputs at edges ``out_step`` (n,)
+    and the output fractions ``fractions`` (n,)."""
+
+    edges: np.ndarray
+    out_step: np.ndarray
+    fractions: np.ndarray
+
+
+class Tolerances(NamedTuple):
+    """Newton's ``newton_tol`` and ``max_newton``, the step control's ``step_tol`` and
+    ``max_level``, the shooting's ``shooting_tol`` and ``max_shooting`` (``SolverOptions``)."""
+
+    newton_tol: float
+    max_newton: int
+    step_tol: float
+    max_level: int
+    shooting_tol: float
+    max_shooting: int
+
+
+class Loads(NamedTuple):
+    """External loads, base frame, (B, 3) each: weight per length ``f_g`` N/m, ``f_tip`` N, ``m_tip`` N m."""
+
+    f_g: np.ndarray
+    f_tip: np.ndarray
+    m_tip: np.ndarray
+
+
+class Shapes(NamedTuple):
+    """The outputs, written in place: ``backbone`` (B, n, 3), ``rotation`` (B, n, 3, 3), ``strains``
+    (B, n, 6), ``tendons`` (B, n, N_t, 3); per design ``status``, ``residual`` N, ``iterations``
+    (Newton iterations, or shooting passes), ``level`` (halvings) and ``estimate``; loaded only,
+    ``m0`` (B, 3) M(0) and ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise)."""
+
+    backbone: np.ndarray
+    rotation: np.ndarray
+    strains: np.ndarray
+    tendons: np.ndarray
+    status: np.ndarray
+    residual: np.ndarray
+    iterations: np.ndarray
+    level: np.ndarray
+    estimate: np.ndarray
+    m0: np.ndarray
+    shoot_jac: np.ndarray
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -404,16 +472,13 @@ def _all_finite(residual, tendons):
 
 
 @njit(cache=True, error_model="numpy")
-def solve_design(E, r, length, offset, pitch, tau, edges0, out_step0, sigma_out, tol, max_iter, step_tol,
-                 max_level, pos_out, rot_out, x_out, tendons_out):
-    """One design (SI units; ``offset``, ``pitch``, ``tau`` (N_t,)).  Writes backbone (n, 3), frames
-    (n, 3, 3), strains (n, 6) and tendon positions (n, N_t, 3) at the outputs; returns
-    ``(status, residual N, Newton iterations, level, error estimate)``."""
-    g = E / (2.0 * 1.3)
-    area = math.pi * r * r
-    inertia = math.pi * r ** 4 / 4.0
-    kse = np.array([g * area, g * area, E * area])
-    kbt = np.array([E * inertia, E * inertia, g * 2.0 * inertia])
+def solve_design(kse, kbt, r, length, offset, pitch, tau, grid, tols, pos_out, rot_out, x_out, tendons_out):
+    """One design (SI units; ``kse``, ``kbt`` (3,), ``offset``, ``pitch``, ``tau`` (N_t,)) on the base
+    :class:`Grid` ``grid`` with :class:`Tolerances` ``tols``.  Writes backbone (n, 3), frames (n, 3, 3),
+    strains (n, 6) and tendon positions (n, N_t, 3) at the outputs; returns ``(status, residual N,
+    Newton iterations, level, error estimate)``."""
+    edges0, out_step0, sigma_out = grid.edges, grid.out_step, grid.fractions
+    tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
     n_out = sigma_out.shape[0]
     n_t = offset.shape[0]
     k0 = edges0.shape[0] - 1
@@ -548,15 +613,26 @@ def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, ra
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def solve_batch(features_e, features_r, features_l, offsets, pitches, tensions, edges0, out_step0, sigma_out,
-                tol, max_iter, step_tol, max_level, backbone, rotation, strains, tendons,
-                status, residual, iterations, level, estimate):
-    """:func:`solve_design` for every design of a batch, over numba's threads."""
-    for b in prange(features_e.shape[0]):
-        st, res, it, lev, est = solve_design(features_e[b], features_r[b], features_l[b], offsets[b], pitches[b],
-                                             tensions[b], edges0, out_step0, sigma_out, tol, max_iter, step_tol,
-                                             max_level, backbone[b], rotation[b], strains[b], tendons[b])
-        status[b], residual[b], iterations[b], level[b], estimate[b] = st, res, it, lev, est
+def solve_batch(rods, grid, tols, out):
+    """:func:`solve_design` for every design of :class:`Rods` ``rods``, over numba's threads, into
+    the :class:`Shapes` ``out``."""
+    for b in prange(rods.length.shape[0]):
+        res = solve_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
+                           rods.tension[b], grid, tols, out.backbone[b], out.rotation[b], out.strains[b],
+                           out.tendons[b])
+        _store(out.status, b, res[0])
+        _store(out.residual, b, res[1])
+        _store(out.iterations, b, res[2])
+        _store(out.level, b, res[3])
+        _store(out.estimate, b, res[4])
+
+
+@njit(cache=True, error_model="numpy")
+def _store(array, index, value):
+    """``array[index] = value``.  Inside a parallel loop numba 0.68 drops a plain item assignment
+    to an array that is a field of a tuple argument (views passed to a function are written); this
+    call is written (tests/test_kernel.py checks every output)."""
+    array[index] = value
 
 
 # --------------------------------------------------------------------------- external loads
@@ -568,10 +644,6 @@ def solve_batch(features_e, features_r, features_l, offsets, pitches, tensions, 
 # (the exact derivative of the discrete map):
 #   d target = (dR^T N, dR^T M + R^T dM),  dx = J^-1 d target  (J: the Hessian of Phi at the stage),
 #   dp' = dR nu + R dnu,  dR' = dR hat(kappa) + R hat(dkappa),  dM' = -dp' x N.
-
-#: loaded-solver status codes beyond the tendon-only ones
-SHOOTING_FAILED, MULTIPLE_EQUILIBRIA = 5, 6
-
 
 @njit(cache=True, error_model="numpy")
 def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, tau, kse, kbt, radius, f_tip, f_g,
@@ -791,18 +863,16 @@ def _masked_richardson(fine, coarse, out_step):
 
 
 @njit(cache=True, error_model="numpy")
-def solve_loaded_design(E, r, length, offset, pitch, tau, f_g, f_tip, m_tip, edges0, out_step0,
-                        sigma_out, tol, max_iter, shoot_tol, max_shoot, step_tol, max_level,
+def solve_loaded_design(kse, kbt, r, length, offset, pitch, tau, f_g, f_tip, m_tip, grid, tols,
                         pos_out, rot_out, x_out, tendons_out, shoot_jac):
     """One design under its distributed weight ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N),
-    ``m_tip`` (N m).  ``edges0`` must end at 1 (the tip condition).  ``shoot_jac`` (3, 3) receives
-    the shooting Jacobian dM(L)/dM(0) at the result (the identity for the unloaded rod).
+    ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges must end at 1: the tip condition).
+    ``shoot_jac`` (3, 3) receives the shooting Jacobian dM(L)/dM(0) at the result (the identity for
+    the unloaded rod; the caller judges several equilibria from it).
     Returns (status, residual N, shooting passes, level, error estimate, M(0) x 3)."""
-    g = E / (2.0 * 1.3)
-    area = math.pi * r * r
-    inertia = math.pi * r ** 4 / 4.0
-    kse = np.array([g * area, g * area, E * area])
-    kbt = np.array([E * inertia, E * inertia, g * 2.0 * inertia])
+    edges0, out_step0, sigma_out = grid.edges, grid.out_step, grid.fractions
+    tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
+    shoot_tol, max_shoot = tols.shooting_tol, tols.max_shooting
     scale = 0.0
     for i in range(offset.shape[0]):
         scale += tau[i] * offset[i]
@@ -897,8 +967,6 @@ def solve_loaded_design(E, r, length, offset, pitch, tau, f_g, f_tip, m_tip, edg
         status = SHOOTING_FAILED
     elif not local_ok:
         status = NEWTON_FAILED
-    elif not (det > 0.0):
-        status = MULTIPLE_EQUILIBRIA
     elif not (estimate <= step_tol):
         status = STEP_TOL_NOT_MET
     else:
@@ -907,14 +975,18 @@ def solve_loaded_design(E, r, length, offset, pitch, tau, f_g, f_tip, m_tip, edg
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def solve_loaded_batch(e, r, length, offsets, pitches, tensions, f_g, f_tip, m_tip, edges0, out_step0,
-                       sigma_out, tol, max_iter, shoot_tol, max_shoot, step_tol, max_level, backbone, rotation,
-                       strains, tendons, status, residual, passes, level, estimate, m0, shoot_jac):
-    """:func:`solve_loaded_design` for every design of a batch, over numba's threads."""
-    for b in prange(e.shape[0]):
-        out = solve_loaded_design(e[b], r[b], length[b], offsets[b], pitches[b], tensions[b], f_g[b],
-                                  f_tip[b], m_tip[b], edges0, out_step0, sigma_out, tol, max_iter, shoot_tol,
-                                  max_shoot, step_tol, max_level, backbone[b], rotation[b], strains[b], tendons[b],
-                                  shoot_jac[b])
-        status[b], residual[b], passes[b], level[b], estimate[b] = out[0], out[1], out[2], out[3], out[4]
-        m0[b, 0], m0[b, 1], m0[b, 2] = out[5], out[6], out[7]
+def solve_loaded_batch(rods, loads, grid, tols, out):
+    """:func:`solve_loaded_design` for every design of :class:`Rods` ``rods`` under :class:`Loads`
+    ``loads``, over numba's threads, into the :class:`Shapes` ``out`` (``iterations``: passes)."""
+    for b in prange(rods.length.shape[0]):
+        res = solve_loaded_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b],
+                                  rods.pitch[b], rods.tension[b], loads.f_g[b], loads.f_tip[b], loads.m_tip[b], grid,
+                                  tols, out.backbone[b], out.rotation[b], out.strains[b], out.tendons[b],
+                                  out.shoot_jac[b])
+        _store(out.status, b, res[0])
+        _store(out.residual, b, res[1])
+        _store(out.iterations, b, res[2])
+        _store(out.level, b, res[3])
+        _store(out.estimate, b, res[4])
+        m0 = out.m0[b]
+        m0[0], m0[1], m0[2] = res[5], res[6], res[7]

@@ -3,7 +3,7 @@
 Conventions (identical to ``shared/reference/cosserat_cases.json``): base at the
 origin with R(0) = I and the undeformed backbone along +z; tendon i at body-frame
 angle 2 pi i / N_t + pitch_i s with its own offset; tendons terminate at the tip;
-G = E / (2 (1 + 0.3)), A = pi r^2, I = pi r^4 / 4, J = 2 I,
+G = E / (2 (1 + nu)) with nu = POISSON_RATIO = 0.3, A = pi r^2, I = pi r^4 / 4, J = 2 I,
 K_se = diag(G A, G A, E A), K_bt = diag(E I, E I, G J), undeformed strains
 nu* = e3, kappa* = 0.
 
@@ -27,25 +27,32 @@ strains at the ends and middle of each step feed a fourth-order Magnus integrato
 
 With external loads, M(s) depends on the unknown shape: the solver shoots on
 M(0) (3 unknowns) with RK4 on (p, R, M), M' = -p' x N (eq. MT), the local
-strains again from (W1, W2).  The compiled kernel (:mod:`tdcr.physics._kernel`)
-takes Newton's Jacobian from the variational equations and continues the loads
-only when needed; the numpy path here uses finite differences and load
-continuation from the tendon-only solution.  Both choose the step per design
-from a Richardson estimate (``SolverOptions.step_tol``); only the kernel flags
-several equilibria.
+strains again from (W1, W2), the shooting Jacobian from the variational
+equations, and load continuation only when the direct Newton fails.
+
+Where each runs.  The compiled kernels (:mod:`tdcr.physics._kernel`, numba) are the solver:
+tendon loads and external loads, each with the step chosen per design from a Richardson
+estimate (``SolverOptions.step_tol``).  This module adds what the kernels do not do, on a
+vectorised numpy path of the tendon-only method: the exact Jacobian to the tensions
+(``jacobian=True``: the implicit-function theorem at every node and a tangent carried through the
+Magnus steps), the linearised reference robot (``SolverOptions.linearized``) and the warm-started
+tip solves of inverse kinematics (:class:`TipSolver`).  It shares the kernels' constants
+(:func:`material`), status codes (:class:`tdcr.physics.status.Status`) and post-processing
+(:func:`internal_wrench`); tests/test_kernel.py checks that both give the same shapes.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing
 import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from tdcr.design_space import FRACTION_ROUNDING
 from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.physics._lie import hat, se3_bracket, se3_exp
+from tdcr.physics.status import STATUS, Status
 
 POISSON_RATIO = 0.3
 _E3 = np.array([0.0, 0.0, 1.0])
@@ -64,8 +71,6 @@ class SolverOptions:
         shooting_tol: tip-moment tolerance of the shooting method, as a fraction of a
             reference moment (sum of tension x offset + |M_tip| + |F_tip| L + |f_g| L^2).
         max_shooting: shooting iterations per load step.
-        load_steps: load-continuation steps for external loads (numpy path; the kernel tries the
-            full load first, then 4, then 16 steps).
         residual_tol: a design whose wrench residual (N) exceeds this times its load
             scale is reported as not converged.
         step_tol: per-design step control: the largest accepted estimate of the
@@ -73,8 +78,6 @@ class SolverOptions:
             (Richardson, see :func:`solve`); a design whose estimate stays above it after
             ``max_level`` halvings of the step is flagged (status ``step_tol_not_met``).
         max_level: how many times the step may be halved per design.
-        kernel: ``'auto'`` (the compiled numba kernel where numba is installed) or ``'numpy'``
-            (the vectorised path: the same method and step control; results equal to round-off).
         linearized: replace the local Newton solve by the first-order strains (the roots of
             (W1, W2) with the tendon tangents of the undeformed rod; the neural operators'
             reference robot).  Tendon loads only; ``converged`` then only flags non-finite
@@ -87,11 +90,9 @@ class SolverOptions:
     max_newton: int = 60
     shooting_tol: float = 1e-11
     max_shooting: int = 20
-    load_steps: int = 4
     residual_tol: float = 1e-8
     step_tol: float = 3e-7
     max_level: int = 4
-    kernel: str = "auto"
     linearized: bool = False
 
 
@@ -109,11 +110,12 @@ class RodSolution:
         converged: per-design success flag, ``(B,)``.
         residual: per-design wrench-balance residual, N (moments divided by L), ``(B,)``.
         iterations: per-design Newton (tendon-only) or shooting iterations, ``(B,)``.
-        status: per-design outcome, an index into :data:`STATUS` ``(B,)``: 0 converged, 1 Newton
-            failed, 2 not finite, 3 step tolerance not met, 4 residual above tolerance, 5 shooting
-            failed (loads), 6 several equilibria (loads: the shooting Jacobian dM(L)/dM(0), the
-            identity without loads, has a real eigenvalue <= 0 at the result, so one crossed zero
-            as the loads grew: a fold or a bifurcation, e.g. Euler buckling).
+        status: per-design outcome ``(B,)``, a :class:`tdcr.physics.status.Status` code (names in
+            :data:`STATUS`): 0 converged, 1 Newton failed, 2 not finite, 3 step tolerance not met,
+            4 residual above tolerance, 5 shooting failed (loads), 6 several equilibria (loads:
+            the shooting Jacobian dM(L)/dM(0), the identity without loads, has a real eigenvalue
+            <= 0 at the result, so one crossed zero as the loads grew: a fold or a bifurcation,
+            e.g. Euler buckling).
         error_estimate: per-design estimate of the relative l2 error of the tendon positions due
             to the integration step, ``(B,)`` (NaN where not estimated: linearized, tip solves).
         steps: integration steps per design along [0, L], ``(B,)``.
@@ -137,9 +139,8 @@ class RodSolution:
     steps: np.ndarray | None = None
 
 
-#: Names of ``RodSolution.status`` codes (the compiled kernel uses the same codes).
-STATUS = ("converged", "newton_failed", "not_finite", "step_tol_not_met", "residual_too_large", "shooting_failed",
-          "multiple_equilibria")
+__all__ = ["POISSON_RATIO", "STATUS", "RodSolution", "SolverOptions", "Status", "TipSolver", "body_strains",
+           "internal_wrench", "material", "solve", "tendon_routing"]
 
 
 @dataclass(frozen=True)
@@ -150,13 +151,22 @@ class _Material:
 
 
 def material(designs: DesignBatch) -> _Material:
-    """Stiffnesses K_se (N) and K_bt (N m^2) as diagonals, ``(B, 3)`` each."""
+    """Stiffnesses K_se (N) and K_bt (N m^2) as diagonals, ``(B, 3)`` each: the one place of the
+    material law, G = E / (2 (1 + POISSON_RATIO)), for every path (the kernels receive these)."""
     g = designs.E / (2.0 * (1.0 + POISSON_RATIO))
     area = np.pi * designs.r**2
     inertia = np.pi * designs.r**4 / 4.0
     kse = np.stack([g * area, g * area, designs.E * area], axis=-1)
     kbt = np.stack([designs.E * inertia, designs.E * inertia, g * 2.0 * inertia], axis=-1)
     return _Material(kse=kse, kbt=kbt, area=area)
+
+
+def internal_wrench(rotation: np.ndarray, strains: np.ndarray, mat: _Material) -> tuple[np.ndarray, np.ndarray]:
+    """The rod's internal force n = R K_se (nu - e3) (N) and moment m = R K_bt kappa (N m), base
+    frame, ``(B, n, 3)`` each, from frames ``(B, n, 3, 3)`` and body strains ``(B, n, 6)``."""
+    force = np.einsum("bnij,bnj->bni", rotation, mat.kse[:, None, :] * (strains[..., :3] - _E3))
+    moment = np.einsum("bnij,bnj->bni", rotation, mat.kbt[:, None, :] * strains[..., 3:])
+    return force, moment
 
 
 def tendon_routing(
@@ -433,13 +443,9 @@ def _undeformed(p: int) -> np.ndarray:
 # --------------------------------------------------------------------------- public entry
 
 
-#: Fewest designs per process worth a process of :func:`solve` (a spawned worker costs ~1 s).
-MIN_DESIGNS_PER_WORKER = 500
-
-
 def solve(
     designs: DesignBatch,
-    s_fraction: np.ndarray,
+    fractions: np.ndarray,
     *,
     loads: ExternalLoads | None = None,
     options: SolverOptions | None = None,
@@ -450,78 +456,49 @@ def solve(
 
     Args:
         designs: ``B`` designs with ``N_t >= 1`` tendons each.
-        s_fraction: requested arclengths as fractions of L in [0, 1], ``(n,)``, any order.
+        fractions: requested arclengths as fractions of L in [0, 1] (within
+            ``FRACTION_ROUNDING``, clamped), ``(n,)``, any order.
         loads: optional gravity and tip loads; ``None`` means tendon loads only.
         options: numerical settings.
-        workers: cores to use (0: all).  The compiled kernels (tendon loads and external loads)
-            run ``workers`` threads in this process; the numpy paths (Jacobians, the linearized
-            model, ``kernel='numpy'``) split the batch over that many spawned processes, each with
-            at least ``MIN_DESIGNS_PER_WORKER`` designs.  Designs are independent, so the result
-            equals ``workers=1`` (the kernels: bit for bit; processes: to round-off).
+        workers: threads of the compiled kernels (0: one per core).  Designs are independent,
+            so the result equals ``workers=1`` bit for bit.  The numpy path (``jacobian``,
+            ``linearized``) runs on the calling thread.
         jacobian: also the pose's sensitivity to the tensions (``RodSolution.jacobian``), exact
             by the implicit-function theorem at every node and a tangent carried through the
             Magnus steps (no finite differences).  Tendon loads only.
 
     Returns:
-        A :class:`RodSolution`.  A design that fails is flagged in ``converged``;
+        A :class:`RodSolution`.  A design that fails is flagged in ``status`` and ``converged``;
         it never fails the batch.
     """
     opts = options or SolverOptions()
-    threads = workers
-    compiled = not jacobian and not opts.linearized and _compiled_kernel(opts) is not None
-    processes = 1 if compiled else min(workers or os.cpu_count() or 1, designs.n_designs // MIN_DESIGNS_PER_WORKER)
-    if processes > 1:
-        return _solve_in_processes(designs, s_fraction, loads, options, processes, jacobian)
-    sigma_out = np.asarray(s_fraction, dtype=np.float64).reshape(-1)
-    if sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -1e-9 or sigma_out.max() > 1 + 1e-9:
-        raise ValueError("s_fraction must be a non-empty array of fractions in [0, 1]")
+    sigma_out = np.asarray(fractions, dtype=np.float64).reshape(-1)
+    if (sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -FRACTION_ROUNDING
+            or sigma_out.max() > 1 + FRACTION_ROUNDING):
+        raise ValueError("fractions must be a non-empty array of arclength fractions in [0, 1]")
     sigma_out = np.clip(sigma_out, 0.0, 1.0)
-    if opts.linearized and loads is not None and not loads.is_zero():
-        raise ValueError("the linearized model covers tendon loads only")
-    if jacobian and (opts.linearized or loads is not None and not loads.is_zero()):
-        raise ValueError("the Jacobian covers the exact model under tendon loads only")
-    if loads is not None and not loads.is_zero() and _compiled_kernel(opts) is not None:
-        return _solve_loaded_compiled(designs, sigma_out, loads, opts, threads)
-    base = _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian, threads=threads)
-    if loads is None or loads.is_zero():
-        return base
-    return _solve_loads_adaptive(designs, sigma_out, loads, opts, base)
+    loaded = loads is not None and not loads.is_zero()
+    if loaded and (opts.linearized or jacobian):
+        raise ValueError("the linearized model and the Jacobian cover tendon loads only")
+    if loaded:
+        return _solve_loaded_compiled(designs, sigma_out, loads, opts, workers)
+    return _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian, threads=workers)
 
 
-def _solve_in_processes(designs: DesignBatch, s_fraction: np.ndarray, loads: ExternalLoads | None,
-                        options: SolverOptions | None, workers: int, jacobian: bool) -> RodSolution:
-    """:func:`solve` on contiguous chunks of the batch in ``workers`` spawned processes."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    chunks = np.array_split(np.arange(designs.n_designs), workers)
-    jobs = [(designs.take(rows), s_fraction, None if loads is None else loads.take(rows), options, jacobian)
-            for rows in chunks]
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        parts = list(pool.map(_solve_job, jobs))
-    return RodSolution(**{f.name: None if getattr(parts[0], f.name) is None
-                          else np.concatenate([getattr(p, f.name) for p in parts])
-                          for f in dataclasses.fields(RodSolution)})
-
-
-def _solve_job(job) -> RodSolution:
-    designs, s_fraction, loads, options, jacobian = job
-    return solve(designs, s_fraction, loads=loads, options=options, jacobian=jacobian)
-
-
-def body_strains(designs: DesignBatch, s_fraction: np.ndarray, *, options: SolverOptions | None = None
+def body_strains(designs: DesignBatch, fractions: np.ndarray, *, options: SolverOptions | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Equilibrium body strains under tendon loads only: the roots of (W1, W2) at each arclength.
 
     Args:
         designs: ``B`` designs.
-        s_fraction: arclengths as fractions of L, ``(M,)``.
+        fractions: arclengths as fractions of L, ``(M,)``.
         options: numerical settings.
 
     Returns:
         ``(strains (B, M, 6), converged (B,))`` with strains = (nu (1), kappa (rad/m)) in the body frame.
     """
     opts = options or SolverOptions()
-    sigma = np.asarray(s_fraction, dtype=np.float64).reshape(-1)
+    sigma = np.asarray(fractions, dtype=np.float64).reshape(-1)
     b, m = designs.n_designs, sigma.shape[0]
     mat = material(designs)
     x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
@@ -544,20 +521,9 @@ def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: Solver
     if opts.linearized or warm is not None:
         sol, _ = _solve_on_grid(designs, sigma_out, edges0, out0, opts, jacobian=jacobian, warm=warm)
         return _finish_status(sol, np.full(designs.n_designs, np.nan), len(edges0) - 1, opts, estimated=False)
-    if not jacobian and _compiled_kernel(opts) is not None:
-        return _solve_compiled(designs, sigma_out, edges0, out0, opts, threads)
+    if not jacobian:
+        return _solve_compiled(designs, sigma_out, edges0, opts, threads)
     return _solve_adaptive(designs, sigma_out, edges0, out0, opts, jacobian)
-
-
-def _compiled_kernel(opts: SolverOptions):
-    """The numba kernel module, or ``None`` (numba missing, or ``kernel='numpy'``)."""
-    if opts.kernel not in ("auto", "numpy"):
-        raise ValueError(f"kernel must be 'auto' or 'numpy', got {opts.kernel!r}")
-    if opts.kernel == "numpy":
-        return None
-    from tdcr.physics._compiled import kernel
-
-    return kernel
 
 
 def _refine(edges: np.ndarray) -> np.ndarray:
@@ -635,8 +601,9 @@ def _coarse_estimate(designs: DesignBatch, x: np.ndarray, edges: np.ndarray, out
 
 def _solve_adaptive(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndarray, out0: np.ndarray,
                     opts: SolverOptions, jacobian: bool) -> RodSolution:
-    """The vectorised path with the kernel's step control: the base grid with the free estimate,
-    then, for the designs above ``step_tol``, the grid halved (Richardson against the last level)."""
+    """The vectorised path (for the Jacobian) with the kernel's step control: the base grid with the
+    free estimate, then, for the designs above ``step_tol``, the grid halved (Richardson against the
+    last level)."""
     sol, x = _solve_on_grid(designs, sigma_out, edges0, out0, opts, jacobian=jacobian)
     rho_out, _ = tendon_routing(designs, sigma_out, derivative=False)
     estimate = _coarse_estimate(designs, x, edges0, out0, rho_out, sol.tendons)
@@ -659,52 +626,81 @@ def _solve_adaptive(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndar
     return _finish_status(RodSolution(**fields), estimate, steps, opts, estimated=True)
 
 
+def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, sigma_out: np.ndarray,
+                   opts: SolverOptions, *, loaded: bool):
+    """The kernels' grouped arguments (:mod:`tdcr.physics._kernel`'s named tuples): the rods, the
+    base grid, the tolerances and the preallocated outputs."""
+    from tdcr.physics._compiled import kernel
+
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    b, n, n_t = designs.n_designs, sigma_out.shape[0], designs.n_tendons
+    rods = kernel.Rods(kse=f64(mat.kse), kbt=f64(mat.kbt), radius=f64(designs.r), length=f64(designs.L),
+                       offset=f64(designs.offset), pitch=f64(designs.pitch), tension=f64(designs.tension))
+    grid = kernel.Grid(edges=f64(edges0), out_step=np.searchsorted(edges0, sigma_out).astype(np.int64),
+                       fractions=f64(sigma_out))
+    tols = kernel.Tolerances(newton_tol=float(opts.newton_tol), max_newton=int(opts.max_newton),
+                             step_tol=float(opts.step_tol), max_level=int(opts.max_level),
+                             shooting_tol=float(opts.shooting_tol), max_shooting=int(opts.max_shooting))
+    per_design = lambda dtype=np.float64: np.empty(b, dtype=dtype)  # noqa: E731
+    out = kernel.Shapes(backbone=np.empty((b, n, 3)), rotation=np.empty((b, n, 3, 3)), strains=np.empty((b, n, 6)),
+                        tendons=np.empty((b, n, n_t, 3)), status=per_design(np.int64), residual=per_design(),
+                        iterations=per_design(np.int64), level=per_design(np.int64), estimate=per_design(),
+                        m0=np.empty((b if loaded else 0, 3)), shoot_jac=np.empty((b if loaded else 0, 3, 3)))
+    return kernel, rods, grid, tols, out
+
+
+def _run_kernel(entry, threads: int, n_designs: int, *args) -> None:
+    """``entry(*args)`` on ``threads`` numba threads (0: all), restoring numba's setting after."""
+    import numba
+
+    wanted = min(threads or os.cpu_count() or 1, numba.config.NUMBA_NUM_THREADS, max(n_designs, 1))
+    previous = numba.get_num_threads()
+    numba.set_num_threads(wanted)
+    try:
+        entry(*args)
+    finally:
+        numba.set_num_threads(previous)
+
+
+def several_equilibria(shoot_jac: np.ndarray) -> np.ndarray:
+    """Per design ``(B,)``: whether the shooting Jacobian dM(L)/dM(0) ``(B, 3, 3)`` at the result
+    says the equilibrium is one of several.  It is the identity without loads; a real eigenvalue
+    <= 0 means one crossed zero as the loads grew: a fold or a bifurcation (e.g. Euler buckling).
+    A Jacobian that is not finite is flagged too."""
+    with np.errstate(all="ignore"):
+        finite = np.isfinite(shoot_jac).all(axis=(1, 2))
+        eig = np.linalg.eigvals(np.where(finite[:, None, None], shoot_jac, np.eye(3)))
+    real = np.abs(eig.imag) <= 1e-12 * np.abs(eig).max(axis=1, keepdims=True)
+    return (real & (eig.real <= 0)).any(axis=1) | ~finite
+
+
+def _from_kernel(designs: DesignBatch, mat: _Material, sigma_out: np.ndarray, edges0: np.ndarray,
+                 out, status: np.ndarray) -> RodSolution:
+    """A :class:`RodSolution` of the kernels' outputs ``out`` with the final ``status``."""
+    force, moment = internal_wrench(out.rotation, out.strains, mat)
+    return RodSolution(
+        s=designs.L[:, None] * sigma_out[None, :], backbone=out.backbone, rotation=out.rotation,
+        tendons=out.tendons, force=force, moment=moment, converged=status == 0, residual=out.residual,
+        iterations=out.iterations, status=status, error_estimate=out.estimate,
+        steps=(len(edges0) - 1) * 2**out.level,
+    )
+
+
 def _solve_loaded_compiled(designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
                            threads: int) -> RodSolution:
     """The loaded shooting kernel (:func:`tdcr.physics._kernel.solve_loaded_design`) on ``threads``
     threads (0: all): variational shooting Jacobian, load continuation when needed, RK4 with the
     step controlled per design like the tendon-only kernel."""
-    import numba
-
-    from tdcr.physics._compiled import kernel
-
-    b, n, n_t = designs.n_designs, sigma_out.shape[0], designs.n_tendons
     mat = material(designs)
-    f_g, f_tip, m_tip = loads.resolved(b, mat.area)
+    f_g, f_tip, m_tip = loads.resolved(designs.n_designs, mat.area)
     edges0, _, _ = _step_grid(np.append(sigma_out, 1.0), opts.max_step_loads)
-    out0 = np.searchsorted(edges0, sigma_out)
-    backbone, rotation = np.empty((b, n, 3)), np.empty((b, n, 3, 3))
-    strains, tendons = np.empty((b, n, 6)), np.empty((b, n, n_t, 3))
-    status, level, passes = np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64)
-    residual, estimate, m0, shoot_jac = np.empty(b), np.empty(b), np.empty((b, 3)), np.empty((b, 3, 3))
+    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, sigma_out, opts, loaded=True)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-    wanted = min(threads or os.cpu_count() or 1, numba.config.NUMBA_NUM_THREADS, max(b, 1))
-    previous = numba.get_num_threads()
-    numba.set_num_threads(wanted)
-    try:
-        kernel.solve_loaded_batch(f64(designs.E), f64(designs.r), f64(designs.L), f64(designs.offset),
-                                  f64(designs.pitch), f64(designs.tension), f64(f_g), f64(f_tip), f64(m_tip),
-                                  f64(edges0), np.asarray(out0, dtype=np.int64), f64(sigma_out), opts.newton_tol,
-                                  opts.max_newton, opts.shooting_tol, opts.max_shooting, opts.step_tol,
-                                  opts.max_level, backbone, rotation, strains, tendons, status, residual, passes,
-                                  level, estimate, m0, shoot_jac)
-    finally:
-        numba.set_num_threads(previous)
-    force = np.einsum("bnij,bnj->bni", rotation, mat.kse[:, None, :] * (strains[..., :3] - _E3))
-    moment = np.einsum("bnij,bnj->bni", rotation, mat.kbt[:, None, :] * strains[..., 3:])
-    status = status.astype(np.int8)
-    # J(lambda) = dM(L)/dM(0) is the identity without loads; a real eigenvalue <= 0 at the result means
-    # one crossed zero on the way: a fold or bifurcation, so several equilibria (e.g. Euler buckling).
-    with np.errstate(all="ignore"):
-        finite = np.isfinite(shoot_jac).all(axis=(1, 2))
-        eig = np.linalg.eigvals(np.where(finite[:, None, None], shoot_jac, np.eye(3)))
-    crossed = ((np.abs(eig.imag) <= 1e-12 * np.abs(eig).max(axis=1, keepdims=True)) & (eig.real <= 0)).any(axis=1)
-    status[(status == 0) & crossed] = STATUS.index("multiple_equilibria")
-    return RodSolution(
-        s=designs.L[:, None] * sigma_out[None, :], backbone=backbone, rotation=rotation, tendons=tendons,
-        force=force, moment=moment, converged=status == 0, residual=residual, iterations=passes,
-        status=status, error_estimate=estimate, steps=(len(edges0) - 1) * 2**level,
-    )
+    _run_kernel(kernel.solve_loaded_batch, threads, designs.n_designs, rods,
+                kernel.Loads(f_g=f64(f_g), f_tip=f64(f_tip), m_tip=f64(m_tip)), grid, tols, out)
+    status = out.status.astype(np.int8)
+    status[(status == Status.CONVERGED) & several_equilibria(out.shoot_jac)] = Status.MULTIPLE_EQUILIBRIA
+    return _from_kernel(designs, mat, sigma_out, edges0, out, status)
 
 
 def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOptions, *,
@@ -712,7 +708,7 @@ def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOp
     """Add the step control's verdict to a grid solution's ``status``; ``converged`` = status 0."""
     status = sol.status.copy()
     if estimated:
-        status[(status == 0) & ~(estimate <= opts.step_tol)] = STATUS.index("step_tol_not_met")
+        status[(status == 0) & ~(estimate <= opts.step_tol)] = Status.STEP_TOL_NOT_MET
     b = status.shape[0]
     return dataclasses.replace(sol, converged=status == 0, status=status, error_estimate=estimate,
                                steps=np.broadcast_to(np.asarray(steps), (b,)).copy())
@@ -763,15 +759,14 @@ def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarra
     x_out = x[:, out_step]
     rho_out, _ = tendon_routing(designs, sigma_out)
     tendons = p[:, :, None, :] + np.einsum("bnij,bntj->bnti", R, rho_out)
-    force = np.einsum("bnij,bnj->bni", R, mat.kse[:, None, :] * (x_out[..., :3] - _E3))
-    moment = np.einsum("bnij,bnj->bni", R, mat.kbt[:, None, :] * x_out[..., 3:])
+    force, moment = internal_wrench(R, x_out, mat)
     residual = _wrench_norm(res, designs.L[:, None]).max(axis=1)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
     status = np.zeros(b, dtype=np.int8)
-    status[~ok] = STATUS.index("newton_failed")
+    status[~ok] = Status.NEWTON_FAILED
     if not opts.linearized:  # the linearized model reports its residual but is not an equilibrium
-        status[(status == 0) & ~(residual <= opts.residual_tol * scale)] = STATUS.index("residual_too_large")
-    status[~(np.isfinite(tendons).all(axis=(1, 2, 3)) & np.isfinite(residual))] = STATUS.index("not_finite")
+        status[(status == 0) & ~(residual <= opts.residual_tol * scale)] = Status.RESIDUAL_TOO_LARGE
+    status[~(np.isfinite(tendons).all(axis=(1, 2, 3)) & np.isfinite(residual))] = Status.NOT_FINITE
     return RodSolution(
         s=designs.L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons,
         force=force, moment=moment, converged=status == 0, residual=residual, iterations=iters,
@@ -779,40 +774,16 @@ def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarra
     ), x
 
 
-def _solve_compiled(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndarray, out0: np.ndarray,
-                    opts: SolverOptions, threads: int) -> RodSolution:
-    """The numba kernel (:mod:`tdcr.physics._kernel`) on ``threads`` threads (0: all)."""
-    import numba
-
-    from tdcr.physics._compiled import kernel
-
-    b, n, n_t = designs.n_designs, sigma_out.shape[0], designs.n_tendons
-    backbone, rotation = np.empty((b, n, 3)), np.empty((b, n, 3, 3))
-    strains, tendons = np.empty((b, n, 6)), np.empty((b, n, n_t, 3))
-    status, level = np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64)
-    residual, iterations, estimate = np.empty(b), np.empty(b, dtype=np.int64), np.empty(b)
-    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-    wanted = min(threads or os.cpu_count() or 1, numba.config.NUMBA_NUM_THREADS, max(b, 1))
-    previous = numba.get_num_threads()
-    numba.set_num_threads(wanted)
-    try:
-        kernel.solve_batch(f64(designs.E), f64(designs.r), f64(designs.L), f64(designs.offset), f64(designs.pitch),
-                           f64(designs.tension), f64(edges0), np.asarray(out0, dtype=np.int64), f64(sigma_out),
-                           opts.newton_tol, opts.max_newton, opts.step_tol, opts.max_level, backbone, rotation,
-                           strains, tendons, status, residual, iterations, level, estimate)
-    finally:
-        numba.set_num_threads(previous)
+def _solve_compiled(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndarray, opts: SolverOptions,
+                    threads: int) -> RodSolution:
+    """The tendon-only kernel (:func:`tdcr.physics._kernel.solve_design`) on ``threads`` threads (0: all)."""
     mat = material(designs)
-    force = np.einsum("bnij,bnj->bni", rotation, mat.kse[:, None, :] * (strains[..., :3] - _E3))
-    moment = np.einsum("bnij,bnj->bni", rotation, mat.kbt[:, None, :] * strains[..., 3:])
-    status = status.astype(np.int8)
+    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, sigma_out, opts, loaded=False)
+    _run_kernel(kernel.solve_batch, threads, designs.n_designs, rods, grid, tols, out)
+    status = out.status.astype(np.int8)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
-    status[(status == 0) & ~(residual <= opts.residual_tol * scale)] = STATUS.index("residual_too_large")
-    return RodSolution(
-        s=designs.L[:, None] * sigma_out[None, :], backbone=backbone, rotation=rotation, tendons=tendons,
-        force=force, moment=moment, converged=status == 0, residual=residual, iterations=iterations,
-        status=status, error_estimate=estimate, steps=(len(edges0) - 1) * 2**level,
-    )
+    status[(status == Status.CONVERGED) & ~(out.residual <= opts.residual_tol * scale)] = Status.RESIDUAL_TOO_LARGE
+    return _from_kernel(designs, mat, sigma_out, edges0, out, status)
 
 
 def _strain_sensitivities(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
@@ -898,209 +869,3 @@ class TipSolver:
 def _wrench_norm(res: np.ndarray, length: np.ndarray) -> np.ndarray:
     """sqrt(|force|^2 + |moment / L|^2) of ``(..., 6)`` residuals, N."""
     return np.sqrt((res[..., :3] ** 2).sum(-1) + (res[..., 3:] ** 2).sum(-1) / length**2)
-
-
-# --------------------------------------------------------------------------- external loads
-
-
-@dataclass
-class _ShootingProblem:
-    designs: DesignBatch
-    mat: _Material
-    f_g: np.ndarray  # (B, 3) N/m
-    tip_force: np.ndarray  # (B, 3) N
-    tip_moment: np.ndarray  # (B, 3) N m
-    starts: np.ndarray  # (K,)
-    widths: np.ndarray  # (K,)
-
-
-def _take_solution(sol: RodSolution, rows: np.ndarray) -> RodSolution:
-    """The designs ``rows`` of a solution."""
-    return RodSolution(**{f.name: None if getattr(sol, f.name) is None else getattr(sol, f.name)[rows]
-                          for f in dataclasses.fields(RodSolution)})
-
-
-def _solve_loads_adaptive(designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
-                          base: RodSolution) -> RodSolution:
-    """The numpy loaded path with the kernel's step control: the base grid (<= ``max_step_loads``,
-    through every output and the tip), the estimate against the coarse grid of :func:`_coarse_grid`
-    (a second shooting solve here: the nodes are RK4 stages, not reusable), then halving while the
-    estimate is above ``step_tol``."""
-    edges, _, _ = _step_grid(np.append(sigma_out, 1.0), opts.max_step_loads)
-    out_step = np.searchsorted(edges, sigma_out)
-    sol = _solve_with_loads(designs, sigma_out, loads, opts, base, edges)
-    c_edges, _ = _coarse_grid(edges)
-    coarse = _solve_with_loads(designs, sigma_out, loads, opts, base, edges[c_edges])
-    on_coarse = np.isin(out_step, c_edges)
-    estimate = _richardson(sol.tendons[:, on_coarse], coarse.tendons[:, on_coarse])
-    estimate[~coarse.converged] = np.inf
-    fields = {f.name: getattr(sol, f.name).copy() for f in dataclasses.fields(RodSolution)
-              if getattr(sol, f.name) is not None}
-    steps = np.full(designs.n_designs, len(edges) - 1)
-    active = np.nonzero(sol.converged & (estimate > opts.step_tol))[0]
-    for _level in range(opts.max_level):
-        if active.size == 0:
-            break
-        edges = _refine(edges)
-        finer = _solve_with_loads(designs.take(active), sigma_out, loads.take(active), opts,
-                                  _take_solution(base, active), edges)
-        estimate[active] = _richardson(finer.tendons, fields["tendons"][active])
-        for name in fields:
-            fields[name][active] = getattr(finer, name)
-        steps[active] = len(edges) - 1
-        active = active[finer.converged & (estimate[active] > opts.step_tol)]
-    return _finish_status(RodSolution(**fields), estimate, steps, opts, estimated=True)
-
-
-def _solve_with_loads(
-    designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions, base: RodSolution,
-    edges: np.ndarray,
-) -> RodSolution:
-    """Shooting with loads on the step grid ``edges`` (fractions of L, ending at 1, through every
-    output)."""
-    b = designs.n_designs
-    mat = material(designs)
-    f_g, F, M = loads.resolved(b, mat.area)
-    widths = np.diff(edges)
-    starts, out_step = edges[:-1], np.searchsorted(edges, sigma_out)
-    L = designs.L
-    moment_scale = (designs.tension * designs.offset).sum(1) + np.linalg.norm(M, axis=1)
-    moment_scale += np.linalg.norm(F, axis=1) * L + np.linalg.norm(f_g, axis=1) * L**2 + 1e-12
-
-    # first guess of M(0) from the tendon-only shape: tip and distributed loads about the base
-    tip = base.backbone[:, np.argmax(base.s[0])] if sigma_out.max() == 1.0 else np.zeros((b, 3))
-    y = np.cross(tip, F) + M + np.cross(0.5 * tip, f_g * L[:, None])
-    ok = base.converged.copy()
-    total_iters = np.zeros(b, dtype=np.int64)
-    for lam in np.linspace(0.0, 1.0, opts.load_steps + 1)[1:]:
-        prob = _ShootingProblem(designs, mat, lam * f_g, lam * F, lam * M, starts, widths)
-        y, step_ok, iters = _shoot(prob, y, moment_scale, opts)
-        ok &= step_ok
-        total_iters += iters
-    prob = _ShootingProblem(designs, mat, f_g, F, M, starts, widths)
-    traj = _integrate_loads(prob, y, opts, record=True)
-    rec_step = out_step
-    p, R, x = traj["p"][:, rec_step], traj["R"][:, rec_step], traj["x"][:, rec_step]
-    rho_out, _ = tendon_routing(designs, sigma_out)
-    tendons = p[:, :, None, :] + np.einsum("bnij,bntj->bnti", R, rho_out)
-    force = np.einsum("bnij,bnj->bni", R, mat.kse[:, None, :] * (x[..., :3] - _E3))
-    moment = np.einsum("bnij,bnj->bni", R, mat.kbt[:, None, :] * x[..., 3:])
-    tip_res = traj["M"][:, -1] - M
-    residual = np.linalg.norm(tip_res, axis=1) / L
-    converged = ok & traj["ok"]
-    converged &= np.linalg.norm(tip_res, axis=1) <= 1e3 * opts.shooting_tol * moment_scale
-    status = np.where(converged, 0, STATUS.index("shooting_failed")).astype(np.int8)
-    status[~(np.isfinite(tendons).all(axis=(1, 2, 3)) & np.isfinite(residual))] = STATUS.index("not_finite")
-    return RodSolution(
-        s=L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons, force=force,
-        moment=moment, converged=status == 0, residual=residual, iterations=total_iters, status=status,
-    )
-
-
-def _shoot(prob: _ShootingProblem, y: np.ndarray, scale: np.ndarray, opts: SolverOptions):
-    """Newton on the tip-moment condition M(L) = M_tip for M(0) ``(B, 3)``, finite-difference Jacobian."""
-    b = y.shape[0]
-    ok = np.zeros(b, dtype=bool)
-    iters = np.zeros(b, dtype=np.int64)
-    active = np.arange(b)
-    y = y.copy()
-    for _ in range(opts.max_shooting):
-        sub = _take_problem(prob, active)
-        ya = y[active]
-        eps = 1e-7 * scale[active]
-        # one vectorised integration of the 4 trajectories (nominal + 3 perturbations)
-        trial = np.concatenate([ya] + [ya + eps[:, None] * np.eye(3)[i] for i in range(3)], axis=0)
-        out = _integrate_loads(_tile_problem(sub, 4), trial, opts, record=False)
-        resid = (out["M"][:, -1] - np.tile(sub.tip_moment, (4, 1))).reshape(4, -1, 3)
-        jac = np.stack([(resid[i + 1] - resid[0]) / eps[:, None] for i in range(3)], axis=-1)
-        err = np.linalg.norm(resid[0], axis=1) / scale[active]
-        iters[active] += 1
-        done = (err < opts.shooting_tol) & out["ok"][: ya.shape[0]]
-        ok[active[done]] = True
-        bad = ~np.isfinite(err)
-        keep = ~done & ~bad
-        if not keep.any():
-            break
-        delta = _solve_batched(jac[keep], -resid[0][keep])  # NaN for a singular design: it stops alone
-        step_ok = np.isfinite(delta).all(axis=1)
-        y[active[keep][step_ok]] = ya[keep][step_ok] + delta[step_ok]
-        active = active[keep][step_ok]
-        if not active.size:
-            break
-    return y, ok, iters
-
-
-def _take_problem(prob: _ShootingProblem, idx: np.ndarray) -> _ShootingProblem:
-    return _ShootingProblem(
-        prob.designs.take(idx), _Material(prob.mat.kse[idx], prob.mat.kbt[idx], prob.mat.area[idx]),
-        prob.f_g[idx], prob.tip_force[idx], prob.tip_moment[idx], prob.starts, prob.widths,
-    )
-
-
-def _tile_problem(prob: _ShootingProblem, reps: int) -> _ShootingProblem:
-    idx = np.tile(np.arange(prob.designs.n_designs), reps)
-    return _take_problem(prob, idx)
-
-
-def _integrate_loads(prob: _ShootingProblem, m0: np.ndarray, opts: SolverOptions, *, record: bool) -> dict:
-    """RK4 on (p, R, M) in s with strains from (W1, W2) at every stage (eq. MT).
-
-    Args:
-        m0: total moment M(0) about the base, base frame, N m, ``(B, 3)``.
-
-    Returns:
-        dict with ``M`` ``(B, K+1, 3)`` and, if ``record``, ``p``, ``R``, ``x`` at every step edge.
-    """
-    d = prob.designs
-    b = d.n_designs
-    L = d.L
-    k = prob.starts.shape[0]
-    state_p = np.zeros((b, 3))
-    state_R = np.broadcast_to(np.eye(3), (b, 3, 3)).copy()
-    state_M = m0.copy()
-    x = _undeformed(b)
-    ok = np.ones(b, dtype=bool)
-    keep = {"p": [state_p], "R": [state_R], "M": [state_M], "x": []}
-
-    def strains(sigma: float, R, Mt, x0):
-        rho, drho = tendon_routing(d, np.array([sigma]))
-        N = prob.tip_force + prob.f_g * (L * (1.0 - sigma))[:, None]
-        target = np.concatenate([np.einsum("bji,bj->bi", R, N), np.einsum("bji,bj->bi", R, Mt)], axis=1)
-        nodes = _Nodes(rho[:, 0], drho[:, 0], d.tension, prob.mat.kse, prob.mat.kbt, d.r, target)
-        xs, conv, _ = _newton(x0.copy(), nodes, opts)
-        return xs, conv, N
-
-    def deriv(sigma, R, Mt, x0):
-        xs, conv, N = strains(sigma, R, Mt, x0)
-        dp = np.einsum("bij,bj->bi", R, xs[:, :3])
-        dR = R @ hat(xs[:, 3:])
-        dM = -np.cross(dp, N)
-        return L[:, None] * dp, L[:, None, None] * dR, L[:, None] * dM, xs, conv
-
-    for j in range(k):
-        s0, h = prob.starts[j], prob.widths[j]
-        k1 = deriv(s0, state_R, state_M, x)
-        if record:
-            keep["x"].append(k1[3])
-        x = k1[3]
-        k2 = deriv(s0 + h / 2, state_R + h / 2 * k1[1], state_M + h / 2 * k1[2], x)
-        k3 = deriv(s0 + h / 2, state_R + h / 2 * k2[1], state_M + h / 2 * k2[2], k2[3])
-        k4 = deriv(s0 + h, state_R + h * k3[1], state_M + h * k3[2], k3[3])
-        for kk in (k1, k2, k3, k4):
-            ok &= kk[4]
-        state_p = state_p + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-        state_R = state_R + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-        state_M = state_M + h / 6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
-        for _ in range(2):  # Newton-Schulz projection back onto SO(3)
-            state_R = 1.5 * state_R - 0.5 * state_R @ np.swapaxes(state_R, 1, 2) @ state_R
-        x = k4[3]
-        keep["p"].append(state_p)
-        keep["R"].append(state_R)
-        keep["M"].append(state_M)
-    last = strains(1.0, state_R, state_M, x)  # the grid always ends at the tip
-    keep["x"].append(last[0])
-    ok &= last[1]
-    out = {"M": np.stack(keep["M"], axis=1), "ok": ok}
-    if record:
-        out.update(p=np.stack(keep["p"], axis=1), R=np.stack(keep["R"], axis=1), x=np.stack(keep["x"], axis=1))
-    return out

@@ -1,0 +1,63 @@
+"""The codecs of the service's own JSON / binary API: ``/predict``, ``/exact``, ``/inverse``.
+
+A codec is what a transport hands the data plane with its payload (:class:`service.model.Codec`):
+the model runs ``decode`` and ``encode`` where its work runs (a worker thread, or a solver
+process), so each is a small picklable class.  The OIP codecs are :class:`service.oip.RestCodec`
+and :class:`service.grpc_codec.GrpcCodec`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import orjson
+
+from service.model import InverseAnswer, ModelSpec
+from tdcr.engine import Prediction, encode_json, encode_npz
+from tdcr.exact import ExactAnswer
+from tdcr.validation import InverseProblem, ShapeRequest, validate_inverse, validate_json
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """A decoded request: the model's validated ``task``."""
+
+    task: ShapeRequest | InverseProblem
+
+
+@dataclass(frozen=True)
+class PredictCodec:
+    """``/predict``: the payload is the already validated :class:`ShapeRequest` (the route reads
+    the JSON or ``.npy`` body first: it names the model); the answer is ``PredictResponse`` JSON,
+    or ``.npz`` bytes with ``npz``."""
+
+    npz: bool = False
+
+    def decode(self, payload: ShapeRequest, spec: ModelSpec) -> Decoded:
+        return Decoded(payload)
+
+    def encode(self, decoded: Decoded, answer: Prediction) -> bytes:
+        return encode_npz(answer) if self.npz else encode_json(answer)
+
+
+@dataclass(frozen=True)
+class ExactCodec:
+    """``/exact``: a JSON ``SolveRequest`` body (validated where the solver runs: parsing a large
+    body never costs the server's interpreter); the answer is ``ExactResponse`` JSON."""
+
+    def decode(self, payload: bytes, spec: ModelSpec) -> Decoded:
+        return Decoded(validate_json(payload, target="solver", limits=spec.limits))
+
+    def encode(self, decoded: Decoded, answer: ExactAnswer) -> bytes:
+        return orjson.dumps({"results": answer.results()})
+
+
+@dataclass(frozen=True)
+class InverseCodec:
+    """``/inverse``: a JSON ``InverseRequest`` body; the answer is ``InverseResponse`` JSON."""
+
+    def decode(self, payload: bytes, spec: ModelSpec) -> Decoded:
+        return Decoded(validate_inverse(payload))
+
+    def encode(self, decoded: Decoded, answer: InverseAnswer) -> bytes:
+        return orjson.dumps({"model": answer.model, "results": answer.results})

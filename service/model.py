@@ -1,0 +1,192 @@
+"""The model protocol: every served thing is a :class:`Model`, held by a :class:`ModelRepository`.
+
+As in KServe's model server (``kserve/model.py``, ``model_repository.py``): a model has a name, a
+version, its input and output tensor specifications, readiness and metadata, and ``infer``.  The
+surrogates (:mod:`service.surrogate`), the exact solver and its inverse kinematics
+(:mod:`service.solver`) implement it; a new model is one more class and one
+:meth:`ModelRepository.register`.
+
+``infer`` takes an :class:`InferenceRequest`: what a transport received (its ``payload``) and the
+transport's :class:`Codec`.  The model asks the codec for the task it needs (a validated
+:class:`tdcr.validation.ShapeRequest` or :class:`tdcr.validation.InverseProblem`) where its work
+runs (a worker thread, or a solver process for the exact solver), and has the codec encode its
+answer there, so that a transport never names a model and no tensor makes a round trip through
+another transport's format.  Errors are :class:`InferenceError` with a ``kind``; each transport
+maps kinds to its own statuses in one place.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+from tdcr.validation import Limits, Problem, quote
+
+#: The one version of every model.
+VERSION = "1"
+#: What a model answers: surrogate shapes, exact shapes, or inverse kinematics.
+Kind = Literal["surrogate", "solver", "inverse"]
+#: Error kinds (the ``tdcr_errors`` metric's label too).
+ERROR_KINDS = ("invalid", "not_found", "too_large", "saturated", "unavailable", "deadline")
+
+
+class InferenceError(Exception):
+    """A request the data plane cannot answer: ``kind`` (one of :data:`ERROR_KINDS`), a message
+    naming the field or tensor and the reason, and for ``invalid`` / ``too_large`` the ``problems``
+    (:class:`tdcr.validation.Problem`) when they came from the validation path."""
+
+    def __init__(self, kind: str, message: str, problems: tuple[Problem, ...] = ()):
+        super().__init__(message)
+        self.kind, self.message, self.problems = kind, message, tuple(problems)
+
+    def __reduce__(self):  # picklable: it crosses the solver processes' pipes
+        return (InferenceError, (self.kind, self.message, self.problems))
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    """An OIP tensor: its datatype and shape (``-1``: any size)."""
+
+    datatype: str
+    shape: tuple[int, ...]
+
+
+Tensors = dict[str, TensorSpec]
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What a codec needs to know of a model to decode for it (picklable: it travels to the solver
+    processes): name, kind, tensors (``required``: inputs that must be given) and size limits."""
+
+    name: str
+    kind: Kind
+    inputs: Tensors
+    outputs: Tensors
+    required: tuple[str, ...]
+    limits: Limits
+
+
+class Codec(Protocol):
+    """A transport's decoding and encoding, run by a model where its work runs (so it must be
+    picklable: a module-level class).  ``decode`` returns the decoded request (with ``.task``, the
+    validated :class:`ShapeRequest` or :class:`InverseProblem`, and whatever ``encode`` needs);
+    ``encode`` turns the model's answer (:class:`tdcr.engine.Prediction`,
+    :class:`tdcr.exact.ExactAnswer` or :class:`InverseAnswer`) into what the transport sends."""
+
+    def decode(self, payload: Any, spec: ModelSpec) -> Any: ...
+
+    def encode(self, decoded: Any, answer: Any) -> Any: ...
+
+
+@dataclass(frozen=True)
+class InferenceRequest:
+    """What a transport hands the data plane: its ``payload`` and the ``codec`` that reads it."""
+
+    payload: Any
+    codec: Codec
+
+
+@dataclass(frozen=True)
+class InferenceResponse:
+    """What a model answers: the codec's encoding of its answer, and the designs (or targets) answered."""
+
+    body: Any
+    count: int
+
+
+@dataclass(frozen=True)
+class InverseAnswer:
+    """Inverse kinematics' answer: the forward ``model`` used and one JSON-ready dict per target
+    (``tensions``, ``position``, ``error``, ``status``, ``iterations``, ``direction`` if asked)."""
+
+    model: str
+    results: list[dict]
+
+
+class Model(ABC):
+    """A served model.  Subclasses set ``name``, ``kind``, ``platform`` and their tensors."""
+
+    name: str
+    kind: Kind
+    platform: str
+    version: str = VERSION
+    inputs: Tensors
+    outputs: Tensors
+    required: tuple[str, ...] = ("design",)
+    limits: Limits = Limits()
+
+    @property
+    def spec(self) -> ModelSpec:
+        return ModelSpec(name=self.name, kind=self.kind, inputs=self.inputs, outputs=self.outputs,
+                         required=self.required, limits=self.limits)
+
+    def health(self) -> str | None:
+        """Why the model cannot answer now, or None."""
+        return None
+
+    def ready(self) -> bool:
+        """Whether the model can answer now."""
+        return self.health() is None
+
+    def parameters(self) -> dict:
+        """Metadata beyond name, versions, platform and tensors (OIP ``parameters``)."""
+        return {}
+
+    def metadata(self) -> dict:
+        """OIP model metadata."""
+        return {"name": self.name, "versions": [self.version], "platform": self.platform,
+                "inputs": [{"name": n, "datatype": t.datatype, "shape": list(t.shape)} for n, t in self.inputs.items()],
+                "outputs": [{"name": n, "datatype": t.datatype, "shape": list(t.shape)}
+                            for n, t in self.outputs.items()],
+                "parameters": self.parameters()}
+
+    @property
+    def saturated(self) -> bool:
+        """Whether a request now would be refused for want of capacity (checked before a body is read)."""
+        return False
+
+    @abstractmethod
+    async def infer(self, request: InferenceRequest) -> InferenceResponse:
+        """Decode, run and encode ``request``; raises :class:`InferenceError` or the validation
+        path's :class:`tdcr.validation.InvalidRequest` (the data plane maps both)."""
+
+    def close(self) -> None:  # noqa: B027 - most models hold nothing to release
+        """Release threads and processes (at shutdown)."""
+
+
+@dataclass
+class ModelRepository:
+    """The served models by name, and the default model of each kind (``/predict`` names none)."""
+
+    models: dict[str, Model] = field(default_factory=dict)
+    defaults: dict[str, str] = field(default_factory=dict)
+
+    def register(self, model: Model, *, default: bool = False) -> None:
+        """Serve ``model``; ``default``: the default of its kind (else the first of its kind is)."""
+        self.models[model.name] = model
+        if default or model.kind not in self.defaults:
+            self.defaults[model.kind] = model.name
+
+    def get(self, name: str | None, *, kind: Kind | None = None, version: str | None = None) -> Model:
+        """The model ``name`` (None: the default of ``kind``), of ``kind`` when given, and of
+        ``version`` when given; :class:`InferenceError` ``not_found`` else."""
+        if name is None and kind is not None:
+            name = self.defaults.get(kind)
+        model = self.models.get(name) if name is not None else None
+        if model is None or kind is not None and model.kind != kind:
+            available = sorted(self.names(kind))
+            raise InferenceError("not_found", f"unknown model {quote(str(name)) if name else 'none'}; "
+                                              f"available: {available}")
+        if version not in (None, "", model.version):
+            raise InferenceError("not_found", f"model {model.name!r} has only version {model.version}, "
+                                              f"not {version[:16]!r}")
+        return model
+
+    def names(self, kind: Kind | None = None) -> list[str]:
+        return [n for n, m in self.models.items() if kind is None or m.kind == kind]
+
+    def __iter__(self) -> Iterator[Model]:
+        return iter(self.models.values())

@@ -1,0 +1,143 @@
+"""The physics as served models: the exact solver (``exact``) and its inverse kinematics
+(``inverse``).  The exact model owns the solver processes (service/solver_pool.py), their
+admission slots and the deadline; the inverse model runs on them.
+
+A request's whole work runs in a solver process (:func:`exact_job`): the codec's decoding and
+validation, the admission by estimated work (:class:`tdcr.exact.WorkBudget`), the solve and the
+codec's encoding, so that a large body never costs the server's interpreter and a deadline kills
+the work with its process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import orjson
+from starlette.concurrency import run_in_threadpool
+
+from service.model import InferenceError, InferenceRequest, InferenceResponse, InverseAnswer, Model, ModelSpec
+from service.oip import EXACT_INPUTS, EXACT_OUTPUTS, INVERSE_INPUTS, INVERSE_OUTPUTS, INVERSE_STATUS
+from service.settings import Settings
+from service.solver_pool import SolverPool, WorkerDied
+from tdcr.exact import TooMuchWork, WorkBudget, admit, solve_request
+from tdcr.inverse import answer_exact
+from tdcr.schemas import EXACT_MODEL
+from tdcr.validation import InvalidRequest
+
+log = logging.getLogger("tdcr.service")
+#: The inverse-kinematics model's name.
+INVERSE_MODEL = "inverse"
+#: Exceptions of the solver processes' work that come back as they are.
+EXPECTED = (InvalidRequest, TooMuchWork, InferenceError)
+
+
+def exact_job(codec, payload, spec: ModelSpec, budget: WorkBudget) -> tuple[object, int]:
+    """The exact model's whole work on one request, in a solver process: decode, admit, solve, encode."""
+    decoded = codec.decode(payload, spec)
+    admit(decoded.task, budget)
+    solved = solve_request(decoded.task)
+    return codec.encode(decoded, solved), solved.n_designs
+
+
+class ExactModel(Model):
+    """The Cosserat solver, in ``settings.exact_workers`` killable processes with
+    ``exact_max_pending`` admission slots and the deadline ``exact_timeout_s``."""
+
+    name = EXACT_MODEL
+    kind = "solver"
+    platform = "tdcr_cosserat_solver"
+    inputs = EXACT_INPUTS
+    outputs = EXACT_OUTPUTS
+
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.limits = settings.exact_limits()
+        self.budget = settings.exact_budget()
+        self.pool: SolverPool | None = None
+        self.slots: asyncio.Semaphore | None = None
+
+    def start(self) -> None:
+        """Start the solver processes (blocks for their start, about a second each)."""
+        self.pool = SolverPool(self.settings.exact_workers)
+        self.slots = asyncio.Semaphore(self.settings.exact_max_pending)
+
+    def health(self) -> str | None:
+        """Why the model cannot answer now, or None."""
+        if self.pool is None:
+            return "solver pool: not running"
+        return None if self.pool.healthy else "solver pool: a worker is being replaced"
+
+    def parameters(self) -> dict:
+        return {"deadline_s": self.settings.exact_timeout_s}
+
+    @property
+    def saturated(self) -> bool:
+        return self.slots is not None and self.slots.locked()
+
+    async def run(self, fn, *args, **kwargs):
+        """``fn(*args, **kwargs)`` in a solver process, within a slot and the deadline; the
+        process's failures as :class:`InferenceError` (its ``EXPECTED`` exceptions as they are)."""
+        if self.pool is None or self.slots is None:
+            raise InferenceError("unavailable", "the solver pool is not running")
+        if self.slots.locked():
+            raise InferenceError("saturated", "the solver is saturated; retry later")
+        timeout = self.settings.exact_timeout_s
+        async with self.slots:
+            try:
+                return await self.pool.run(fn, *args, timeout=timeout, expected=EXPECTED, **kwargs)
+            except TooMuchWork as exc:
+                raise InferenceError("too_large", str(exc)) from None
+            except TimeoutError:  # the worker was killed: the work stops with the deadline
+                raise InferenceError("deadline", f"the solver did not finish within {timeout} s") from None
+            except WorkerDied as exc:
+                raise InferenceError("unavailable", str(exc)) from None
+            except RuntimeError as exc:
+                log.error("solver failed: %s", exc)
+                raise InferenceError("unavailable", "the solver failed on this request; retry later") from None
+
+    async def infer(self, request: InferenceRequest) -> InferenceResponse:
+        body, count = await self.run(exact_job, request.codec, request.payload, self.spec, self.budget)
+        return InferenceResponse(body, count)
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.close()
+
+
+class InverseModel(Model):
+    """Inverse kinematics (tdcr/inverse.py): the tensions that reach each target.  A request names
+    its forward model: ``exact`` runs in the exact model's solver processes; an operator runs in a
+    worker thread, and ``polish`` finishes its answers with exact steps there."""
+
+    name = INVERSE_MODEL
+    kind = "inverse"
+    platform = "tdcr_inverse_kinematics"
+    inputs = INVERSE_INPUTS
+    outputs = INVERSE_OUTPUTS
+    required = ("design", "position")
+
+    def __init__(self, exact: ExactModel, operators):
+        """``operators(name)``: the surrogate model ``name`` (:class:`InferenceError` ``not_found`` else)."""
+        self.exact, self.operators = exact, operators
+
+    def ready(self) -> bool:  # the exact model reports the pool's health
+        return self.exact.ready()
+
+    def parameters(self) -> dict:
+        return self.exact.parameters() | {"status": orjson.dumps(INVERSE_STATUS).decode()}
+
+    async def infer(self, request: InferenceRequest) -> InferenceResponse:
+        codec = request.codec
+        decoded = await run_in_threadpool(codec.decode, request.payload, self.spec)
+        problem = decoded.task
+        starts = None
+        if problem.model != EXACT_MODEL:
+            results = await run_in_threadpool(self.operators(problem.model).inverse, problem)
+            starts = [r["tensions"] for r in results]
+        if problem.model == EXACT_MODEL or problem.polish:
+            settings = self.exact.settings
+            results = await self.exact.run(answer_exact, problem, starts=starts,
+                                           max_seconds=self.exact.budget.max_seconds,
+                                           seconds_per_design=settings.exact_seconds_per_design)
+        return InferenceResponse(codec.encode(decoded, InverseAnswer(problem.model, results)), problem.n_targets)

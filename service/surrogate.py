@@ -1,0 +1,56 @@
+"""A neural operator as a served :class:`service.model.Model`: its ONNX session behind a dynamic
+batcher (service/batching.py), the surrogate engine of :mod:`tdcr.engine`, and its inverse
+kinematics (Jacobian by central differences)."""
+
+from __future__ import annotations
+
+import numpy as np
+import orjson
+from starlette.concurrency import run_in_threadpool
+
+from service.batching import Batcher
+from service.model import InferenceRequest, InferenceResponse, Model
+from service.oip import SURROGATE_INPUTS, SURROGATE_OUTPUTS
+from tdcr import engine
+from tdcr.inverse import answer, model_forward
+from tdcr.runtime import Surrogate
+from tdcr.validation import InverseProblem, Limits
+
+
+class SurrogateModel(Model):
+    """One exported operator (``surrogate``, with its manifest entry) behind ``batcher``."""
+
+    kind = "surrogate"
+    platform = "onnxruntime_onnx"
+    inputs = SURROGATE_INPUTS
+    outputs = SURROGATE_OUTPUTS
+
+    def __init__(self, surrogate: Surrogate, *, limits: Limits, batcher: Batcher):
+        self.name = surrogate.name
+        self.surrogate, self.limits, self.batcher = surrogate, limits, batcher
+
+    def parameters(self) -> dict:
+        """The manifest's sha256, architecture and kind; metrics and ranges as JSON text."""
+        entry = self.surrogate.entry
+        return {"sha256": entry["sha256"], "architecture": entry["architecture"], "kind": entry["kind"],
+                "metrics": orjson.dumps(entry.get("metrics")).decode(),
+                "ranges": orjson.dumps(entry.get("ranges")).decode()}
+
+    async def infer(self, request: InferenceRequest) -> InferenceResponse:
+        return await run_in_threadpool(self.infer_blocking, request)  # decode, run and encode in one thread hop
+
+    def infer_blocking(self, request: InferenceRequest) -> InferenceResponse:
+        decoded = request.codec.decode(request.payload, self.spec)
+        prediction = engine.predict(self.batcher, decoded.task, model=self.name)
+        return InferenceResponse(request.codec.encode(decoded, prediction), prediction.n_designs)
+
+    def inverse(self, problem: InverseProblem) -> list[dict]:
+        """Inverse kinematics with this operator (blocking: run it off the event loop)."""
+        def tip_pose(features: np.ndarray):
+            out = self.batcher.predict(features, np.ones(1), pose=True)
+            return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
+
+        return answer(problem, model_forward(problem.design, tip_pose))
+
+    def close(self) -> None:
+        self.batcher.close()

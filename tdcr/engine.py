@@ -1,0 +1,180 @@
+"""The surrogate engine, shared by ``tdcr predict`` and the service: prepare -> predict -> encode.
+
+* **prepare**: a JSON body, or a ``.npy`` body with its query parameters, to a validated
+  :class:`tdcr.validation.ShapeRequest`, through the one validation path of :mod:`tdcr.validation`;
+* **predict**: the request on a surrogate (``Predictor``: a :class:`tdcr.runtime.Surrogate`, or the
+  service's dynamic batcher in front of one) to a :class:`Prediction`;
+* **encode**: a :class:`Prediction` to JSON (``PredictResponse``) or ``.npz`` bytes.
+
+Nothing here knows HTTP: errors are :class:`tdcr.validation.InvalidRequest`.
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import orjson
+
+from tdcr.design_space import range_warnings
+from tdcr.designs import L_COLUMN
+from tdcr.inverse import tip_by_differences
+from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
+
+#: Media types of the binary path.
+NPY = "application/x-npy"
+NPZ = "application/x-npz"
+#: Query parameters of a ``.npy`` request.
+QUERY_FIELDS = ("model", "points", "s", "outputs")
+
+
+class Predictor(Protocol):
+    """What runs a surrogate: :meth:`tdcr.runtime.Surrogate.predict` or a batcher in front of it."""
+
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A surrogate's answer: ``model``; ``s`` ``(B, n)`` m; the wanted ``arrays`` (backbone
+    ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons ``(B, n, 4, 3)`` m; float32 from the graph,
+    float64 where post-processed: the pose fit of tendon models, FNO interpolation off the grid); and per
+    design the range ``warnings`` (empty: in distribution) and whether its answer is ``finite``
+    (far outside the trained ranges a network can overflow; such rows are zeros)."""
+
+    model: str
+    s: np.ndarray
+    arrays: dict[str, np.ndarray]
+    warnings: list[list[str]]
+    finite: np.ndarray  # (B,) the answer is finite (else its rows are zeros)
+    tip_jacobian: np.ndarray | None = None  # (B, 6, N_t) with "jacobian": true, by central differences
+
+    @property
+    def n_designs(self) -> int:
+        return len(self.warnings)
+
+
+def prepare_json(body: bytes | str | dict, *, limits: Limits) -> ShapeRequest:
+    """A JSON ``PredictRequest`` (raw bytes or decoded), validated."""
+    return validate_json(body, target="surrogate", limits=limits)
+
+
+def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits) -> ShapeRequest:
+    """A ``.npy`` body of raw SI designs ``(B, 15)`` and the query ``params`` (name -> values)."""
+    problems = [Problem((k,), "may be given once", "repeated") for k in ("model", "points", "outputs")
+                if len(params.get(k, [])) > 1]
+    points = _query_int(params, "points", problems)
+    s = _query_floats(params, "s", problems)
+    if problems:
+        raise InvalidRequest(problems)
+    features = read_npy(body)
+    outputs = params.get("outputs")
+    return validate_features(features, target="surrogate", points=points, s=s,
+                             model=(params.get("model") or [None])[0],
+                             outputs=None if outputs is None else outputs[0].split(","), limits=limits)
+
+
+def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Prediction:
+    """A validated request on ``predictor`` (the surrogate ``model``); blocking."""
+    features = request.features
+    with np.errstate(all="ignore"):  # overflow far outside the trained ranges is reported per design
+        out = predictor.predict(features, request.fractions, pose=request.pose)
+    arrays = {k: out[k] for k in request.outputs}
+    finite = np.ones(len(features), dtype=bool)
+    for v in arrays.values():
+        finite &= np.isfinite(v.reshape(len(features), -1)).all(axis=1)
+    if not finite.all():
+        arrays = {k: np.where(finite.reshape(-1, *[1] * (v.ndim - 1)), v, 0).astype(v.dtype)
+                  for k, v in arrays.items()}
+    s = features[:, L_COLUMN, None] * request.fractions[None, :]
+    tip_jacobian = None
+    if request.jacobian:
+        def tip_pose(batch: np.ndarray):
+            out = predictor.predict(batch, np.ones(1), pose=True)
+            return out["backbone"][:, -1].astype(np.float64), out["rotation"][:, -1].astype(np.float64)
+
+        with np.errstate(all="ignore"):
+            tip_jacobian = np.ascontiguousarray(np.nan_to_num(tip_by_differences(features, tip_pose)[2]))
+    return Prediction(model=model, s=s, arrays=arrays, warnings=range_warnings(features), finite=finite,
+                      tip_jacobian=tip_jacobian)
+
+
+def encode_json(prediction: Prediction) -> bytes:
+    """``PredictResponse`` JSON: per design s, backbone, rotation, tendons, in_distribution, warnings."""
+    arrays = {k: np.ascontiguousarray(v) for k, v in prediction.arrays.items()}  # orjson: C order only
+    s = np.ascontiguousarray(prediction.s)
+    finite = prediction.finite.tolist()
+    results = [{"s": s[j], **{k: v[j] for k, v in arrays.items()}, "in_distribution": not w, "warnings": w,
+                "finite": finite[j]} for j, w in enumerate(prediction.warnings)]
+    if prediction.tip_jacobian is not None:
+        for result, jacobian in zip(results, prediction.tip_jacobian, strict=True):
+            result["tip_jacobian"] = jacobian
+    return orjson.dumps({"model": prediction.model, "results": results}, option=orjson.OPT_SERIALIZE_NUMPY)
+
+
+def encode_npz(prediction: Prediction) -> bytes:
+    """An uncompressed ``.npz`` (what ``np.savez`` writes; floats as float32) of s, the wanted
+    arrays and in_distribution ``(B,)``, each member written in one piece: 19-30 ms against
+    32 ms for ``np.savez``'s chunked writes of an 8192-design answer."""
+    arrays = {"s": prediction.s, "in_distribution": np.array([not w for w in prediction.warnings]),
+              "finite": prediction.finite}
+    arrays |= prediction.arrays
+    if prediction.tip_jacobian is not None:
+        arrays["tip_jacobian"] = prediction.tip_jacobian
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for key, value in arrays.items():
+            value = np.ascontiguousarray(value, dtype=np.float32 if value.dtype.kind == "f" else value.dtype)
+            header = io.BytesIO()
+            np.lib.format.write_array_header_2_0(header, np.lib.format.header_data_from_array_1_0(value))
+            archive.writestr(f"{key}.npy", b"".join([header.getvalue(), memoryview(value).cast("B")]))
+    return buf.getvalue()
+
+
+def read_npy(body: bytes) -> np.ndarray:
+    """The array of a ``.npy`` body, read in place: its header is checked against the body's
+    length before anything is allocated (``np.load`` would allocate what the header claims)."""
+    buf = io.BytesIO(body)
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(buf)
+        reader = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(version)
+        if reader is None:
+            raise ValueError(f"unsupported .npy version {version}")
+        shape, fortran_order, dtype = reader(buf, max_header_size=1024)
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as exc:
+        raise InvalidRequest([Problem(("designs",), f"not a valid .npy array ({quote(str(exc))})", "npy")]) from None
+    count = int(np.prod(shape, dtype=object))
+    if dtype.hasobject or count * dtype.itemsize != len(body) - buf.tell():
+        raise InvalidRequest([Problem(("designs",), f"not a valid .npy array (header {dtype} {shape} does not "
+                                      f"match the {len(body) - buf.tell()} data bytes)", "npy")])
+    data = np.frombuffer(body, dtype=dtype, count=count, offset=buf.tell())
+    return data.reshape(shape, order="F" if fortran_order else "C")
+
+
+def _query_int(params: Mapping[str, list[str]], key: str, problems: list[Problem]) -> int | None:
+    raw = params.get(key)
+    if not raw:
+        return None
+    try:
+        return int(raw[0])
+    except ValueError:
+        problems.append(Problem((key,), f"must be an integer, got {quote(raw[0])}", "int_parsing"))
+        return None
+
+
+def _query_floats(params: Mapping[str, list[str]], key: str, problems: list[Problem]) -> list[float] | None:
+    raw = params.get(key)
+    if not raw:
+        return None
+    values = []
+    for i, text in enumerate(raw):
+        try:
+            values.append(float(text))
+        except ValueError:
+            problems.append(Problem((key, i), f"must be a number, got {quote(text)}", "float_parsing"))
+    return values
