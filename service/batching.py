@@ -25,7 +25,7 @@ from tdcr.runtime import Surrogate
 @dataclass
 class _Job:
     features: np.ndarray  # (b, F) raw SI designs
-    sigma: np.ndarray  # (n,) fractions of L
+    fractions: np.ndarray  # (n,) fractions of L
     pose: bool
     future: Future = field(default_factory=Future)
 
@@ -45,9 +45,9 @@ class Batcher:
         self._thread = threading.Thread(target=self._work, name=f"batcher-{model.name}", daemon=True)
         self._thread.start()
 
-    def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
         """As :meth:`Surrogate.predict`, run together with whatever else is queued (blocks the caller)."""
-        job = _Job(np.asarray(features, dtype=np.float64), np.asarray(sigma, dtype=np.float64), pose)
+        job = _Job(np.asarray(features, dtype=np.float64), np.asarray(fractions, dtype=np.float64), pose)
         with self._lock:
             inline = self._active == 0 and self._queue.empty()
             if inline:
@@ -95,7 +95,7 @@ class Batcher:
             designs += len(nxt.features)
         groups: dict[tuple[bytes, bool], list[_Job]] = {}
         for j in jobs:
-            groups.setdefault((j.sigma.tobytes(), j.pose), []).append(j)
+            groups.setdefault((j.fractions.tobytes(), j.pose), []).append(j)
         for group in groups.values():
             self._run(group)
 
@@ -105,9 +105,9 @@ class Batcher:
             self.on_run(sum(len(j.features) for j in jobs))
         try:
             if len(jobs) == 1:
-                jobs[0].future.set_result(self.model.predict(jobs[0].features, jobs[0].sigma, pose=jobs[0].pose))
+                jobs[0].future.set_result(self.model.predict(jobs[0].features, jobs[0].fractions, pose=jobs[0].pose))
                 return
-            out = self.model.predict(np.concatenate([j.features for j in jobs]), jobs[0].sigma, pose=jobs[0].pose)
+            out = self.model.predict(np.concatenate([j.features for j in jobs]), jobs[0].fractions, pose=jobs[0].pose)
         except Exception as exc:  # noqa: BLE001 - handed to the waiting requests, which report it
             for j in jobs:
                 if not j.future.done():

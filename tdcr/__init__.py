@@ -1,11 +1,13 @@
 """tdcr-surrogates: shapes of tendon-driven continuum robots, exactly or from neural operators.
 
-Public API (everything else is private to its module)::
+Public API (re-exported here; everything else is reached through its module, e.g.
+``tdcr.physics.STATUS``, ``tdcr.validation``, ``tdcr.client.Client``)::
 
     from tdcr import DesignBatch, ExternalLoads, SolverOptions, RodSolution, solve
-    from tdcr import sample_designs, TABLE_I, relative_l2
+    from tdcr import Surrogate, sample_designs, TABLE_I, relative_l2
 
-Importing ``tdcr`` loads numpy only: no torch, FastAPI, uvicorn or onnxruntime.
+Importing ``tdcr`` loads numpy only: no torch, FastAPI, uvicorn or onnxruntime (a
+:class:`Surrogate` imports onnxruntime when it loads a model).
 """
 
 from importlib.metadata import PackageNotFoundError, version
@@ -14,8 +16,9 @@ from tdcr.design_space import TABLE_I, sample_designs
 from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import RodSolution, SolverOptions, solve
+from tdcr.runtime import Surrogate
 
-__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "SolverOptions", "relative_l2",
+__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "SolverOptions", "Surrogate", "relative_l2",
            "sample_designs", "solve"]
 
 try:

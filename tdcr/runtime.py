@@ -109,15 +109,15 @@ class Surrogate:
             return [fn(rows) for rows in chunks]
         return list(self._pool.map(fn, chunks))
 
-    def run(self, features: np.ndarray, sigma: np.ndarray) -> dict[str, np.ndarray]:
-        """Raw graph outputs at ``sigma`` (DeepONet) or on the grid (FNO), float32, batch first.
+    def run(self, features: np.ndarray, fractions: np.ndarray) -> dict[str, np.ndarray]:
+        """Raw graph outputs at ``fractions`` (DeepONet) or on the grid (FNO), float32, batch first.
 
         onnxruntime writes every chunk straight into its rows of preallocated outputs (I/O
         binding): no per-chunk output allocation and no concatenation.
         """
         features = np.ascontiguousarray(features, dtype=np.float32)
-        sigma32 = np.ascontiguousarray(sigma, dtype=np.float32)
-        n_points = len(sigma32) if self.grid is None else self.grid.size
+        fractions32 = np.ascontiguousarray(fractions, dtype=np.float32)
+        n_points = len(fractions32) if self.grid is None else self.grid.size
         outputs = {name: np.empty((len(features), n_points, *shape[2:]), dtype=np.float32)
                    for name, shape in self.entry["outputs"].items()}
         if len(features) == 0:
@@ -127,7 +127,7 @@ class Surrogate:
             binding = self.session.io_binding()
             binding.bind_cpu_input("design", features[rows])
             if self.grid is None:
-                binding.bind_cpu_input("s", sigma32)
+                binding.bind_cpu_input("s", fractions32)
             for name, array in outputs.items():
                 view = array[rows]  # contiguous: the batch axis is the leading one
                 binding.bind_output(name, "cpu", 0, np.float32, list(view.shape), view.ctypes.data)
@@ -136,7 +136,7 @@ class Surrogate:
         self._side_by_side(run_rows, len(features))
         return outputs
 
-    def predict(self, features: np.ndarray, sigma: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
 
         Graph outputs stay float32 (the networks' precision); the pose fit of tendon models and
@@ -146,19 +146,19 @@ class Surrogate:
         interpolation of the pose).
         """
         features = np.asarray(features, dtype=np.float64)
-        sigma = np.asarray(sigma, dtype=np.float64)
-        raw = {k: v for k, v in self.run(features, sigma).items() if pose or k == "tendons"}
+        fractions = np.asarray(fractions, dtype=np.float64)
+        raw = {k: v for k, v in self.run(features, fractions).items() if pose or k == "tendons"}
         grid = self.grid
-        on_grid = grid is None or (grid.size == sigma.size and np.allclose(grid, sigma, atol=1e-9))
+        on_grid = grid is None or (grid.size == fractions.size and np.allclose(grid, fractions, atol=1e-9))
         if on_grid and (not pose or "rotation" in raw):
             return raw  # nothing to post-process
-        weights = None if on_grid else cubic_weights(grid, sigma)
+        weights = None if on_grid else cubic_weights(grid, fractions)
         parts = self._side_by_side(
-            lambda rows: self._post(features[rows], {k: v[rows] for k, v in raw.items()}, sigma, pose, weights),
+            lambda rows: self._post(features[rows], {k: v[rows] for k, v in raw.items()}, fractions, pose, weights),
             len(features))
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
-    def _post(self, features: np.ndarray, out: dict[str, np.ndarray], sigma: np.ndarray, pose: bool,
+    def _post(self, features: np.ndarray, out: dict[str, np.ndarray], fractions: np.ndarray, pose: bool,
               weights: np.ndarray | None) -> dict[str, np.ndarray]:
         """For one chunk: cubic interpolation off the FNO grid (``weights`` ``(n, n_grid)``, None on
         the grid) and the pose fit of tendon models."""
@@ -168,8 +168,8 @@ class Surrogate:
             if "rotation" in out:
                 out["rotation"] = orthonormalize(out["rotation"])
         if pose and "rotation" not in out:
-            out["backbone"], out["rotation"] = rigid_fit(tendon_offsets(features, sigma), out["tendons"])
+            out["backbone"], out["rotation"] = rigid_fit(tendon_offsets(features, fractions), out["tendons"])
         elif pose and not on_grid:  # keep tendons = p + R rho consistent after interpolation
-            rho = tendon_offsets(features, sigma)
+            rho = tendon_offsets(features, fractions)
             out["tendons"] = out["backbone"][:, :, None, :] + np.einsum("bnij,bntj->bnti", out["rotation"], rho)
         return out

@@ -62,3 +62,71 @@ def test_importing_loads_nothing_heavy(root, module, banned):
             "assert not loaded, loaded")
     done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+#: The transports: they decode, call the data plane and encode, and name no model.
+TRANSPORTS = ("service/grpc_server.py", "service/routers/v2.py", "service/routers/predict.py",
+              "service/routers/exact.py", "service/routers/inverse.py")
+
+
+def test_no_transport_names_a_model(root, tiny_models):
+    """No transport mentions a model by name (the solver's, the inverse model's or any operator's),
+    nor the constants that hold those names."""
+    import json
+
+    from service.solver import INVERSE_MODEL
+    from tdcr.schemas import EXACT_MODEL
+
+    manifest = json.loads((tiny_models[1] / "manifest.json").read_text())
+    names = {EXACT_MODEL, INVERSE_MODEL, *manifest["models"]}
+    for path in TRANSPORTS:
+        tree = ast.parse((root / path).read_text())
+        for node in ast.walk(tree):  # OpenAPI tags name a resource and ``kind`` a kind of model, not a model
+            if isinstance(node, ast.Call):
+                node.keywords = [k for k in node.keywords if k.arg not in ("tags", "kind")]
+        strings = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+        identifiers = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)} | {
+            a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) for a in n.names}
+        assert not strings & names, f"{path} names {strings & names}"
+        assert not identifiers & {"EXACT_MODEL", "INVERSE_MODEL", "SOLVER_MODELS"}, path
+
+
+def test_the_documented_example_model_is_served_by_every_codec(root):
+    """docs/architecture.md's "Adding a model" example, registered with a data plane, answers
+    /predict's codec and OIP REST's, with the shapes its docstring promises."""
+    import asyncio
+    import re
+
+    import numpy as np
+    import orjson
+
+    from service.codecs import PredictCodec
+    from service.dataplane import DataPlane
+    from service.metrics import Metrics
+    from service.model import InferenceRequest, ModelRepository
+    from service.oip import RestCodec
+    from tdcr.design_space import sample_designs
+    from tdcr.engine import prepare_json
+    from tdcr.validation import Limits
+
+    text = (root / "docs" / "architecture.md").read_text()
+    code = re.search(r"### Adding a model.*?```python\n(.*?)```", text, re.S).group(1)
+    namespace: dict = {}
+    exec(code.replace("state.repository.register(StraightRod())", ""), namespace)  # noqa: S102 - our own docs
+    plane = DataPlane(ModelRepository(), Metrics.create())
+    plane.repository.register(namespace["StraightRod"]())
+    designs = sample_designs(3, seed=0)
+    request = prepare_json({"model": "straight", "designs": designs.to_dicts()}, limits=Limits())
+    answer = asyncio.run(plane.infer("straight", InferenceRequest(request, PredictCodec()), kind="surrogate",
+                                     protocol="http", endpoint="/predict"))
+    body = orjson.loads(answer.body)
+    assert answer.count == 3 and body["model"] == "straight"
+    np.testing.assert_allclose(np.array(body["results"][1]["backbone"])[-1], [0, 0, designs.L[1]], rtol=1e-6)
+    tensors = orjson.dumps({"inputs": [{"name": "design", "shape": [3, 15], "datatype": "FP64",
+                                        "data": designs.features().reshape(-1).tolist()}],
+                            "outputs": [{"name": "backbone"}]})
+    answer = asyncio.run(plane.infer("straight", InferenceRequest(tensors, RestCodec()), protocol="http",
+                                     endpoint="/v2/models/{model}/infer"))
+    out = orjson.loads(answer.body[0])["outputs"][0]
+    assert out["shape"] == [3, 42, 3]
+    assert np.asarray(out["data"]).reshape(3, 42, 3)[2, -1, 2] == pytest.approx(designs.L[2], rel=1e-6)

@@ -323,3 +323,17 @@ def test_inverse_kinematics_as_a_v2_model(server, stub):
         stub.ModelInfer(_request("inverse", start.features()))
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "missing input(s) ['position']" in \
         err.value.details()
+
+
+@pytest.mark.parametrize("model", ["deeponet", "exact"])
+def test_fractions_within_rounding_are_clamped_and_beyond_refused(stub, model):
+    """A client's s / L is 1.0000000000015 at the tip: accepted and clamped; 1 + 1e-8 is not."""
+    features = sample_designs(2, seed=3).features()
+    clamped = _outputs(stub.ModelInfer(_request(model, features, outputs=["tendons"], s=np.array([0.0, 0.5,
+                                                                                                 1 + 1.5e-12]))))
+    exact = _outputs(stub.ModelInfer(_request(model, features, outputs=["tendons"], s=np.array([0.0, 0.5, 1.0]))))
+    np.testing.assert_array_equal(clamped["tendons"], exact["tendons"])
+    with pytest.raises(grpc.RpcError) as err:
+        stub.ModelInfer(_request(model, features, outputs=["tendons"], s=np.array([0.0, 0.5, 1 + 1e-8])))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "s[2]: must be a fraction of L in [0, 1]" in err.value.details()

@@ -163,3 +163,21 @@ def test_inverse_kinematics_model_over_rest(server):
     assert outputs["status"] == [0] and outputs["error"][0] <= 1e-4 * design.L[0]
     two_designs = request | {"inputs": [request["inputs"][0] | {"shape": [2, 15], "data": [0.0] * 30}]}
     assert _post(server, "inverse", two_designs).status_code == 400
+
+
+@pytest.mark.parametrize("model", ["deeponet", "fno_pose", "exact"])
+def test_fractions_within_rounding_are_clamped_and_beyond_refused(server, model):
+    """A client's s / L is 1.0000000000015 at the tip: accepted and clamped; 1 + 1e-8 is not."""
+    features = sample_designs(2, seed=3).features()
+    for tip, status in ((1 + 1.5e-12, 200), (1 + 1e-8, 400)):
+        s = [0.0, 0.5, tip]
+        request = {"inputs": [_design_input(features, False)[0],
+                              {"name": "s", "shape": [3], "datatype": "FP64", "data": s}],
+                   "outputs": [{"name": "backbone"}]}
+        r = httpx.post(f"{server.url}/v2/models/{model}/infer", json=request, timeout=60)
+        assert r.status_code == status, r.text
+        if status == 400:
+            assert "s[2]: must be a fraction of L in [0, 1]" in r.json()["error"]
+        else:
+            tip_z = np.asarray(r.json()["outputs"][0]["data"]).reshape(2, 3, 3)[:, -1, 2]
+            assert (tip_z > 0).all()

@@ -271,3 +271,30 @@ def test_stopping_the_server_stops_its_solver_processes(tiny_models):
     while time.time() < deadline and any(Path(f"/proc/{k}").exists() for k in kids):
         time.sleep(0.2)
     assert not [k for k in kids if Path(f"/proc/{k}").exists()]
+
+
+def _fractions_of(length: float) -> list[float]:
+    """Arclength fractions as a client computes them, s / L: at the tip 1.0000000000000002 or so."""
+    s = np.linspace(0.0, length, 42) * (1 + 1.5e-12)  # the tip lands at 1 + 1.5e-12
+    return (s / length).tolist()
+
+
+def test_fractions_within_rounding_are_clamped_and_beyond_refused(example_request, server):
+    design = example_request["designs"][0]
+    length = design["L"]
+    fractions = _fractions_of(length)
+    assert fractions[-1] > 1.0
+    for route in ("/predict", "/exact"):
+        r = httpx.post(server.url + route, json={"designs": [design], "s": fractions}, timeout=60)
+        assert r.status_code == 200, r.text
+        assert r.json()["results"][0]["s"][-1] == pytest.approx(length, rel=1e-15)  # clamped onto L
+        r = httpx.post(server.url + route, json={"designs": [design], "s": fractions[:-1] + [1 + 1e-8]}, timeout=60)
+        assert r.status_code == 422 and "s[41]: must be a fraction of L in [0, 1]" in r.json()["message"]
+    features = np.array([[design["E"], design["r"], length, *[t["offset"] for t in design["tendons"]],
+                          *[t["pitch"] for t in design["tendons"]], *[t["tension"] for t in design["tendons"]]]])
+    buf = io.BytesIO()
+    np.save(buf, features)
+    for tip, status in ((1 + 1.5e-12, 200), (1 + 1e-8, 422)):
+        r = httpx.post(server.url + "/predict", params=[("s", "0"), ("s", "0.5"), ("s", repr(tip))],
+                       content=buf.getvalue(), headers={"content-type": "application/x-npy"}, timeout=60)
+        assert r.status_code == status, r.text

@@ -170,7 +170,7 @@ def internal_wrench(rotation: np.ndarray, strains: np.ndarray, mat: _Material) -
 
 
 def tendon_routing(
-    designs: DesignBatch, sigma: np.ndarray, *, derivative: bool = True
+    designs: DesignBatch, fractions: np.ndarray, *, derivative: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Body-frame tendon offsets rho_i(s) and their arclength derivatives.
 
@@ -178,7 +178,7 @@ def tendon_routing(
 
     Args:
         designs: ``B`` designs with ``N_t`` tendons.
-        sigma: arclength fractions s / L, ``(M,)``.
+        fractions: arclength fractions s / L, ``(M,)``.
         derivative: also return drho / ds (else ``None``).
 
     Returns:
@@ -186,7 +186,7 @@ def tendon_routing(
     """
     n_t = designs.n_tendons
     base_angle = 2.0 * np.pi * np.arange(n_t) / n_t  # (N_t,)
-    s = designs.L[:, None] * sigma[None, :]  # (B, M)
+    s = designs.L[:, None] * fractions[None, :]  # (B, M)
     phi = base_angle[None, None, :] + designs.pitch[:, None, :] * s[:, :, None]  # (B, M, N_t)
     off = designs.offset[:, None, :]
     cos, sin = np.cos(phi), np.sin(phi)
@@ -358,7 +358,7 @@ def _newton(x: np.ndarray, nodes: _Nodes, opts: SolverOptions) -> tuple[np.ndarr
     return x, converged, iterations
 
 
-def _continue_along_s(x: np.ndarray, ok: np.ndarray, iters: np.ndarray, nodes: _Nodes, sigma_nodes: np.ndarray,
+def _continue_along_s(x: np.ndarray, ok: np.ndarray, iters: np.ndarray, nodes: _Nodes, node_fractions: np.ndarray,
                       x_base: np.ndarray, opts: SolverOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Solve again, by continuation in s, every design with a node whose Newton failed from the
     base strains: its nodes in order of arclength, each started from the last converged node's
@@ -367,11 +367,11 @@ def _continue_along_s(x: np.ndarray, ok: np.ndarray, iters: np.ndarray, nodes: _
 
     ``x`` ``(B m, 6)``, ``ok`` and ``iters`` ``(B m,)`` design-major; ``x_base`` ``(B, 6)``.
     """
-    m = sigma_nodes.shape[0]
+    m = node_fractions.shape[0]
     x, ok, iters = x.reshape(-1, m, 6).copy(), ok.reshape(-1, m).copy(), iters.reshape(-1, m).copy()
     redo = np.nonzero(~ok.all(axis=1))[0]
     last = x_base[redo].copy()  # (R, 6): the strains to start the next node from
-    for j in np.argsort(sigma_nodes, kind="stable"):
+    for j in np.argsort(node_fractions, kind="stable"):
         xj, okj, itj = _newton(last.copy(), nodes.take(redo * m + j), opts)
         x[redo, j], ok[redo, j] = xj, okj
         iters[redo, j] += itj
@@ -409,24 +409,24 @@ def _line_search(x: np.ndarray, step: np.ndarray, grad: np.ndarray, nodes: _Node
 # --------------------------------------------------------------------------- grids
 
 
-def _step_grid(sigma_out: np.ndarray, max_step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Integration steps from 0 to max(sigma_out), aligned with the output points.
+def _step_grid(fractions_out: np.ndarray, max_step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integration steps from 0 to max(fractions_out), aligned with the output points.
 
     Returns ``(edges (K+1,), widths (K,), out_step (n,))`` in fractions of L, where
     ``out_step[j]`` is the index of output point j among the edges (K = 0 when all s are 0).
     """
-    breaks = np.unique(np.concatenate([[0.0], sigma_out]))
+    breaks = np.unique(np.concatenate([[0.0], fractions_out]))
     edges = [np.zeros(1)]
     for a, b in zip(breaks[:-1], breaks[1:], strict=True):
         k = max(1, int(np.ceil((b - a) / max_step - 1e-9)))
         edges.append(np.linspace(a, b, k + 1)[1:])
     edges = np.concatenate(edges)
-    return edges, np.diff(edges), np.searchsorted(edges, sigma_out)
+    return edges, np.diff(edges), np.searchsorted(edges, fractions_out)
 
 
-def _make_nodes(designs: DesignBatch, mat: _Material, sigma: np.ndarray) -> _Nodes:
-    rho, drho = tendon_routing(designs, sigma)
-    b, m = designs.n_designs, sigma.shape[0]
+def _make_nodes(designs: DesignBatch, mat: _Material, fractions: np.ndarray) -> _Nodes:
+    rho, drho = tendon_routing(designs, fractions)
+    b, m = designs.n_designs, fractions.shape[0]
     rep = lambda a: np.repeat(a, m, axis=0)  # noqa: E731  (B, ...) -> (B*M, ...)
     return _Nodes(
         rho=rho.reshape(b * m, -1, 3), drho=drho.reshape(b * m, -1, 3),
@@ -472,17 +472,19 @@ def solve(
         it never fails the batch.
     """
     opts = options or SolverOptions()
-    sigma_out = np.asarray(fractions, dtype=np.float64).reshape(-1)
-    if (sigma_out.size == 0 or np.any(~np.isfinite(sigma_out)) or sigma_out.min() < -FRACTION_ROUNDING
-            or sigma_out.max() > 1 + FRACTION_ROUNDING):
+    fractions_out = np.asarray(fractions, dtype=np.float64).reshape(-1)
+    if (fractions_out.size == 0 or np.any(~np.isfinite(fractions_out)) or fractions_out.min() < -FRACTION_ROUNDING
+            or fractions_out.max() > 1 + FRACTION_ROUNDING):
         raise ValueError("fractions must be a non-empty array of arclength fractions in [0, 1]")
-    sigma_out = np.clip(sigma_out, 0.0, 1.0)
+    fractions_out = np.clip(fractions_out, 0.0, 1.0)
     loaded = loads is not None and not loads.is_zero()
-    if loaded and (opts.linearized or jacobian):
-        raise ValueError("the linearized model and the Jacobian cover tendon loads only")
+    if loaded and opts.linearized:
+        raise ValueError("the linearized model covers tendon loads only")
+    if jacobian and (loaded or opts.linearized):
+        raise ValueError("the Jacobian covers the exact model under tendon loads only")
     if loaded:
-        return _solve_loaded_compiled(designs, sigma_out, loads, opts, workers)
-    return _solve_tendon_only(designs, sigma_out, opts, jacobian=jacobian, threads=workers)
+        return _solve_loaded_compiled(designs, fractions_out, loads, opts, workers)
+    return _solve_tendon_only(designs, fractions_out, opts, jacobian=jacobian, threads=workers)
 
 
 def body_strains(designs: DesignBatch, fractions: np.ndarray, *, options: SolverOptions | None = None
@@ -498,11 +500,11 @@ def body_strains(designs: DesignBatch, fractions: np.ndarray, *, options: Solver
         ``(strains (B, M, 6), converged (B,))`` with strains = (nu (1), kappa (rad/m)) in the body frame.
     """
     opts = options or SolverOptions()
-    sigma = np.asarray(fractions, dtype=np.float64).reshape(-1)
-    b, m = designs.n_designs, sigma.shape[0]
+    fractions = np.asarray(fractions, dtype=np.float64).reshape(-1)
+    b, m = designs.n_designs, fractions.shape[0]
     mat = material(designs)
     x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
-    x, ok, _ = _newton(np.repeat(x_base, m, axis=0), _make_nodes(designs, mat, sigma), opts)
+    x, ok, _ = _newton(np.repeat(x_base, m, axis=0), _make_nodes(designs, mat, fractions), opts)
     return x.reshape(b, m, 6), ok.reshape(b, m).all(axis=1)
 
 
@@ -513,17 +515,17 @@ class _WarmStart:
     strains: np.ndarray | None = None
 
 
-def _solve_tendon_only(designs: DesignBatch, sigma_out: np.ndarray, opts: SolverOptions, *,
+def _solve_tendon_only(designs: DesignBatch, fractions_out: np.ndarray, opts: SolverOptions, *,
                        jacobian: bool = False, warm: _WarmStart | None = None, threads: int = 1) -> RodSolution:
     """Tendon loads only.  Step control per design (``opts.step_tol``) except for the linearized
     model and warm-started tip solves (:class:`TipSolver`), which use the base grid."""
-    edges0, _, out0 = _step_grid(sigma_out, opts.max_step)
+    edges0, _, out0 = _step_grid(fractions_out, opts.max_step)
     if opts.linearized or warm is not None:
-        sol, _ = _solve_on_grid(designs, sigma_out, edges0, out0, opts, jacobian=jacobian, warm=warm)
+        sol, _ = _solve_on_grid(designs, fractions_out, edges0, out0, opts, jacobian=jacobian, warm=warm)
         return _finish_status(sol, np.full(designs.n_designs, np.nan), len(edges0) - 1, opts, estimated=False)
     if not jacobian:
-        return _solve_compiled(designs, sigma_out, edges0, opts, threads)
-    return _solve_adaptive(designs, sigma_out, edges0, out0, opts, jacobian)
+        return _solve_compiled(designs, fractions_out, edges0, opts, threads)
+    return _solve_adaptive(designs, fractions_out, edges0, out0, opts, jacobian)
 
 
 def _refine(edges: np.ndarray) -> np.ndarray:
@@ -599,13 +601,13 @@ def _coarse_estimate(designs: DesignBatch, x: np.ndarray, edges: np.ndarray, out
     return _richardson(tendons[:, on_coarse], coarse)
 
 
-def _solve_adaptive(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndarray, out0: np.ndarray,
+def _solve_adaptive(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.ndarray, out0: np.ndarray,
                     opts: SolverOptions, jacobian: bool) -> RodSolution:
     """The vectorised path (for the Jacobian) with the kernel's step control: the base grid with the
     free estimate, then, for the designs above ``step_tol``, the grid halved (Richardson against the
     last level)."""
-    sol, x = _solve_on_grid(designs, sigma_out, edges0, out0, opts, jacobian=jacobian)
-    rho_out, _ = tendon_routing(designs, sigma_out, derivative=False)
+    sol, x = _solve_on_grid(designs, fractions_out, edges0, out0, opts, jacobian=jacobian)
+    rho_out, _ = tendon_routing(designs, fractions_out, derivative=False)
     estimate = _coarse_estimate(designs, x, edges0, out0, rho_out, sol.tendons)
     fields = {f.name: getattr(sol, f.name) for f in dataclasses.fields(RodSolution)
               if getattr(sol, f.name) is not None}
@@ -617,7 +619,7 @@ def _solve_adaptive(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndar
         if active.size == 0:
             break
         edges, out_step = _refine(edges), 2 * out_step
-        finer, _ = _solve_on_grid(designs.take(active), sigma_out, edges, out_step, opts, jacobian=jacobian)
+        finer, _ = _solve_on_grid(designs.take(active), fractions_out, edges, out_step, opts, jacobian=jacobian)
         estimate[active] = _richardson(finer.tendons, fields["tendons"][active])
         for name in fields:
             fields[name][active] = getattr(finer, name)
@@ -626,18 +628,18 @@ def _solve_adaptive(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndar
     return _finish_status(RodSolution(**fields), estimate, steps, opts, estimated=True)
 
 
-def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, sigma_out: np.ndarray,
+def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fractions_out: np.ndarray,
                    opts: SolverOptions, *, loaded: bool):
     """The kernels' grouped arguments (:mod:`tdcr.physics._kernel`'s named tuples): the rods, the
     base grid, the tolerances and the preallocated outputs."""
     from tdcr.physics._compiled import kernel
 
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-    b, n, n_t = designs.n_designs, sigma_out.shape[0], designs.n_tendons
+    b, n, n_t = designs.n_designs, fractions_out.shape[0], designs.n_tendons
     rods = kernel.Rods(kse=f64(mat.kse), kbt=f64(mat.kbt), radius=f64(designs.r), length=f64(designs.L),
                        offset=f64(designs.offset), pitch=f64(designs.pitch), tension=f64(designs.tension))
-    grid = kernel.Grid(edges=f64(edges0), out_step=np.searchsorted(edges0, sigma_out).astype(np.int64),
-                       fractions=f64(sigma_out))
+    grid = kernel.Grid(edges=f64(edges0), out_step=np.searchsorted(edges0, fractions_out).astype(np.int64),
+                       fractions=f64(fractions_out))
     tols = kernel.Tolerances(newton_tol=float(opts.newton_tol), max_newton=int(opts.max_newton),
                              step_tol=float(opts.step_tol), max_level=int(opts.max_level),
                              shooting_tol=float(opts.shooting_tol), max_shooting=int(opts.max_shooting))
@@ -674,33 +676,33 @@ def several_equilibria(shoot_jac: np.ndarray) -> np.ndarray:
     return (real & (eig.real <= 0)).any(axis=1) | ~finite
 
 
-def _from_kernel(designs: DesignBatch, mat: _Material, sigma_out: np.ndarray, edges0: np.ndarray,
+def _from_kernel(designs: DesignBatch, mat: _Material, fractions_out: np.ndarray, edges0: np.ndarray,
                  out, status: np.ndarray) -> RodSolution:
     """A :class:`RodSolution` of the kernels' outputs ``out`` with the final ``status``."""
     force, moment = internal_wrench(out.rotation, out.strains, mat)
     return RodSolution(
-        s=designs.L[:, None] * sigma_out[None, :], backbone=out.backbone, rotation=out.rotation,
+        s=designs.L[:, None] * fractions_out[None, :], backbone=out.backbone, rotation=out.rotation,
         tendons=out.tendons, force=force, moment=moment, converged=status == 0, residual=out.residual,
         iterations=out.iterations, status=status, error_estimate=out.estimate,
         steps=(len(edges0) - 1) * 2**out.level,
     )
 
 
-def _solve_loaded_compiled(designs: DesignBatch, sigma_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
+def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
                            threads: int) -> RodSolution:
     """The loaded shooting kernel (:func:`tdcr.physics._kernel.solve_loaded_design`) on ``threads``
     threads (0: all): variational shooting Jacobian, load continuation when needed, RK4 with the
     step controlled per design like the tendon-only kernel."""
     mat = material(designs)
     f_g, f_tip, m_tip = loads.resolved(designs.n_designs, mat.area)
-    edges0, _, _ = _step_grid(np.append(sigma_out, 1.0), opts.max_step_loads)
-    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, sigma_out, opts, loaded=True)
+    edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step_loads)
+    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=True)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     _run_kernel(kernel.solve_loaded_batch, threads, designs.n_designs, rods,
                 kernel.Loads(f_g=f64(f_g), f_tip=f64(f_tip), m_tip=f64(m_tip)), grid, tols, out)
     status = out.status.astype(np.int8)
     status[(status == Status.CONVERGED) & several_equilibria(out.shoot_jac)] = Status.MULTIPLE_EQUILIBRIA
-    return _from_kernel(designs, mat, sigma_out, edges0, out, status)
+    return _from_kernel(designs, mat, fractions_out, edges0, out, status)
 
 
 def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOptions, *,
@@ -714,19 +716,19 @@ def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOp
                                steps=np.broadcast_to(np.asarray(steps), (b,)).copy())
 
 
-def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarray, out_step: np.ndarray,
+def _solve_on_grid(designs: DesignBatch, fractions_out: np.ndarray, edges: np.ndarray, out_step: np.ndarray,
                    opts: SolverOptions, *, jacobian: bool = False, warm: _WarmStart | None = None
                    ) -> tuple[RodSolution, np.ndarray]:
     """Tendon-only solve on one step grid (``edges`` fractions of L, outputs at edges ``out_step``);
     returns the solution and the node strains ``(B, 2K+1, 6)`` (K+1 edges, then K midpoints)."""
-    b, _n = designs.n_designs, sigma_out.shape[0]
+    b, _n = designs.n_designs, fractions_out.shape[0]
     mat = material(designs)
     widths = np.diff(edges)
     k = widths.shape[0]
     starts = edges[:-1]
-    sigma_nodes = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,), the outputs among the edges
-    m = sigma_nodes.shape[0]
-    nodes = _make_nodes(designs, mat, sigma_nodes)
+    node_fractions = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,), the outputs among the edges
+    m = node_fractions.shape[0]
+    nodes = _make_nodes(designs, mat, node_fractions)
     if opts.linearized:
         x = _first_order_strains(nodes)
         ok, iters = np.ones(x.shape[0], dtype=bool), np.zeros(x.shape[0], dtype=np.int64)
@@ -737,7 +739,7 @@ def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarra
         x_base, _, _ = _newton(_undeformed(b), _make_nodes(designs, mat, np.zeros(1)), opts)
         x, ok, iters = _newton(np.repeat(x_base, m, axis=0), nodes, opts)
         if not ok.all():
-            x, ok, iters = _continue_along_s(x, ok, iters, nodes, sigma_nodes, x_base, opts)
+            x, ok, iters = _continue_along_s(x, ok, iters, nodes, node_fractions, x_base, opts)
     if warm is not None:
         warm.strains = x.copy() if ok.all() else None  # a failed solve is no place to start from
     dx = _strain_sensitivities(x, nodes).reshape(b, m, 6, -1) if jacobian else None
@@ -757,7 +759,7 @@ def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarra
         pose_jacobian = np.concatenate([R @ eta[:, :, :3], R @ eta[:, :, 3:]], axis=2)
 
     x_out = x[:, out_step]
-    rho_out, _ = tendon_routing(designs, sigma_out)
+    rho_out, _ = tendon_routing(designs, fractions_out)
     tendons = p[:, :, None, :] + np.einsum("bnij,bntj->bnti", R, rho_out)
     force, moment = internal_wrench(R, x_out, mat)
     residual = _wrench_norm(res, designs.L[:, None]).max(axis=1)
@@ -768,22 +770,22 @@ def _solve_on_grid(designs: DesignBatch, sigma_out: np.ndarray, edges: np.ndarra
         status[(status == 0) & ~(residual <= opts.residual_tol * scale)] = Status.RESIDUAL_TOO_LARGE
     status[~(np.isfinite(tendons).all(axis=(1, 2, 3)) & np.isfinite(residual))] = Status.NOT_FINITE
     return RodSolution(
-        s=designs.L[:, None] * sigma_out[None, :], backbone=p, rotation=R, tendons=tendons,
+        s=designs.L[:, None] * fractions_out[None, :], backbone=p, rotation=R, tendons=tendons,
         force=force, moment=moment, converged=status == 0, residual=residual, iterations=iters,
         jacobian=pose_jacobian, status=status,
     ), x
 
 
-def _solve_compiled(designs: DesignBatch, sigma_out: np.ndarray, edges0: np.ndarray, opts: SolverOptions,
+def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.ndarray, opts: SolverOptions,
                     threads: int) -> RodSolution:
     """The tendon-only kernel (:func:`tdcr.physics._kernel.solve_design`) on ``threads`` threads (0: all)."""
     mat = material(designs)
-    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, sigma_out, opts, loaded=False)
+    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
     _run_kernel(kernel.solve_batch, threads, designs.n_designs, rods, grid, tols, out)
     status = out.status.astype(np.int8)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
     status[(status == Status.CONVERGED) & ~(out.residual <= opts.residual_tol * scale)] = Status.RESIDUAL_TOO_LARGE
-    return _from_kernel(designs, mat, sigma_out, edges0, out, status)
+    return _from_kernel(designs, mat, fractions_out, edges0, out, status)
 
 
 def _strain_sensitivities(x: np.ndarray, nodes: _Nodes) -> np.ndarray:

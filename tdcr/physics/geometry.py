@@ -9,9 +9,9 @@ from tdcr.designs import DesignBatch
 from tdcr.physics.cosserat import tendon_routing
 
 
-def tendon_offsets(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+def tendon_offsets(features: np.ndarray, fractions: np.ndarray) -> np.ndarray:
     """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for features ``(B, 3 + 3 N_t)``."""
-    return tendon_routing(DesignBatch.from_features(features), np.asarray(sigma, dtype=np.float64),
+    return tendon_routing(DesignBatch.from_features(features), np.asarray(fractions, dtype=np.float64),
                           derivative=False)[0]
 
 
@@ -56,11 +56,11 @@ def rigid_fit(body: np.ndarray, world: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return p, rot
 
 
-def cubic_weights(grid: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """Matrix ``(n_out, n_grid)`` of natural-cubic-spline interpolation from ``grid`` to ``sigma``."""
+def cubic_weights(grid: np.ndarray, fractions: np.ndarray) -> np.ndarray:
+    """Matrix ``(n_out, n_grid)`` of natural-cubic-spline interpolation from ``grid`` to ``fractions``."""
     n = grid.size
     eye = np.eye(n)
-    # natural cubic spline of each unit vector, evaluated at sigma (small dense solve, once per request)
+    # natural cubic spline of each unit vector, evaluated at fractions (small dense solve, once per request)
     h = np.diff(grid)
     a = np.zeros((n, n))
     rhs = np.zeros((n, n))
@@ -69,10 +69,10 @@ def cubic_weights(grid: np.ndarray, sigma: np.ndarray) -> np.ndarray:
         a[i, i - 1], a[i, i], a[i, i + 1] = h[i - 1], 2 * (h[i - 1] + h[i]), h[i]
         rhs[i] = 6 * ((eye[i + 1] - eye[i]) / h[i] - (eye[i] - eye[i - 1]) / h[i - 1])
     m = np.linalg.solve(a, rhs)  # second derivatives per unit vector, (n, n)
-    k = np.clip(np.searchsorted(grid, sigma, side="right") - 1, 0, n - 2)
+    k = np.clip(np.searchsorted(grid, fractions, side="right") - 1, 0, n - 2)
     t0, t1 = grid[k], grid[k + 1]
     hk = t1 - t0
-    A, B = (t1 - sigma) / hk, (sigma - t0) / hk
+    A, B = (t1 - fractions) / hk, (fractions - t0) / hk
     w = A[:, None] * eye[k] + B[:, None] * eye[k + 1]
     w += ((A**3 - A)[:, None] * m[k] + (B**3 - B)[:, None] * m[k + 1]) * (hk**2 / 6)[:, None]
     return w
