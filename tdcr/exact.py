@@ -164,7 +164,7 @@ def warm_up() -> bool:
     from tdcr.design_space import sample_designs
     from tdcr.designs import ExternalLoads
 
-    designs, sigma = sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5)
-    solve(designs, sigma)
-    solve(designs, sigma, loads=ExternalLoads(tip_force=np.array([[0.0, 0.01, 0.0]] * 2)))
+    designs, fraction = sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5)
+    solve(designs, fraction)
+    solve(designs, fraction, loads=ExternalLoads(tip_force=np.array([[0.0, 0.01, 0.0]] * 2)))
     return True

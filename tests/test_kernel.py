@@ -11,7 +11,7 @@ from tdcr import sample_designs
 from tdcr.metrics import relative_l2
 from tdcr.physics import SolverOptions, Status, cosserat, solve
 
-SIGMA = np.linspace(0.0, 1.0, 42)
+FRACTIONS = np.linspace(0.0, 1.0, 42)
 #: the kernel and the vectorised path differ only in Newton's starting points and summation order
 SAME_METHOD_RTOL = 1e-10
 
@@ -26,11 +26,11 @@ def designs():
     return sample_designs(300, seed=1)
 
 
-@pytest.mark.parametrize("sigma", [SIGMA, np.array([1.0, 0.0, 0.37, 0.37, 0.5, 0.05, 0.9]), np.ones(1),
+@pytest.mark.parametrize("fractions", [FRACTIONS, np.array([1.0, 0.0, 0.37, 0.37, 0.5, 0.05, 0.9]), np.ones(1),
                                    np.concatenate([np.linspace(0, 0.2, 30), np.linspace(0.25, 1, 4)])],
                          ids=["42-points", "unsorted-duplicates", "tip", "non-uniform"])
-def test_kernel_equals_the_vectorised_path(designs, sigma):
-    fast, slow = solve(designs, sigma), vectorised(designs, sigma)
+def test_kernel_equals_the_vectorised_path(designs, fractions):
+    fast, slow = solve(designs, fractions), vectorised(designs, fractions)
     assert fast.status is not None and fast.error_estimate is not None
     np.testing.assert_array_equal(fast.status, slow.status)
     np.testing.assert_array_equal(fast.steps, slow.steps)
@@ -44,8 +44,8 @@ def test_kernel_equals_the_vectorised_path(designs, sigma):
 
 def test_step_control_meets_1e_6_on_every_design_and_estimates_its_error(designs):
     """Against the same method at a 20x finer fixed step (its own error is ~1e-5 of ours)."""
-    sol = solve(designs, SIGMA)
-    fine = solve(designs, SIGMA, options=SolverOptions(max_step=1 / 820, max_level=0, step_tol=np.inf))
+    sol = solve(designs, FRACTIONS)
+    fine = solve(designs, FRACTIONS, options=SolverOptions(max_step=1 / 820, max_level=0, step_tol=np.inf))
     error = relative_l2(sol.tendons, fine.tendons)
     assert sol.converged.all() and error.max() <= 1e-6
     assert (sol.error_estimate <= SolverOptions().step_tol).all()
@@ -56,7 +56,7 @@ def test_step_control_meets_1e_6_on_every_design_and_estimates_its_error(designs
     ratio = sol.error_estimate[big] / error[big]
     assert ratio.min() > 0.5 and ratio.max() < 2.0
     # the base grid alone is not enough for some designs: that is what the step control is for
-    base = solve(designs, SIGMA, options=SolverOptions(max_level=0, step_tol=np.inf))
+    base = solve(designs, FRACTIONS, options=SolverOptions(max_level=0, step_tol=np.inf))
     assert relative_l2(base.tendons, fine.tendons).max() > 1e-6
 
 
@@ -66,7 +66,7 @@ def test_the_vectorised_path_continues_along_s_where_newton_fails_from_the_base_
     (60 iterations, `newton_failed`) on the vectorised path, which the kernel's continuation in s
     solves in 4; the vectorised path now retries such designs by continuation in s."""
     design = sample_designs(100_000, seed=0).take(slice(48_464, 48_465))
-    fast, slow = solve(design, SIGMA), vectorised(design, SIGMA)
+    fast, slow = solve(design, FRACTIONS), vectorised(design, FRACTIONS)
     assert fast.status[0] == slow.status[0] == Status.CONVERGED
     np.testing.assert_array_equal(slow.steps, fast.steps)
     assert relative_l2(slow.tendons, fast.tendons)[0] < SAME_METHOD_RTOL
@@ -74,17 +74,17 @@ def test_the_vectorised_path_continues_along_s_where_newton_fails_from_the_base_
 
 def test_a_status_per_design():
     d = sample_designs(6, seed=4)
-    sol = solve(d, SIGMA, options=SolverOptions(max_newton=1))
+    sol = solve(d, FRACTIONS, options=SolverOptions(max_newton=1))
     assert (sol.status == Status.NEWTON_FAILED).all() and not sol.converged.any()
-    sol = solve(d, SIGMA, options=SolverOptions(max_level=0, step_tol=1e-15))
+    sol = solve(d, FRACTIONS, options=SolverOptions(max_level=0, step_tol=1e-15))
     assert (sol.status == Status.STEP_TOL_NOT_MET).all() and not sol.converged.any()
     assert np.isfinite(sol.tendons).all()  # the shape is still returned, flagged
-    sol = solve(d, SIGMA)
+    sol = solve(d, FRACTIONS)
     assert (sol.status == 0).all() and sol.converged.all() and (sol.residual < 1e-8).all()
 
 
 def test_threads_give_the_same_bits(designs):
-    one, two = solve(designs, SIGMA, workers=1), solve(designs, SIGMA, workers=2)
+    one, two = solve(designs, FRACTIONS, workers=1), solve(designs, FRACTIONS, workers=2)
     np.testing.assert_array_equal(one.tendons, two.tendons)
     np.testing.assert_array_equal(one.error_estimate, two.error_estimate)
 
@@ -147,8 +147,9 @@ def slender_bent(m: int, seed: int) -> tuple[DesignBatch, ExternalLoads]:
 
 def test_loaded_kernel_meets_1e_6_against_its_own_10x_finer_solve():
     d, loads = sample_designs(200, seed=3), loaded_space(200, 4)
-    sol = solve(d, SIGMA, loads=loads, workers=2)
-    fine = solve(d, SIGMA, loads=loads, options=SolverOptions(max_step_loads=1 / 1230, max_level=0, step_tol=np.inf))
+    sol = solve(d, FRACTIONS, loads=loads, workers=2)
+    fine = solve(d, FRACTIONS, loads=loads,
+                 options=SolverOptions(max_step_loads=1 / 1230, max_level=0, step_tol=np.inf))
     error = relative_l2(sol.tendons, fine.tendons)
     assert sol.converged.all() and (sol.status == 0).all()
     assert error.max() <= 1e-6 and (sol.error_estimate <= SolverOptions().step_tol).all()
@@ -162,9 +163,10 @@ def test_the_slender_bent_designs_the_old_fixed_step_got_wrong():
     """r = 0.5 mm, L = 0.31-0.35 m, 5 N on one tendon, horizontal gravity: the old fixed step L/100
     is off by ~1e-5 here; the controlled step is within 1e-6 and says so."""
     d, loads = slender_bent(12, seed=9)
-    sol = solve(d, SIGMA, loads=loads)
-    fine = solve(d, SIGMA, loads=loads, options=SolverOptions(max_step_loads=1 / 2000, max_level=0, step_tol=np.inf))
-    old = solve(d, SIGMA, loads=loads, options=SolverOptions(max_level=0, step_tol=np.inf))
+    sol = solve(d, FRACTIONS, loads=loads)
+    fine = solve(d, FRACTIONS, loads=loads,
+                 options=SolverOptions(max_step_loads=1 / 2000, max_level=0, step_tol=np.inf))
+    old = solve(d, FRACTIONS, loads=loads, options=SolverOptions(max_level=0, step_tol=np.inf))
     assert sol.converged.all() and relative_l2(sol.tendons, fine.tendons).max() <= 1e-6
     assert (sol.steps > 123).any()  # the controller refined some
     assert relative_l2(old.tendons, fine.tendons).max() > 3e-6
@@ -178,7 +180,7 @@ def test_euler_buckling_is_flagged_as_several_equilibria():
     d = DesignBatch(E=[e, e], r=[r, r], L=[length, length], offset=[[0.008] * 4] * 2, pitch=[[0.0] * 4] * 2,
                     tension=[[0.0] * 4] * 2)
     loads = ExternalLoads(tip_force=np.array([[0, 0, -0.5 * critical], [0, 0, -1.5 * critical]]))
-    sol = solve(d, SIGMA, loads=loads)
+    sol = solve(d, FRACTIONS, loads=loads)
     assert sol.status.tolist() == [Status.CONVERGED, Status.MULTIPLE_EQUILIBRIA]
     assert sol.converged.tolist() == [True, False]
     np.testing.assert_allclose(sol.backbone[:, -1, :2], 0.0, atol=1e-12)  # the straight shape, flagged

@@ -85,6 +85,19 @@ def test_pure_tip_moment_gives_a_circle_of_curvature_M_over_EI():
     assert np.linalg.norm(sol.backbone[0] - expected) / np.linalg.norm(expected) < 1e-8
 
 
+@pytest.mark.parametrize("E", [3e10, 2e11])
+def test_pure_tip_torque_twists_by_M_L_over_G_J(E):
+    """A torque M about the axis twists the straight rod uniformly: angle M s / (G J), with
+    G = E / (2 (1 + POISSON_RATIO)) and J = pi r^4 / 2 (the material law of every path)."""
+    r, L, M = 1e-3, 0.25, 1e-3
+    sol = solve(one(E=E, r=r, L=L), S42, loads=ExternalLoads(tip_moment=np.array([[0.0, 0.0, M]])))
+    assert sol.converged[0]
+    g = E / (2 * (1 + _c.POISSON_RATIO))
+    angle = np.arctan2(sol.rotation[0, :, 1, 0], sol.rotation[0, :, 0, 0])  # of the body x axis about z
+    np.testing.assert_allclose(angle, M * sol.s[0] / (g * np.pi * r**4 / 2), rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(sol.backbone[0, :, :2], 0.0, atol=1e-15)
+
+
 #: Tip loads and a coarse shooting step for the consistency tests below (they compare the solver
 #: with itself, so the step only has to be the same on both sides).
 TIP_LOADS = ExternalLoads(tip_force=np.array([[0.05, 0.0, -0.02]]), tip_moment=np.array([[0.0, 0.01, 0.0]]))
@@ -218,7 +231,7 @@ def test_local_equation_has_one_root(seed, start):
     np.testing.assert_allclose(x, x_ref, rtol=1e-9, atol=1e-9)
 
 
-def test_a_batch_split_over_processes_equals_one_process():
+def test_a_batch_split_over_threads_equals_one_thread():
     d = design_space.sample_designs(1000, seed=12)
     s = np.linspace(0, 1, 9)
     one = solve(d, s)
@@ -227,6 +240,6 @@ def test_a_batch_split_over_processes_equals_one_process():
         np.testing.assert_allclose(getattr(two, field), getattr(one, field), rtol=0, atol=1e-14)
     np.testing.assert_array_equal(two.converged, one.converged)
     loads = ExternalLoads(tip_force=np.tile([0.0, 0.0, -1e-3], (1000, 1)))
-    small = solve(d.take(slice(0, 3)), s, loads=loads.take(slice(0, 3)), workers=2)  # too few: solved here
+    small = solve(d.take(slice(0, 3)), s, loads=loads.take(slice(0, 3)), workers=2)
     np.testing.assert_allclose(small.tendons, solve(d.take(slice(0, 3)), s, loads=loads.take(slice(0, 3))).tendons,
                                rtol=0, atol=0)

@@ -283,19 +283,19 @@ def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, ja
 
 
 @njit(cache=True, error_model="numpy")
-def _routing(sigma, length, offset, pitch, rho, drho):
-    """rho_i(s) and rho_i'(s) (x, y components; z is 0) at s = sigma L, each (N_t, 2)."""
+def _routing(fraction, length, offset, pitch, rho, drho):
+    """rho_i(s) and rho_i'(s) (x, y components; z is 0) at s = fraction L, each (N_t, 2)."""
     n_t = offset.shape[0]
     for i in range(n_t):
-        phi = _tendon_angle(i, n_t, pitch[i], sigma * length)
+        phi = _tendon_angle(i, n_t, pitch[i], fraction * length)
         c, s = math.cos(phi), math.sin(phi)
         rho[i, 0], rho[i, 1] = offset[i] * c, offset[i] * s
         drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * s, offset[i] * pitch[i] * c
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
-    """Newton at the nodes ``sigmas[order]`` in that order, each from the strains of the node before
+def _solve_nodes(node_fractions, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
+    """Newton at the nodes ``node_fractions[order]`` in that order, each from the strains of the node before
     (``x_nodes`` (M, 6) holds the start of the first).  Returns (all converged, max iterations,
     max residual)."""
     n_t = offset.shape[0]
@@ -307,7 +307,7 @@ def _solve_nodes(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, radius, 
     worst = 0.0
     for j in range(order.shape[0]):
         k = order[j]
-        _routing(sigmas[k], length, offset, pitch, rho, drho)
+        _routing(node_fractions[k], length, offset, pitch, rho, drho)
         conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low,
                               _NO_TARGET, False)
         ok = ok and conv
@@ -393,13 +393,13 @@ def _magnus(edges, x_edge, x_mid, length, out_step, pos_out, rot_out):
 
 
 @njit(cache=True, error_model="numpy")
-def _output_offsets(sigma_out, length, offset, pitch):
+def _output_offsets(fractions_out, length, offset, pitch):
     """rho_i at the outputs (x, y; z is 0), m, (n, N_t, 2)."""
     n_t = offset.shape[0]
-    out = np.empty((sigma_out.shape[0], n_t, 2))
-    for j in range(sigma_out.shape[0]):
+    out = np.empty((fractions_out.shape[0], n_t, 2))
+    for j in range(fractions_out.shape[0]):
         for i in range(n_t):
-            phi = _tendon_angle(i, n_t, pitch[i], sigma_out[j] * length)
+            phi = _tendon_angle(i, n_t, pitch[i], fractions_out[j] * length)
             out[j, i, 0], out[j, i, 1] = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
     return out
 
@@ -477,9 +477,9 @@ def solve_design(kse, kbt, r, length, offset, pitch, tau, grid, tols, pos_out, r
     :class:`Grid` ``grid`` with :class:`Tolerances` ``tols``.  Writes backbone (n, 3), frames (n, 3, 3),
     strains (n, 6) and tendon positions (n, N_t, 3) at the outputs; returns ``(status, residual N,
     Newton iterations, level, error estimate)``."""
-    edges0, out_step0, sigma_out = grid.edges, grid.out_step, grid.fractions
+    edges0, out_step0, fractions_out = grid.edges, grid.out_step, grid.fractions
     tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
-    n_out = sigma_out.shape[0]
+    n_out = fractions_out.shape[0]
     n_t = offset.shape[0]
     k0 = edges0.shape[0] - 1
     ok = True
@@ -501,7 +501,7 @@ def solve_design(kse, kbt, r, length, offset, pitch, tau, grid, tols, pos_out, r
     worst = max(worst, res) if res == res else res
     out_step = out_step0.copy()
     _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
-    rho_out = _output_offsets(sigma_out, length, offset, pitch)
+    rho_out = _output_offsets(fractions_out, length, offset, pitch)
     prev = np.empty((n_out, n_t, 3))
     _tendon_positions(pos_out, rot_out, rho_out, prev)
     tendons_out[:, :, :] = prev
@@ -550,7 +550,7 @@ _RESYNC = 16
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
+def _solve_nodes_chain(node_fractions, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
     """As :func:`_solve_nodes`, each node starting from the solved strains of the nodes before
     (Lagrange extrapolation from the last three).  The tendon angles advance by angle addition
     between nodes (a rotation per distinct spacing), recomputed exactly every ``_RESYNC`` nodes."""
@@ -568,10 +568,10 @@ def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, ra
         k = order[j]
         if j % _RESYNC == 0:
             for i in range(n_t):
-                phi = _tendon_angle(i, n_t, pitch[i], sigmas[k] * length)
+                phi = _tendon_angle(i, n_t, pitch[i], node_fractions[k] * length)
                 cos_phi[i], sin_phi[i] = math.cos(phi), math.sin(phi)
         else:
-            delta = sigmas[k] - sigmas[order[j - 1]]
+            delta = node_fractions[k] - node_fractions[order[j - 1]]
             if abs(delta - last_delta) > 1e-14 * abs(delta):
                 for i in range(n_t):
                     cos_d[i], sin_d[i] = math.cos(pitch[i] * delta * length), math.sin(pitch[i] * delta * length)
@@ -587,13 +587,13 @@ def _solve_nodes_chain(sigmas, x_nodes, length, offset, pitch, tau, kse, kbt, ra
             x_nodes[k, :] = x_nodes[order[0]]
         elif j == 2:  # linear extrapolation from the two nodes before (start error O(h^2))
             k1, k2 = order[j - 1], order[j - 2]
-            span = sigmas[k1] - sigmas[k2]
-            f = (sigmas[k] - sigmas[k1]) / span if span > 0.0 else 0.0
+            span = node_fractions[k1] - node_fractions[k2]
+            f = (node_fractions[k] - node_fractions[k1]) / span if span > 0.0 else 0.0
             for a in range(6):
                 x_nodes[k, a] = x_nodes[k1, a] + f * (x_nodes[k1, a] - x_nodes[k2, a])
         elif j > 2:  # quadratic (Lagrange) extrapolation from the three nodes before (start error O(h^3))
             k1, k2, k3 = order[j - 1], order[j - 2], order[j - 3]
-            s0, s1, s2, s3 = sigmas[k], sigmas[k1], sigmas[k2], sigmas[k3]
+            s0, s1, s2, s3 = node_fractions[k], node_fractions[k1], node_fractions[k2], node_fractions[k3]
             d12, d13, d23 = s1 - s2, s1 - s3, s2 - s3
             if d12 > 0.0 and d13 > 0.0 and d23 > 0.0:
                 l1 = (s0 - s2) * (s0 - s3) / (d12 * d13)
@@ -870,7 +870,7 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, tau, f_g, f_tip, m_t
     ``shoot_jac`` (3, 3) receives the shooting Jacobian dM(L)/dM(0) at the result (the identity for
     the unloaded rod; the caller judges several equilibria from it).
     Returns (status, residual N, shooting passes, level, error estimate, M(0) x 3)."""
-    edges0, out_step0, sigma_out = grid.edges, grid.out_step, grid.fractions
+    edges0, out_step0, fractions_out = grid.edges, grid.out_step, grid.fractions
     tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
     shoot_tol, max_shoot = tols.shooting_tol, tols.max_shooting
     scale = 0.0
@@ -879,8 +879,8 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, tau, f_g, f_tip, m_t
     scale += (math.sqrt(m_tip[0] ** 2 + m_tip[1] ** 2 + m_tip[2] ** 2)
               + math.sqrt(f_tip[0] ** 2 + f_tip[1] ** 2 + f_tip[2] ** 2) * length
               + math.sqrt(f_g[0] ** 2 + f_g[1] ** 2 + f_g[2] ** 2) * length * length + 1e-12)
-    rho_out = _output_offsets(sigma_out, length, offset, pitch)
-    n_out, n_t = sigma_out.shape[0], offset.shape[0]
+    rho_out = _output_offsets(fractions_out, length, offset, pitch)
+    n_out, n_t = fractions_out.shape[0], offset.shape[0]
     k0 = edges0.shape[0] - 1
     # first guess: the loads' moment about the base on the tendon-only shape (its tip from one pass)
     tip_step = np.array([k0], dtype=np.int64)
