@@ -11,6 +11,8 @@ one place.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import tdcr
 from service.metrics import Metrics
@@ -65,11 +67,25 @@ class DataPlane:
         model of that kind), with its latency and count under ``protocol`` and ``endpoint``."""
         model = self.model(name, kind=kind, version=version)
         started = time.perf_counter()
-        try:
+        with _validation_errors():
             response = await model.infer(request)
-        except InvalidRequest as exc:
-            kind = "too_large" if exc.too_large else "invalid"
-            raise InferenceError(kind, exc.message, tuple(exc.problems)) from None
+        return self._record(model, response, started, protocol, endpoint)
+
+    def infer_blocking(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,
+                       version: str | None = None, protocol: str, endpoint: str) -> InferenceResponse:
+        """As :meth:`infer`, on the calling worker thread, for a transport that is already on one
+        (``/predict`` validates its body there, which names the model); a model that answers only
+        asynchronously is ``not_found`` here."""
+        model = self.model(name, kind=kind, version=version)
+        if not model.blocking:
+            raise InferenceError("not_found", f"model {model.name!r} is not served on this route")
+        started = time.perf_counter()
+        with _validation_errors():
+            response = model.infer_blocking(request)
+        return self._record(model, response, started, protocol, endpoint)
+
+    def _record(self, model: Model, response: InferenceResponse, started: float, protocol: str,
+                endpoint: str) -> InferenceResponse:
         self.metrics.latency.labels(protocol, endpoint, model.name).observe(time.perf_counter() - started)
         self.metrics.designs.labels(protocol, endpoint, model.name).inc(response.count)
         return response
@@ -77,3 +93,12 @@ class DataPlane:
     def close(self) -> None:
         for model in self.repository:
             model.close()
+
+
+@contextmanager
+def _validation_errors() -> Iterator[None]:
+    """The validation path's :class:`InvalidRequest` as :class:`InferenceError`, its problems kept."""
+    try:
+        yield
+    except InvalidRequest as exc:
+        raise InferenceError("too_large" if exc.too_large else "invalid", exc.message, tuple(exc.problems)) from None

@@ -153,6 +153,14 @@ class Model(ABC):
         """Decode, run and encode ``request``; raises :class:`InferenceError` or the validation
         path's :class:`tdcr.validation.InvalidRequest` (the data plane maps both)."""
 
+    #: Whether :meth:`infer_blocking` answers on the calling thread (a transport already in a
+    #: worker thread then saves a thread hop).
+    blocking = False
+
+    def infer_blocking(self, request: InferenceRequest) -> InferenceResponse:
+        """As :meth:`infer`, on the calling (worker) thread; models with ``blocking`` only."""
+        raise NotImplementedError(f"model {self.name!r} answers asynchronously only")
+
     def close(self) -> None:  # noqa: B027 - most models hold nothing to release
         """Release threads and processes (at shutdown)."""
 

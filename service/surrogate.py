@@ -36,6 +36,8 @@ class SurrogateModel(Model):
                 "metrics": orjson.dumps(entry.get("metrics")).decode(),
                 "ranges": orjson.dumps(entry.get("ranges")).decode()}
 
+    blocking = True
+
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         return await run_in_threadpool(self.infer_blocking, request)  # decode, run and encode in one thread hop
 

@@ -1,8 +1,7 @@
 """POST /predict: surrogate shapes for a batch of designs (JSON, or .npy in and .npz out).
 
-A thin codec: the body is read and validated off the event loop (it names the model), then the
-data plane runs it on that surrogate (or the default) and :class:`service.codecs.PredictCodec`
-encodes the answer.
+A thin codec: on one worker thread the body is validated (it names the model), the data plane runs
+it on that surrogate (or the default) and :class:`service.codecs.PredictCodec` encodes the answer.
 """
 
 from __future__ import annotations
@@ -11,22 +10,31 @@ from fastapi import APIRouter, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from service.codecs import PredictCodec
+from service.dataplane import DataPlane
 from service.deps import State
 from service.errors import from_inference, from_invalid, require_json
 from service.metrics import HTTP
-from service.model import InferenceError, InferenceRequest
+from service.model import InferenceError, InferenceRequest, InferenceResponse
 from tdcr.engine import NPY, NPZ, QUERY_FIELDS, prepare_json, prepare_npy
 from tdcr.schemas import ErrorResponse, PredictResponse
-from tdcr.validation import InvalidRequest, Limits, ShapeRequest
+from tdcr.validation import InvalidRequest, Limits
 
 router = APIRouter(tags=["predict"])
 
 
-def _prepare(body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits) -> ShapeRequest:
+def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits,
+            npz: bool) -> tuple[InferenceResponse, str | None]:
+    """On one worker thread: validate the body (it names the model), then the data plane runs it."""
+    query = QUERY_FIELDS if binary else ()
     try:
-        return prepare_npy(body, params, limits=limits) if binary else prepare_json(body, limits=limits)
+        shapes = prepare_npy(body, params, limits=limits) if binary else prepare_json(body, limits=limits)
+        answer = plane.infer_blocking(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)), kind="surrogate",
+                                      protocol=HTTP, endpoint="/predict")
     except InvalidRequest as exc:
-        raise from_invalid(exc, query=QUERY_FIELDS if binary else ()) from None
+        raise from_invalid(exc, query=query) from None
+    except InferenceError as exc:
+        raise from_inference(exc, query=query) from None
+    return answer, shapes.model
 
 
 @router.post(
@@ -56,13 +64,9 @@ async def predict(request: Request, state: State) -> Response:
         require_json(content_type)
     body = await request.body()
     params = {k: request.query_params.getlist(k) for k in request.query_params}
-    shapes = await run_in_threadpool(_prepare, body, binary, params, state.settings.predict_limits())
     npz = NPZ in request.headers.get("accept", "")
-    try:
-        answer = await state.plane.infer(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)),
-                                         kind="surrogate", protocol=HTTP, endpoint="/predict")
-    except InferenceError as exc:
-        raise from_inference(exc, query=QUERY_FIELDS if binary else ()) from None
+    answer, model = await run_in_threadpool(_answer, state.plane, body, binary, params,
+                                            state.settings.predict_limits(), npz)
     if npz:
-        return Response(answer.body, media_type=NPZ, headers={"X-TDCR-Model": shapes.model or state.default_model})
+        return Response(answer.body, media_type=NPZ, headers={"X-TDCR-Model": model or state.default_model})
     return Response(answer.body, media_type="application/json")
