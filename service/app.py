@@ -6,6 +6,7 @@ Run with ``tdcr serve --port 8000`` or ``uvicorn --factory service.app:create_ap
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import json
 import logging
@@ -27,7 +28,7 @@ from service.metrics import HTTP, Metrics
 from service.oip import InferenceRequest
 from service.routers import design_space, exact, health, inverse, models, predict, v2, viewer
 from service.settings import Settings
-from service.state import ServiceState, load_models, start_solver
+from service.state import ServiceState, start
 from tdcr.schemas import ExactRequest, InverseRequest, PredictRequest
 
 log = logging.getLogger("tdcr.service")
@@ -42,7 +43,8 @@ class ExactAdmission:
         self.app, self.state = app, state
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] == "http" and scope["path"] == "/exact" and self.state.exact.saturated:
+        exact = self.state.exact
+        if scope["type"] == "http" and scope["path"] == "/exact" and exact is not None and exact.saturated:
             self.state.metrics.errors.labels(HTTP, "/exact", "saturated").inc()
             return await _send_error(send, 503, "the solver is saturated; retry later",
                                      extra=[(b"connection", b"close"), (b"retry-after", b"1")])
@@ -138,6 +140,14 @@ async def _send_error(send, status: int, message: str, extra: list[tuple[bytes, 
     await send({"type": "http.response.body", "body": body})
 
 
+async def _watch_solver(state: ServiceState, starting: asyncio.Task) -> None:
+    """Once the service has started, replace solver processes that die (until cancelled)."""
+    await asyncio.shield(starting)
+    exact = state.exact
+    if exact is not None and exact.pool is not None:
+        await exact.pool.watch()
+
+
 def _route_label(scope) -> str:
     """The metric label of a request: its route's path template (a fixed set), or ``other``
     (never the raw path)."""
@@ -156,11 +166,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        load_models(state)
-        try:
-            start_solver(state)
-        except Exception as exc:  # noqa: BLE001 - reported by /readyz
-            state.problems.append(f"solver pool: {exc}")
+        state.plane.starting = True  # the port answers at once: /healthz 200, /readyz 503 until started
         grpc_server = GrpcServer(state) if settings.grpc_port else None
         if grpc_server is not None:
             try:
@@ -168,16 +174,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             except RuntimeError as exc:  # e.g. the port is taken: reported by /readyz
                 state.problems.append(f"gRPC server on {grpc_server.address}: {exc}")
                 grpc_server = None
-        state.plane.loaded = not state.problems and bool(state.surrogates)
-        log.info("ready=%s models=%s problems=%s", state.plane.loaded, sorted(state.repository.names()),
-                 state.problems)
-        pool = state.exact.pool
-        watcher = asyncio.create_task(pool.watch()) if pool is not None else None
+        starting = asyncio.create_task(start(state, before_ready=None if grpc_server is None
+                                             else grpc_server.set_health))
+        watcher = asyncio.create_task(_watch_solver(state, starting))
         yield
         if grpc_server is not None:
             await grpc_server.stop()
-        if watcher is not None:
-            watcher.cancel()
+        for task in (starting, watcher):
+            task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await starting
         state.plane.close()
 
     docs = {} if settings.docs else {"docs_url": None, "redoc_url": None, "openapi_url": None}

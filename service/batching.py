@@ -45,8 +45,10 @@ class Batcher:
         self._thread = threading.Thread(target=self._work, name=f"batcher-{model.name}", daemon=True)
         self._thread.start()
 
-    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
-        """As :meth:`Surrogate.predict`, run together with whatever else is queued (blocks the caller)."""
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True,
+                check: bool = False) -> dict[str, np.ndarray]:
+        """As :meth:`Surrogate.predict`, run together with whatever else is queued (blocks the
+        caller).  Its requests are validated already: ``check`` is accepted, and not run."""
         job = _Job(np.asarray(features, dtype=np.float64), np.asarray(fractions, dtype=np.float64), pose)
         with self._lock:
             inline = self._active == 0 and self._queue.empty()
@@ -105,9 +107,11 @@ class Batcher:
             self.on_run(sum(len(j.features) for j in jobs))
         try:
             if len(jobs) == 1:
-                jobs[0].future.set_result(self.model.predict(jobs[0].features, jobs[0].fractions, pose=jobs[0].pose))
+                jobs[0].future.set_result(self.model.predict(jobs[0].features, jobs[0].fractions, pose=jobs[0].pose,
+                                                                      check=False))
                 return
-            out = self.model.predict(np.concatenate([j.features for j in jobs]), jobs[0].fractions, pose=jobs[0].pose)
+            out = self.model.predict(np.concatenate([j.features for j in jobs]), jobs[0].fractions, pose=jobs[0].pose,
+                                     check=False)
         except Exception as exc:  # noqa: BLE001 - handed to the waiting requests, which report it
             for j in jobs:
                 if not j.future.done():

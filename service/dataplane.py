@@ -20,6 +20,9 @@ from service.model import InferenceError, InferenceRequest, InferenceResponse, K
 from service.oip import EXTENSIONS, SERVER_NAME
 from tdcr.validation import InvalidRequest
 
+#: What /readyz and every inference say while the service starts.
+STARTING = "starting: loading the models and starting the solver processes (the first start compiles the solver)"
+
 
 class DataPlane:
     """Inference, readiness and metadata of the models of ``repository``; ``loaded``: the models
@@ -29,14 +32,17 @@ class DataPlane:
         self.repository = repository
         self.metrics = metrics
         self.loaded = False
+        self.starting = False  # the models are being loaded and the solver started (service.state.start)
 
     # -- health and metadata ----------------------------------------------------------------------
 
     def server_ready(self) -> bool:
-        return self.loaded and all(m.ready() for m in self.repository)
+        return not self.starting and self.loaded and all(m.ready() for m in self.repository)
 
     def problems(self) -> list[str]:
         """Why a model cannot answer now (e.g. a solver process being replaced)."""
+        if self.starting:
+            return [STARTING]
         return [p for m in self.repository if (p := m.health()) is not None]
 
     @staticmethod
@@ -44,7 +50,10 @@ class DataPlane:
         return {"name": SERVER_NAME, "version": tdcr.__version__, "extensions": EXTENSIONS}
 
     def model(self, name: str | None, *, kind: Kind | None = None, version: str | None = None) -> Model:
-        """The model ``name`` (None: the default of ``kind``); :class:`InferenceError` ``not_found`` else."""
+        """The model ``name`` (None: the default of ``kind``); :class:`InferenceError` ``not_found``
+        else (``unavailable`` while the service starts)."""
+        if self.starting:
+            raise InferenceError("unavailable", f"{STARTING}; retry shortly")
         return self.repository.get(name, kind=kind, version=version)
 
     def model_ready(self, name: str, version: str | None = None) -> bool:
@@ -56,7 +65,7 @@ class DataPlane:
     def check_capacity(self, kind: Kind) -> None:
         """:class:`InferenceError` ``saturated`` if the default model of ``kind`` would refuse a
         request now (checked before a body is read)."""
-        if self.model(None, kind=kind).saturated:
+        if not self.starting and self.model(None, kind=kind).saturated:
             raise InferenceError("saturated", "the solver is saturated; retry later")
 
     # -- inference ------------------------------------------------------------------------------

@@ -183,10 +183,14 @@ class GrpcServer:
         self._health_task = asyncio.get_running_loop().create_task(self._follow_readiness())
         log.info("gRPC (OIP v2) on %s", self.address)
 
+    async def set_health(self, ready: bool) -> None:
+        """The health service's status of ``inference.GRPCInferenceService``."""
+        status = health_pb2.HealthCheckResponse
+        await self.health.set(SERVICE_NAME, status.SERVING if ready else status.NOT_SERVING)
+
     async def _follow_readiness(self) -> None:
-        serving, not_serving = health_pb2.HealthCheckResponse.SERVING, health_pb2.HealthCheckResponse.NOT_SERVING
         while True:
-            await self.health.set(SERVICE_NAME, serving if self.plane.server_ready() else not_serving)
+            await self.set_health(self.plane.server_ready())
             await asyncio.sleep(HEALTH_PERIOD_S)
 
     async def stop(self) -> None:

@@ -9,9 +9,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from tdcr.design_space import MAX_POINTS
 from tdcr.exact import WorkBudget
+from tdcr.runtime import DEFAULT_MODELS_DIR
 from tdcr.validation import Limits
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 class Settings(BaseSettings):
@@ -19,7 +18,7 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="TDCR_", extra="ignore")
 
-    models_dir: Path = Field(ROOT / "models", description="directory with manifest.json and the ONNX files")
+    models_dir: Path = Field(DEFAULT_MODELS_DIR, description="directory with manifest.json and the ONNX files")
     default_model: str | None = Field(None, description="model used when a request names none (default: best)")
     max_designs: int = Field(100_000, ge=1, description="designs per /predict request")
     max_points: int = Field(MAX_POINTS, ge=2, le=MAX_POINTS, description="arclengths per request")

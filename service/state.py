@@ -3,9 +3,11 @@ manifest and the one :class:`service.dataplane.DataPlane` with its model reposit
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from starlette.concurrency import run_in_threadpool
 
 from service.batching import Batcher
 from service.dataplane import DataPlane
@@ -15,7 +17,10 @@ from service.settings import Settings
 from service.solver import ExactModel, InverseModel
 from service.surrogate import SurrogateModel
 from tdcr import design_space
-from tdcr.runtime import ManifestError, Surrogate, load_manifest
+from tdcr.runtime import ManifestError, Surrogate, best_model, load_manifest
+from tdcr.schemas import EXACT_MODEL
+
+log = logging.getLogger("tdcr.service")
 
 
 @dataclass
@@ -36,8 +41,9 @@ class ServiceState:
         return self.plane.repository
 
     @property
-    def exact(self) -> ExactModel:
-        return self.repository.get(None, kind="solver")  # type: ignore[return-value]
+    def exact(self) -> ExactModel | None:
+        """The solver model (None while the service starts)."""
+        return self.repository.models.get(EXACT_MODEL)  # type: ignore[return-value]
 
     @property
     def default_model(self) -> str | None:
@@ -48,22 +54,12 @@ class ServiceState:
         return sorted(self.repository.names("surrogate"))
 
 
-def best_model(manifest: dict) -> str | None:
-    """The manifest model with the lowest mean test relative l2 (any model if none has metrics)."""
-    models = manifest.get("models", {})
-
-    def score(name):
-        m = (models[name].get("metrics") or {}).get("test_relative_l2") or {}
-        return m.get("mean", float("inf"))
-
-    return min(models, key=score) if models else None
-
-
-def load_models(state: ServiceState) -> None:
-    """Register the exact solver, its inverse kinematics and every manifest operator (checksum
-    verified, warmed up); record problems instead of raising.  The solver's processes start in
-    :func:`start_solver`."""
-    settings, repository = state.settings, state.repository
+def load_models(state: ServiceState) -> ModelRepository:
+    """A repository of the exact solver, its inverse kinematics and every manifest operator
+    (checksum verified, warmed up); problems are recorded instead of raised.  The solver's
+    processes start with :meth:`ExactModel.start` (the repository's ``exact``).  Blocking: the
+    lifespan runs it in a thread, and serves the finished repository (:func:`start`)."""
+    settings, repository = state.settings, ModelRepository()
     exact = ExactModel(settings)
     repository.register(exact)
     repository.register(InverseModel(exact, lambda name: repository.get(name, kind="surrogate")))
@@ -71,7 +67,7 @@ def load_models(state: ServiceState) -> None:
         state.manifest = load_manifest(settings.models_dir)
     except ManifestError as exc:
         state.problems.append(str(exc))
-        return
+        return repository
     warm = design_space.sample_designs(2, seed=0).features()
     limits = settings.predict_limits()
     for name in state.manifest.get("models", {}):
@@ -90,8 +86,23 @@ def load_models(state: ServiceState) -> None:
         if default not in repository.names("surrogate"):
             state.problems.append(f"default model {default!r} is not loaded")
         repository.defaults["surrogate"] = default
+    return repository
 
 
-def start_solver(state: ServiceState) -> None:
-    """Start the exact model's solver processes (at startup)."""
-    state.exact.start()
+async def start(state: ServiceState, *, before_ready=None) -> None:
+    """Load the models and start the solver processes while the server already answers (/healthz
+    200, /readyz 503 and inference 503 "starting" meanwhile), then serve them.  ``before_ready``:
+    an async callback given the readiness just before the service reports it (the gRPC health)."""
+    log.warning("starting: loading the models of %s, then the solver processes (the first start on a machine "
+                "compiles the solver kernels: about a minute)", state.settings.models_dir)
+    repository = await run_in_threadpool(load_models, state)
+    try:
+        await run_in_threadpool(repository.models[EXACT_MODEL].start)
+    except Exception as exc:  # noqa: BLE001 - reported by /readyz
+        state.problems.append(f"solver pool: {exc}")
+    state.plane.repository = repository
+    state.plane.loaded = not state.problems and bool(state.surrogates)
+    if before_ready is not None:
+        await before_ready(state.plane.loaded and all(m.ready() for m in repository))
+    state.plane.starting = False
+    log.warning("ready=%s models=%s problems=%s", state.plane.loaded, sorted(repository.names()), state.problems)

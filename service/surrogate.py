@@ -49,7 +49,7 @@ class SurrogateModel(Model):
     def inverse(self, problem: InverseProblem) -> list[dict]:
         """Inverse kinematics with this operator (blocking: run it off the event loop)."""
         def tip_pose(features: np.ndarray):
-            out = self.batcher.predict(features, np.ones(1), pose=True)
+            out = self.batcher.predict(features, np.ones(1), pose=True)  # validated; differences may leave bounds
             return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
 
         return answer(problem, model_forward(problem.design, tip_pose))

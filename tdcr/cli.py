@@ -63,7 +63,7 @@ def _cmd_inverse(args) -> int:
             raise UsageError(f"{args.models_dir}: {exc}") from None
 
         def tip_pose(features):
-            out = model.predict(features, np.ones(1), pose=True)
+            out = model.predict(features, np.ones(1), pose=True, check=False)  # differences may leave the bounds
             return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
 
         results = answer(problem, model_forward(problem.design, tip_pose))
@@ -147,7 +147,8 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from training.operators.evaluate import evaluate, evaluate_ood, format_ood, format_table
+    from training import dataset
+    from training.operators.evaluate import evaluate, evaluate_ood, format_ood, format_table, held_out
     from training.operators.export import update_manifest
 
     manifest_path = Path(args.models_dir) / "manifest.json"
@@ -158,19 +159,41 @@ def _cmd_evaluate(args) -> int:
     missing = [n for n in names if n not in manifest["models"]]
     if missing:
         raise UsageError(f"not in the manifest: {missing}")
-    results = evaluate(args.models_dir, args.data, names)
+    try:
+        test = dataset.load(args.data, "test")
+    except (OSError, ValueError, KeyError) as exc:
+        raise UsageError(f"{args.data}: not a dataset from `tdcr generate` ({exc.__class__.__name__})") from None
+    keep, left_out, unknown = held_out(test["features"], {n: manifest["models"][n] for n in names})
+    for name, count in left_out.items():
+        if count:
+            print(f"left out {count} of {len(keep)} test designs: in the training set of {name}", file=sys.stderr)
+    if unknown:
+        print(f"cannot tell which designs {unknown} were trained on (no dataset record in the manifest; "
+              "`tdcr export --data` writes it): their test designs are all kept", file=sys.stderr)
+    if not keep.any():
+        raise UsageError(f"every test design of {args.data} is in a model's training set: generate another "
+                         "dataset (e.g. another --seed) to evaluate on")
+    results = evaluate(args.models_dir, args.data, names, keep=keep)
     ood = evaluate_ood(args.models_dir, names, n=args.ood) if args.ood else None
-    for name in names:
-        entry = manifest["models"][name]
-        entry["metrics"] = {"test_relative_l2": results[name], "baseline_relative_l2": results["undeformed baseline"],
-                            "linearized_reference_relative_l2": results["linearized reference"]}
-        if ood is not None:
-            entry["metrics"]["ood_mean_relative_l2"] = {label: row[name] for label, row in ood.items()}
-        update_manifest(Path(args.models_dir), entry)
     print(format_table(results))
     if ood is not None:
         print(f"\nout of distribution (mean relative l2, {args.ood} designs per bin):\n")
         print(format_ood(ood))
+    if not args.update_manifest:
+        print(f"\n{manifest_path} is unchanged (--update-manifest writes these metrics)", file=sys.stderr)
+        return 0
+    meta_path = Path(args.data) / "metadata.json"
+    record = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    evaluated_on = {k: record.get(k) for k in ("n", "seed", "n_test")} | {"n_held_out": int(keep.sum())}
+    for name in names:
+        entry = manifest["models"][name]
+        entry["metrics"] = {"test_relative_l2": results[name], "baseline_relative_l2": results["undeformed baseline"],
+                            "linearized_reference_relative_l2": results["linearized reference"],
+                            "evaluated_on": evaluated_on}
+        if ood is not None:
+            entry["metrics"]["ood_mean_relative_l2"] = {label: row[name] for label, row in ood.items()}
+        update_manifest(Path(args.models_dir), entry)
+    print(f"\nwrote the metrics of {names} into {manifest_path}", file=sys.stderr)
     return 0
 
 
@@ -220,22 +243,28 @@ def _cmd_params(args) -> int:
 
 def _cmd_predict(args) -> int:
     from tdcr import engine
-    from tdcr.runtime import ManifestError, Surrogate
+    from tdcr.runtime import ManifestError, Surrogate, best_model, load_manifest
     from tdcr.validation import InvalidRequest
 
     text = _read_text(args.request)
     try:
-        model = Surrogate.load(args.models_dir, args.model)
-    except ManifestError as exc:
-        raise UsageError(f"{args.models_dir}: {exc}") from None
-    try:
         request = engine.prepare_json(text, limits=_unlimited())
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
-    if request.model not in (None, args.model):  # the request names another model than --model
-        raise UsageError(f"{args.request}: unknown model {request.model!r}; available: [{args.model!r}] "
-                         "(choose it with --model)")
-    prediction = engine.predict(model, request, model=args.model)
+    try:
+        manifest = load_manifest(args.models_dir)
+    except ManifestError as exc:
+        raise UsageError(f"{args.models_dir}: {exc}") from None
+    name = args.model or request.model or best_model(manifest)  # the service's rule (service/state.py)
+    if request.model is not None and args.model is not None and request.model != args.model:
+        raise UsageError(f"{args.request} names the model {request.model!r}, --model {args.model!r}: give one")
+    if name not in manifest.get("models", {}):
+        raise UsageError(f"unknown model {name!r}; available: {sorted(manifest.get('models', {}))}")
+    try:
+        model = Surrogate.load(args.models_dir, name, manifest=manifest)
+    except ManifestError as exc:
+        raise UsageError(f"{args.models_dir}: {exc}") from None
+    prediction = engine.predict(model, request, model=name)
     sys.stdout.buffer.write(engine.encode_json(prediction) + b"\n")
     return 0
 
@@ -297,37 +326,58 @@ def _cmd_loadtest(args) -> int:
 def _cmd_openapi(args) -> int:
     from service.app import create_app
 
-    text = json.dumps(create_app().openapi(), indent=2, sort_keys=True) + "\n"
+    document = create_app().openapi()
+    text = json.dumps(document, indent=2, sort_keys=True) + "\n"
     if args.out == "-":
         sys.stdout.write(text)
     else:
         Path(args.out).write_text(text)
+        print(f"wrote {args.out}: OpenAPI {document['openapi']}, {len(document['paths'])} paths, "
+              f"{len(text):,} bytes", file=sys.stderr)
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tdcr", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+class FORMATTER(argparse.ArgumentDefaultsHelpFormatter):
+    """Help of every command: each option's default shown, unless its help says it already (or there is none)."""
 
-    p = sub.add_parser("solve", help="exact equilibria of the designs in a request JSON (Cosserat solver)")
+    def _get_help_string(self, action):
+        text = action.help or ""
+        unset = action.default is None or action.default is False or action.default == argparse.SUPPRESS
+        if unset or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from tdcr.runtime import DEFAULT_MODELS_DIR
+
+    parser = argparse.ArgumentParser(prog="tdcr", description=__doc__, formatter_class=FORMATTER)
+    sub = parser.add_subparsers(dest="command", required=True)
+    models_dir = {"default": str(DEFAULT_MODELS_DIR), "help": "directory with manifest.json and the ONNX models "
+                                                              "(default: the shipped models)"}
+
+    def command(name: str, help: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help, description=help, formatter_class=FORMATTER)
+
+    p = command("solve", "exact equilibria of the designs in a request JSON (Cosserat solver)")
     p.add_argument("request", help="request JSON file, or - for stdin")
     p.set_defaults(func=_cmd_solve)
 
-    p = sub.add_parser("inverse", help="tensions that reach the targets of an inverse-kinematics request JSON")
+    p = command("inverse", "tensions that reach the targets of an inverse-kinematics request JSON")
     p.add_argument("request", help='{"design": ..., "targets": [{"position": [x, y, z]}, ...]} file, or - for stdin')
-    p.add_argument("--models-dir", default="models", help="manifest and ONNX files (operator models)")
+    p.add_argument("--models-dir", **models_dir)
     p.set_defaults(func=_cmd_inverse)
 
-    p = sub.add_parser("generate", help="generate a solver dataset of Table I designs")
+    p = command("generate", "generate a solver dataset of Table I designs (the 'data' extra for --scheduler)")
     p.add_argument("--n", type=int, required=True, help="number of designs")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the designs, their loads and the train/test split")
     p.add_argument("--out", required=True, help="output directory (resumes if it exists)")
     p.add_argument("--points", type=int, default=DEFAULT_POINTS, help="equispaced arclengths per design")
-    p.add_argument("--shard-size", type=int, default=1000)
+    p.add_argument("--shard-size", type=int, default=1000, help="designs per shard file (the unit of resuming)")
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
-    p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler")
+    p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler (default: local)")
     p.add_argument("--gravity", default="none",
-                   help="none (default), sphere (|g| = --gravity-magnitude, uniform direction) or X,Y,Z in m/s^2")
+                   help="none, sphere (|g| = --gravity-magnitude, uniform direction) or X,Y,Z in m/s^2")
     p.add_argument("--gravity-magnitude", type=float, default=9.81, help="|g| for --gravity sphere, m/s^2")
     p.add_argument("--density", default=None, help="LOW,HIGH backbone density range, kg/m^3 (with --gravity)")
     p.add_argument("--tip-force", type=float, default=0.0, help="largest tip force, N (uniform direction)")
@@ -335,77 +385,84 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_generate)
 
-    p = sub.add_parser("train", help="train one neural operator on a dataset (torch)")
-    p.add_argument("--model", required=True, help="deeponet, deeponet_pose, fno or fno_pose")
+    p = command("train", "train one neural operator on a dataset (the 'train' extra: torch)")
+    p.add_argument("--model", required=True, help="the operator: deeponet, deeponet_pose, fno or fno_pose")
     p.add_argument("--data", required=True, help="dataset directory from `tdcr generate`")
     p.add_argument("--out", default=None, help="run directory (default runs/MODEL); resumes if present")
-    p.add_argument("--preset", default="tuned", help="paper or tuned")
-    p.add_argument("--epochs", type=int, default=None)
+    p.add_argument("--preset", default="tuned", help="paper (the paper's settings) or tuned (ours)")
+    p.add_argument("--epochs", type=int, default=None, help="epochs (default: the preset's)")
     p.add_argument("--minutes", type=float, default=None, help="time budget; the schedule anneals within it")
-    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--batch-size", type=int, default=None, help="designs per step (default: the preset's)")
     p.add_argument("--n-train", type=int, default=None, help="use only the first N training designs")
-    p.add_argument("--dropout", type=float, default=None)
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--dropout", type=float, default=None, help="dropout probability (default: the preset's)")
+    p.add_argument("--seed", type=int, default=None, help="seed of initialisation, shuffles and dropout "
+                                                          "(default: the preset's)")
     p.add_argument("--patience", type=int, default=None, help="stop after this many epochs without improvement")
     p.add_argument("--loss", choices=["mse", "relative", "relative_l2"], default=None,
                    help="mse: the paper's squared error (m^2); relative: mean squared relative l2; "
                         "relative_l2: mean relative l2 (the reported metric); default: the preset's")
     p.add_argument("--hyperparameters", default=None, help='JSON overrides, e.g. \'{"p": 50}\'')
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("export", help="export trained runs to ONNX and update models/manifest.json")
+    p = command("export", "export trained runs to ONNX and update the manifest (the 'train' extra)")
     p.add_argument("runs", nargs="+", help="run directories holding model.pt")
-    p.add_argument("--models-dir", default="models")
-    p.add_argument("--data", default=None, help="dataset the runs were trained on (recorded in the manifest)")
+    p.add_argument("--models-dir", **models_dir)
+    p.add_argument("--data", default=None, help="dataset the runs were trained on (recorded in the manifest: "
+                                                "seed, size and split, so that evaluations can leave it out)")
     p.set_defaults(func=_cmd_export)
 
-    p = sub.add_parser("evaluate", help="held-out relative l2 of exported models vs the undeformed robot")
-    p.add_argument("--data", required=True)
-    p.add_argument("--models-dir", default="models")
-    p.add_argument("--models", nargs="*", default=None)
+    p = command("evaluate", "held-out relative l2 of exported models beside two physics baselines "
+                            "(the 'train' extra); the manifest changes only with --update-manifest")
+    p.add_argument("--data", required=True, help="dataset directory from `tdcr generate` (its test split is used)")
+    p.add_argument("--models-dir", **models_dir)
+    p.add_argument("--models", nargs="*", default=None, help="models to evaluate (default: every manifest model)")
     p.add_argument("--ood", type=int, default=0, help="also the paper's OOD bins, with this many designs per bin")
+    p.add_argument("--update-manifest", action="store_true",
+                   help="write these metrics into the manifest (the service picks its default model by them)")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("study", help="run (or resume) one of the paper's studies; JSON lines + PNG under --out")
+    p = command("study", "run (or resume) one of the paper's studies; JSON lines + PNG under --out")
     p.add_argument("name", help="n-sweep, dropout, seeds, ood, timing, worst, or all (in that order)")
     p.add_argument("--budget", default="full", help="full (docs/report.md) or tiny (seconds; the tests')")
     p.add_argument("--data", default=None, help="dataset (generated if missing; default data/study-BUDGET)")
     p.add_argument("--runs", default="runs/study", help="training runs and checkpoints (resumable)")
     p.add_argument("--out", default="docs/study", help="where NAME.jsonl and NAME.png go")
-    p.add_argument("--models-dir", default="models", help="shipped models (timing, worst)")
-    p.add_argument("--presets", default="paper,tuned")
-    p.add_argument("--models", nargs="*", default=None)
+    p.add_argument("--models-dir", **models_dir)
+    p.add_argument("--presets", default="paper,tuned", help="comma-separated presets (paper, tuned)")
+    p.add_argument("--models", nargs="*", default=None, help="operators (default: all four)")
     p.add_argument("--workers", type=int, default=1, help="training runs side by side (one thread each)")
     p.add_argument("--hours", type=float, default=None,
                    help="start no new epoch after this long; a later call resumes where this one stopped")
     p.add_argument("--plot-only", action="store_true", help="redraw NAME.png from NAME.jsonl")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no tables")
     p.set_defaults(func=_cmd_study)
 
-    p = sub.add_parser("params", help="parameter counts of the four operators next to the paper's")
+    p = command("params", "parameter counts of the four operators next to the paper's (the 'train' extra)")
     p.set_defaults(func=_cmd_params)
 
-    p = sub.add_parser("predict", help="surrogate shapes for a request JSON (onnxruntime only)")
+    p = command("predict", "surrogate shapes for a request JSON (onnxruntime only: the 'serve' extra)")
     p.add_argument("request", help="request JSON file, or - for stdin")
-    p.add_argument("--model", default="deeponet")
-    p.add_argument("--models-dir", default="models")
+    p.add_argument("--model", default=None, help="the operator (default: the request's \"model\", else the "
+                                                 "manifest's most accurate, as the service chooses)")
+    p.add_argument("--models-dir", **models_dir)
     p.set_defaults(func=_cmd_predict)
 
-    p = sub.add_parser("serve", help="run the HTTP and gRPC service (settings from TDCR_* environment variables)")
+    p = command("serve", "run the HTTP and gRPC service (the 'serve' extra; settings from TDCR_* variables)")
     p.add_argument("--host", default="127.0.0.1", help="address of both servers")
     p.add_argument("--port", type=int, default=8000, help="HTTP port")
     p.add_argument("--grpc-port", type=int, default=None,
                    help="gRPC (OIP v2) port; default TDCR_GRPC_PORT or 8001; 0: no gRPC server")
-    p.add_argument("--workers", type=int, default=None)
-    p.add_argument("--log-level", default="info")
+    p.add_argument("--workers", type=int, default=None, help="uvicorn worker processes (default: TDCR_WORKERS, 1)")
+    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
+                   help="uvicorn's log level")
     p.set_defaults(func=_cmd_serve)
 
-    p = sub.add_parser("loadtest", help="load-test a running service (bounded in requests and seconds)")
-    p.add_argument("--url", default="http://127.0.0.1:8000")
-    p.add_argument("--concurrency", default="1,4,16,64")
-    p.add_argument("--batch", default="1,32,1024")
-    p.add_argument("--model", default=None)
+    p = command("loadtest", "load-test a running service (bounded in requests and seconds)")
+    p.add_argument("--url", default="http://127.0.0.1:8000", help="the service's HTTP address")
+    p.add_argument("--concurrency", default="1,4,16,64", help="comma-separated client counts, one cell each")
+    p.add_argument("--batch", default="1,32,1024", help="comma-separated designs per request, one cell each")
+    p.add_argument("--model", default=None, help="the operator (default: the service's default)")
     p.add_argument("--binary", action="store_true", help=".npy requests and .npz answers instead of JSON")
     p.add_argument("--protocol", choices=["http", "v2", "grpc"], default="http",
                    help="http: /predict (JSON, or .npy with --binary); v2: the Open Inference Protocol over REST, "
@@ -417,10 +474,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=float, default=10.0, help="at most this long per cell")
     p.set_defaults(func=_cmd_loadtest)
 
-    p = sub.add_parser("openapi", help="write the service's OpenAPI document")
-    p.add_argument("--out", default="openapi/openapi.json")
+    p = command("openapi", "write the service's OpenAPI document")
+    p.add_argument("--out", default="openapi/openapi.json", help="file to write, or - for stdout")
     p.set_defaults(func=_cmd_openapi)
     return parser
+
+
+#: Third-party modules -> the extra that installs them.
+EXTRAS = {"torch": "train", "onnx": "train", "onnxscript": "train", "matplotlib": "train",
+          "fastapi": "serve", "uvicorn": "serve", "onnxruntime": "serve", "grpc": "serve", "httpx": "serve",
+          "orjson": "serve", "prometheus_client": "serve", "pydantic_settings": "serve", "starlette": "serve",
+          "dask": "data", "distributed": "data"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -430,6 +494,14 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except UsageError as exc:
         print(f"tdcr {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:  # a command of an extra that is not installed
+        module = (exc.name or "").split(".")[0]
+        if module not in EXTRAS:
+            raise
+        extra = EXTRAS[module]
+        print(f"tdcr {args.command}: needs the '{extra}' extra (no module named {module!r}): "
+              f"pip install -e '.[{extra}]', or bash scripts/test.sh, which installs every extra", file=sys.stderr)
         return 2
     except BrokenPipeError:  # e.g. `tdcr solve r.json | head`
         sys.stderr.close()

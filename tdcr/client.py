@@ -30,6 +30,18 @@ class TDCRError(RuntimeError):
         self.status, self.message = status, message
 
 
+def _checked(features: np.ndarray, s) -> np.ndarray:
+    """The one validation path's checks before anything is sent: the same words as the service's
+    422 (:class:`tdcr.checks.InvalidRequest`, a ``ValueError``)."""
+    from tdcr.checks import check_fractions, check_surrogate_features, raise_problems
+
+    problems = check_surrogate_features(features)
+    if s is not None:
+        problems += check_fractions(s)[1]
+    raise_problems(problems)
+    return np.asarray(features)
+
+
 def _npy(features: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(features, dtype=np.float64), allow_pickle=False)
@@ -81,7 +93,7 @@ class Client:
 
         ``outputs``: e.g. ``["tendons"]`` to receive (and compute) only those arrays.
         """
-        r = self._http.post("/predict", content=_npy(features), params=_params(model, points, s, outputs),
+        r = self._http.post("/predict", content=_npy(_checked(features, s)), params=_params(model, points, s, outputs),
                             headers={"content-type": NPY, "accept": NPZ})
         return _decode(r)
 
@@ -110,7 +122,8 @@ class AsyncClient:
 
     async def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = DEFAULT_POINTS,
                       s=None, outputs=None) -> dict:
-        r = await self._http.post("/predict", content=_npy(features), params=_params(model, points, s, outputs),
+        r = await self._http.post("/predict", content=_npy(_checked(features, s)),
+                                  params=_params(model, points, s, outputs),
                                   headers={"content-type": NPY, "accept": NPZ})
         return _decode(r)
 

@@ -26,6 +26,20 @@ from tdcr.physics.geometry import cubic_weights, orthonormalize, rigid_fit, tend
 #: Manifest (and manifest entry) format this runtime reads; training/operators/export.py writes it.
 MANIFEST_FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
+#: The shipped models, found from any working directory (a path relative to the package).
+DEFAULT_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+
+
+def best_model(manifest: dict) -> str | None:
+    """The default model, for the service and ``tdcr predict`` alike: the manifest model with the
+    lowest mean test relative l2 (the first by name if none has metrics)."""
+    models = manifest.get("models", {})
+
+    def score(name):
+        m = (models[name].get("metrics") or {}).get("test_relative_l2") or {}
+        return m.get("mean", float("inf"))
+
+    return min(sorted(models), key=score) if models else None
 
 
 class ManifestError(ValueError):
@@ -136,7 +150,8 @@ class Surrogate:
         self._side_by_side(run_rows, len(features))
         return outputs
 
-    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True) -> dict[str, np.ndarray]:
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True,
+                check: bool = True) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
 
         Graph outputs stay float32 (the networks' precision); the pose fit of tendon models and
@@ -144,7 +159,17 @@ class Surrogate:
 
         ``pose=False`` returns ``tendons`` only (saves the conversion and, off the FNO grid, the
         interpolation of the pose).
+
+        ``check``: the one validation path's checks first (:mod:`tdcr.checks`): ``(B, 15)`` designs
+        inside their admissible bounds, fractions in [0, 1]; a ``ValueError`` with the service's
+        words else.  The service's batcher, whose requests are validated already, skips them.
         """
+        if check:
+            from tdcr.checks import check_fractions, check_surrogate_features, raise_problems
+
+            problems = check_surrogate_features(features)
+            fractions, more = check_fractions(fractions, name="fractions")
+            raise_problems(problems + more)
         features = np.asarray(features, dtype=np.float64)
         fractions = np.asarray(fractions, dtype=np.float64)
         raw = {k: v for k, v in self.run(features, fractions).items() if pose or k == "tendons"}

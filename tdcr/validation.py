@@ -17,20 +17,29 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal, NamedTuple
+from typing import Literal
 
 import numpy as np
 from pydantic import ValidationError
 
+from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's vocabulary
+    EXACT_ROUTES,
+    MAX_QUOTED,
+    InvalidRequest,
+    Problem,
+    _short,
+    check_features,
+    check_fractions,
+    check_loads,
+    format_location,
+    quote,
+)
 from tdcr.design_space import (
     DEFAULT_POINTS,
-    FRACTION_ROUNDING,
-    LOADS,
     MAX_POINTS,
     N_FEATURES,
     N_TENDONS,
     TABLE_I,
-    admissible_bounds,
 )
 from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
 from tdcr.schemas import EXACT_MODEL, MAX_MODEL_NAME, MAX_TARGETS, InverseRequest, PredictRequest, SolveRequest
@@ -39,60 +48,6 @@ from tdcr.schemas import EXACT_MODEL, MAX_MODEL_NAME, MAX_TARGETS, InverseReques
 Target = Literal["surrogate", "solver"]
 #: Arrays a surrogate can answer with; a request may ask for a subset.
 OUTPUTS = ("backbone", "rotation", "tendons")
-#: Problems quoted in one message (the rest are counted).
-MAX_LISTED_PROBLEMS = 20
-#: Characters of user input quoted in a message.
-MAX_QUOTED = 40
-
-
-class Problem(NamedTuple):
-    """One bad field: its location (e.g. ``("designs", 3, "E")``), the reason and a short type."""
-
-    loc: tuple[str | int, ...]
-    msg: str
-    type: str
-
-
-def format_location(loc: Sequence[str | int]) -> str:
-    """``("designs", 3, "tendons", 1, "tension")`` -> ``designs[3].tendons[1].tension``."""
-    out = ""
-    for part in loc:
-        out += f"[{part}]" if isinstance(part, int) else ("." if out else "") + str(part)
-    return out
-
-
-def quote(text: object) -> str:
-    """``repr`` of user input, cut to :data:`MAX_QUOTED` characters."""
-    text = repr(text)
-    return text if len(text) <= MAX_QUOTED else text[:MAX_QUOTED] + "...'"
-
-
-def _short(part: str | int) -> str | int:
-    """A location part as given by the user (e.g. an unknown key), cut to :data:`MAX_QUOTED` characters."""
-    return part if isinstance(part, int) or len(part) <= MAX_QUOTED else part[:MAX_QUOTED] + "..."
-
-
-class InvalidRequest(ValueError):
-    """Bad input: ``problems`` name each field and reason.  ``too_large`` marks size limits (413)."""
-
-    def __init__(self, problems: Iterable[Problem], *, too_large: bool = False):
-        self.problems = list(problems)
-        self.too_large = too_large
-        super().__init__(self.message)
-
-    def __reduce__(self):  # picklable with its problems (it crosses process boundaries)
-        return (_invalid_request, (self.problems, self.too_large))
-
-    @property
-    def message(self) -> str:
-        """One line per problem (the first :data:`MAX_LISTED_PROBLEMS`): ``location: reason``."""
-        lines = [f"{format_location(p.loc) or 'request'}: {p.msg}" for p in self.problems[:MAX_LISTED_PROBLEMS]]
-        more = len(self.problems) - MAX_LISTED_PROBLEMS
-        return "; ".join(lines) + (f"; and {more} more" if more > 0 else "")
-
-
-def _invalid_request(problems: list[Problem], too_large: bool) -> InvalidRequest:
-    return InvalidRequest(problems, too_large=too_large)
 
 
 @dataclass(frozen=True)
@@ -157,62 +112,6 @@ class ShapeRequest:
 # -- value checks ------------------------------------------------------------------------------
 
 
-def _interval(low: float, high: float, exclusive_min: bool, unit: str) -> str:
-    return f"{'(' if exclusive_min else '['}{low:g}, {high:g}] {unit}"
-
-
-def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list[Problem]:
-    """Problems with raw SI designs ``(B, 3 + 3 N_t)``: not finite, or outside the admissible
-    bounds; ``rows`` ``(B,)`` are the designs' indices in the request (default ``0..B-1``)."""
-    layout = FeatureLayout.of(features)
-    low, high, exclusive = admissible_bounds(layout.n_tendons)
-    finite = np.isfinite(features)
-    with np.errstate(invalid="ignore"):
-        bad = ~finite | (features > high) | np.where(exclusive, features <= low, features < low)
-    rows = np.arange(len(features)) if rows is None else rows
-    problems = []
-    for b, j in zip(*np.nonzero(bad), strict=True):  # the offending entries only, by design then column
-        name = layout.parameters[j]
-        tendon = layout.tendon_index[j]
-        loc = ("designs", int(rows[b])) + ((name,) if tendon is None else ("tendons", tendon, name))
-        value = features[b, j]
-        if not finite[b, j]:
-            problems.append(Problem(loc, f"must be a finite number, got {value}", "finite_number"))
-        else:
-            p = TABLE_I[name]
-            problems.append(Problem(loc, f"must be in {_interval(*p.admissible, p.exclusive_min, p.unit)}, "
-                                         f"got {value:.6g}", "out_of_range"))
-    return problems
-
-
-def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
-    """Problems with external loads (arrays as in :class:`ExternalLoads`, NaN where absent):
-    not finite, outside the admissible bounds, or gravity without a density."""
-    problems = []
-    for name in ("gravity", "density", "tip_force", "tip_moment"):
-        values = getattr(loads, name)
-        if values is None:
-            continue
-        values = values.reshape(len(rows), -1)
-        bound = LOADS[name]
-        low, high = bound.admissible
-        given = ~np.isnan(values) if name in ("gravity", "density") else np.ones(values.shape, dtype=bool)
-        with np.errstate(invalid="ignore"):
-            bad = given & (~np.isfinite(values) | (values > high) | ((values <= low) if bound.exclusive_min
-                                                                     else (values < low)))
-        for b, k in zip(*np.nonzero(bad), strict=True):
-            loc = ("designs", int(rows[b]), name) + ((int(k),) if values.shape[1] > 1 else ())
-            value = values[b, k]
-            msg = (f"must be a finite number, got {value}" if not np.isfinite(value) else
-                   f"must be in {_interval(low, high, bound.exclusive_min, bound.unit)}, got {value:.6g}")
-            problems.append(Problem(loc, msg, "finite_number" if not np.isfinite(value) else "out_of_range"))
-    if loads.gravity is not None:
-        no_density = np.isnan(loads.density) & ~np.isnan(loads.gravity).any(axis=1)
-        problems += [Problem(("designs", int(rows[b]), "density"), "gravity needs a density (kg/m^3)",
-                             "missing_density") for b in np.nonzero(no_density)[0]]
-    return problems
-
-
 def check_outputs(outputs: Iterable[str] | None) -> tuple[tuple[str, ...], list[Problem]]:
     """The arrays wanted (sorted, a subset of :data:`OUTPUTS`; all when ``None``) and any problem."""
     if outputs is None:
@@ -243,12 +142,7 @@ def _fractions(points: int | None, s: Sequence[float] | np.ndarray | None,
         return np.linspace(0.0, 1.0, n), []
     if not 1 <= len(s) <= limits.max_points:
         return None, [Problem(("s",), f"must hold 1 to {limits.max_points} fractions, got {len(s)}", "points")]
-    fractions = np.asarray(s, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        bad = np.nonzero(~((fractions >= -FRACTION_ROUNDING) & (fractions <= 1.0 + FRACTION_ROUNDING)))[0]
-    problems = [Problem(("s", int(i)), f"must be a fraction of L in [0, 1], got {fractions[i]}", "fraction")
-                for i in bad]
-    return (None if problems else np.clip(fractions, 0.0, 1.0)), problems
+    return check_fractions(s)
 
 
 def _check_sizes(n_designs: int, n_points: int, limits: Limits) -> None:
@@ -305,7 +199,7 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     try:
         request = (schema.model_validate(body) if isinstance(body, dict) else schema.model_validate_json(body))
     except ValidationError as exc:
-        raise InvalidRequest(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"])
+        raise InvalidRequest(_what_to_do(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"]), target)
                              for e in exc.errors(include_input=False, include_url=False)) from None
     fractions, problems = _fractions(request.points, request.s, limits)
     _check_sizes(len(request.designs), 0 if fractions is None else fractions.size, limits)
@@ -318,6 +212,23 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
               for rows in by_count.values()]
     return _checked(groups, fractions, problems, model=getattr(request, "model", None),
                     outputs=wanted, jacobian=request.jacobian)
+
+
+#: The load fields of a design (the solver's; the operators take none).
+LOAD_FIELDS = ("gravity", "density", "tip_force", "tip_moment")
+
+
+def _what_to_do(problem: Problem, target: Target) -> Problem:
+    """A schema problem of a surrogate request that the exact solver would take says so: a design
+    with another tendon count, or with loads (``EXACT_ROUTES``)."""
+    loc = problem.loc
+    if target != "surrogate" or len(loc) < 3 or loc[0] != "designs":
+        return problem
+    if loc[2:] == ("tendons",) and problem.type in ("too_short", "too_long"):
+        return problem._replace(msg=f"{problem.msg}: the operators take {N_TENDONS} tendons; {EXACT_ROUTES}")
+    if loc[2:] in tuple((f,) for f in LOAD_FIELDS) and problem.type == "extra_forbidden":
+        return problem._replace(msg=f"{problem.msg}: the operators take no external loads; {EXACT_ROUTES}")
+    return problem
 
 
 def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:

@@ -199,6 +199,20 @@ def _run_jobs(jobs, points: int, *, workers: int | None, scheduler: str | None):
             yield futures[fut], fut.result()
 
 
+def split_indices(n: int, seed: int, n_test: int) -> tuple[np.ndarray, np.ndarray]:
+    """The train / test split of a dataset of ``n`` designs from ``seed``: a permutation from
+    ``seed + 1``, its first ``n_test`` the test set; sorted indices ``(train, test)``."""
+    perm = np.random.default_rng(seed + 1).permutation(n)
+    return np.sort(perm[n_test:]), np.sort(perm[:n_test])
+
+
+def training_features(record: dict) -> np.ndarray:
+    """The training designs ``(n_train, 15)`` of a dataset recorded as ``{"n", "seed", "n_test"}``
+    (``tdcr export --data`` writes it into each manifest entry): regenerated, not read."""
+    train, _ = split_indices(record["n"], record["seed"], record["n_test"])
+    return design_space.sample_designs(record["n"], seed=record["seed"]).features()[train]
+
+
 def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> dict:
     converged = 0
     status = np.zeros(len(STATUS), dtype=np.int64)
@@ -207,9 +221,9 @@ def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> d
             converged += int(z["converged"].sum())
             if "status" in z:
                 status += np.bincount(z["status"].astype(np.int64), minlength=len(STATUS))
-    perm = np.random.default_rng(cfg.seed + 1).permutation(cfg.n)
     n_test = int(round(cfg.test_fraction * cfg.n))
-    np.savez(out / "split.npz", train=np.sort(perm[n_test:]), test=np.sort(perm[:n_test]))
+    train, test = split_indices(cfg.n, cfg.seed, n_test)
+    np.savez(out / "split.npz", train=train, test=test)
     meta = {
         "format_version": FORMAT_VERSION,
         "generator": "tdcr generate",

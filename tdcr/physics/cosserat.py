@@ -49,7 +49,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.design_space import FRACTION_ROUNDING
 from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.physics._lie import hat, se3_bracket, se3_exp
 from tdcr.physics.status import STATUS, Status
@@ -472,11 +471,7 @@ def solve(
         it never fails the batch.
     """
     opts = options or SolverOptions()
-    fractions_out = np.asarray(fractions, dtype=np.float64).reshape(-1)
-    if (fractions_out.size == 0 or np.any(~np.isfinite(fractions_out)) or fractions_out.min() < -FRACTION_ROUNDING
-            or fractions_out.max() > 1 + FRACTION_ROUNDING):
-        raise ValueError("fractions must be a non-empty array of arclength fractions in [0, 1]")
-    fractions_out = np.clip(fractions_out, 0.0, 1.0)
+    fractions_out = check_inputs(designs, fractions, loads)
     loaded = loads is not None and not loads.is_zero()
     if loaded and opts.linearized:
         raise ValueError("the linearized model covers tendon loads only")
@@ -485,6 +480,42 @@ def solve(
     if loaded:
         return _solve_loaded_compiled(designs, fractions_out, loads, opts, workers)
     return _solve_tendon_only(designs, fractions_out, opts, jacobian=jacobian, threads=workers)
+
+
+def check_inputs(designs: DesignBatch, fractions: np.ndarray, loads: ExternalLoads | None) -> np.ndarray:
+    """The one validation path's value checks (:mod:`tdcr.checks`) for the Python API: every design
+    and load inside its admissible bounds, the fractions in [0, 1] (clamped within rounding).
+    Returns the fractions ``(n,)``; raises :class:`tdcr.checks.InvalidRequest` (a ``ValueError``)
+    with the service's words, e.g. ``designs[0].tendons[1].tension: must be in [0, 1000] N, got -2``."""
+    from tdcr.checks import Problem, check_features, check_fractions, check_loads, raise_problems
+
+    problems = check_features(designs.features())
+    clamped, more = check_fractions(fractions, name="fractions")
+    problems += more
+    if loads is not None:
+        rows = np.arange(designs.n_designs)
+        if loads.gravity is not None and loads.density is None:
+            problems.append(Problem(("designs", 0, "gravity"), "needs a density (kg/m^3): give "
+                                    "ExternalLoads(density=...)", "missing_density"))
+        else:
+            problems += check_loads(_checkable(loads, designs.n_designs), rows)
+    raise_problems(problems)
+    return clamped
+
+
+def _checkable(loads: ExternalLoads, n: int) -> ExternalLoads:
+    """Loads as the checks read them: arrays of ``n`` rows; a design without gravity (zero or
+    absent) has no weight, so its gravity and density count as absent (NaN)."""
+    def rows(values, shape):
+        return None if values is None else np.asarray(values, dtype=np.float64).reshape(n, *shape)
+
+    gravity, density = rows(loads.gravity, (3,)), rows(loads.density, ())
+    if gravity is not None and density is not None:
+        weightless = ~np.any(gravity != 0, axis=1)
+        gravity, density = gravity.copy(), density.copy()
+        gravity[weightless], density[weightless] = np.nan, np.nan
+    return ExternalLoads(gravity=gravity, density=density, tip_force=rows(loads.tip_force, (3,)),
+                         tip_moment=rows(loads.tip_moment, (3,)))
 
 
 def body_strains(designs: DesignBatch, fractions: np.ndarray, *, options: SolverOptions | None = None

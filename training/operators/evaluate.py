@@ -41,10 +41,34 @@ def linearized_tendons(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
 BASELINES = {"undeformed baseline": undeformed_tendons, "linearized reference": linearized_tendons}
 
 
-def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batch: int = 5000) -> dict:
-    """Metrics of each named model on the test split, plus the baseline; returns name -> summary."""
+def held_out(features: np.ndarray, entries: dict[str, dict]) -> tuple[np.ndarray, dict[str, int], list[str]]:
+    """Which test designs ``(B, 15)`` no model of ``entries`` (manifest entries) was trained on:
+    ``(mask (B,), designs left out per model, models whose training set is not recorded)``.  A
+    model's training designs are regenerated from its manifest's dataset record (seed, size,
+    split) and compared exactly."""
+    keep = np.ones(len(features), dtype=bool)
+    left_out, unknown = {}, []
+    rows = [f.tobytes() for f in np.ascontiguousarray(features, dtype=np.float64)]
+    for name, entry in entries.items():
+        record = entry.get("dataset")
+        if not record or not {"n", "seed", "n_test"} <= set(record):
+            unknown.append(name)
+            continue
+        trained = {f.tobytes() for f in np.ascontiguousarray(dataset.training_features(record), dtype=np.float64)}
+        seen = np.array([row in trained for row in rows], dtype=bool)
+        left_out[name] = int(seen.sum())
+        keep &= ~seen
+    return keep, left_out, unknown
+
+
+def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batch: int = 5000,
+             keep: np.ndarray | None = None) -> dict:
+    """Metrics of each named model on the test split (the rows ``keep``, default all), plus the
+    baselines; returns name -> summary."""
     test = dataset.load(data, "test")
     feats, truth = test["features"], test["tendons"]
+    if keep is not None:
+        feats, truth = feats[keep], truth[keep]
     sigma = np.linspace(0.0, 1.0, truth.shape[1])
     results = {label: summary(relative_l2(np.concatenate([fn(feats[i:i + batch], sigma)
                                                          for i in range(0, len(feats), batch)]), truth))

@@ -1,0 +1,166 @@
+"""The value checks of the one validation path, numpy only: what every entry point runs, the
+service's (through :mod:`tdcr.validation`) and the Python API's (:func:`tdcr.solve`,
+:meth:`tdcr.Surrogate.predict`, :class:`tdcr.client.Client`), so that the same mistake gets the
+same words everywhere: ``designs[0].tendons[1].tension: must be in [0, 1000] N, got -2``.
+
+:class:`InvalidRequest` is a ``ValueError``; the service answers it with a 422 naming the fields.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from tdcr.design_space import FRACTION_ROUNDING, LOADS, N_TENDONS, TABLE_I, admissible_bounds
+from tdcr.designs import ExternalLoads, FeatureLayout
+
+#: Problems quoted in one message (the rest are counted).
+MAX_LISTED_PROBLEMS = 20
+#: Characters of user input quoted in a message.
+MAX_QUOTED = 40
+#: What a design a surrogate cannot take should use instead.
+EXACT_ROUTES = "the exact solver takes it: tdcr solve, POST /exact or tdcr.solve"
+
+
+class Problem(NamedTuple):
+    """One bad field: its location (e.g. ``("designs", 3, "E")``), the reason and a short type."""
+
+    loc: tuple[str | int, ...]
+    msg: str
+    type: str
+
+
+def format_location(loc: Sequence[str | int]) -> str:
+    """``("designs", 3, "tendons", 1, "tension")`` -> ``designs[3].tendons[1].tension``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else ("." if out else "") + str(part)
+    return out
+
+
+def quote(text: object) -> str:
+    """``repr`` of user input, cut to :data:`MAX_QUOTED` characters."""
+    text = repr(text)
+    return text if len(text) <= MAX_QUOTED else text[:MAX_QUOTED] + "...'"
+
+
+def _short(part: str | int) -> str | int:
+    """A location part as given by the user (e.g. an unknown key), cut to :data:`MAX_QUOTED` characters."""
+    return part if isinstance(part, int) or len(part) <= MAX_QUOTED else part[:MAX_QUOTED] + "..."
+
+
+class InvalidRequest(ValueError):
+    """Bad input: ``problems`` name each field and reason.  ``too_large`` marks size limits (413)."""
+
+    def __init__(self, problems: Iterable[Problem], *, too_large: bool = False):
+        self.problems = list(problems)
+        self.too_large = too_large
+        super().__init__(self.message)
+
+    def __reduce__(self):  # picklable with its problems (it crosses process boundaries)
+        return (_invalid_request, (self.problems, self.too_large))
+
+    @property
+    def message(self) -> str:
+        """One line per problem (the first :data:`MAX_LISTED_PROBLEMS`): ``location: reason``."""
+        lines = [f"{format_location(p.loc) or 'request'}: {p.msg}" for p in self.problems[:MAX_LISTED_PROBLEMS]]
+        more = len(self.problems) - MAX_LISTED_PROBLEMS
+        return "; ".join(lines) + (f"; and {more} more" if more > 0 else "")
+
+
+def _invalid_request(problems: list[Problem], too_large: bool) -> InvalidRequest:
+    return InvalidRequest(problems, too_large=too_large)
+
+
+def _interval(low: float, high: float, exclusive_min: bool, unit: str) -> str:
+    return f"{'(' if exclusive_min else '['}{low:g}, {high:g}] {unit}"
+
+
+def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list[Problem]:
+    """Problems with raw SI designs ``(B, 3 + 3 N_t)``: not finite, or outside the admissible
+    bounds; ``rows`` ``(B,)`` are the designs' indices in the request (default ``0..B-1``)."""
+    layout = FeatureLayout.of(features)
+    low, high, exclusive = admissible_bounds(layout.n_tendons)
+    finite = np.isfinite(features)
+    with np.errstate(invalid="ignore"):
+        bad = ~finite | (features > high) | np.where(exclusive, features <= low, features < low)
+    rows = np.arange(len(features)) if rows is None else rows
+    problems = []
+    for b, j in zip(*np.nonzero(bad), strict=True):  # the offending entries only, by design then column
+        name = layout.parameters[j]
+        tendon = layout.tendon_index[j]
+        loc = ("designs", int(rows[b])) + ((name,) if tendon is None else ("tendons", tendon, name))
+        value = features[b, j]
+        if not finite[b, j]:
+            problems.append(Problem(loc, f"must be a finite number, got {value}", "finite_number"))
+        else:
+            p = TABLE_I[name]
+            problems.append(Problem(loc, f"must be in {_interval(*p.admissible, p.exclusive_min, p.unit)}, "
+                                         f"got {value:.6g}", "out_of_range"))
+    return problems
+
+
+def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
+    """Problems with external loads (arrays as in :class:`ExternalLoads`, NaN where absent):
+    not finite, outside the admissible bounds, or gravity without a density."""
+    problems = []
+    for name in ("gravity", "density", "tip_force", "tip_moment"):
+        values = getattr(loads, name)
+        if values is None:
+            continue
+        values = values.reshape(len(rows), -1)
+        bound = LOADS[name]
+        low, high = bound.admissible
+        given = ~np.isnan(values) if name in ("gravity", "density") else np.ones(values.shape, dtype=bool)
+        with np.errstate(invalid="ignore"):
+            bad = given & (~np.isfinite(values) | (values > high) | ((values <= low) if bound.exclusive_min
+                                                                     else (values < low)))
+        for b, k in zip(*np.nonzero(bad), strict=True):
+            loc = ("designs", int(rows[b]), name) + ((int(k),) if values.shape[1] > 1 else ())
+            value = values[b, k]
+            msg = (f"must be a finite number, got {value}" if not np.isfinite(value) else
+                   f"must be in {_interval(low, high, bound.exclusive_min, bound.unit)}, got {value:.6g}")
+            problems.append(Problem(loc, msg, "finite_number" if not np.isfinite(value) else "out_of_range"))
+    if loads.gravity is not None:
+        no_density = np.isnan(loads.density) & ~np.isnan(loads.gravity).any(axis=1)
+        problems += [Problem(("designs", int(rows[b]), "density"), "gravity needs a density (kg/m^3)",
+                             "missing_density") for b in np.nonzero(no_density)[0]]
+    return problems
+
+
+def check_fractions(fractions: Sequence[float] | np.ndarray, *, name: str = "s") -> tuple[np.ndarray | None,
+                                                                                    list[Problem]]:
+    """Arclength fractions ``(n,)`` clamped onto [0, 1] (within :data:`FRACTION_ROUNDING`), or
+    None and the problems (not finite, outside [0, 1])."""
+    values = np.asarray(fractions, dtype=np.float64).reshape(-1)
+    with np.errstate(invalid="ignore"):
+        bad = np.nonzero(~((values >= -FRACTION_ROUNDING) & (values <= 1.0 + FRACTION_ROUNDING)))[0]
+    problems = [Problem((name, int(i)), f"must be a fraction of L in [0, 1], got {values[i]}", "fraction")
+                for i in bad]
+    if values.size == 0:
+        problems.append(Problem((name,), "must hold at least one fraction of L", "points"))
+    return (None if problems else np.clip(values, 0.0, 1.0)), problems
+
+
+def check_surrogate_features(features: np.ndarray) -> list[Problem]:
+    """Problems of raw SI designs for a surrogate, which takes ``(B, 15)``: 4 tendons and no loads."""
+    features = np.asarray(features)
+    if features.ndim != 2 or features.shape[0] < 1 or features.dtype.kind not in "fiu":
+        return [Problem(("designs",), f"expected a numeric (B, {3 + 3 * N_TENDONS}) array [E, r, L, offsets, "
+                                      f"pitches, tensions] with B >= 1, got {features.dtype} {features.shape}",
+                        "array")]
+    if features.shape[1] != 3 + 3 * N_TENDONS:
+        tendons = (features.shape[1] - 3) / 3
+        count = f"{tendons:g} tendons" if tendons == int(tendons) else f"{features.shape[1]} columns"
+        return [Problem(("designs",), f"the operators take {N_TENDONS} tendons ({3 + 3 * N_TENDONS} columns), got "
+                                      f"{count}; {EXACT_ROUTES}", "tendon_count")]
+    return check_features(features)
+
+
+def raise_problems(problems: Iterable[Problem]) -> None:
+    """:class:`InvalidRequest` if there is any problem."""
+    problems = list(problems)
+    if problems:
+        raise InvalidRequest(problems)
