@@ -3,15 +3,16 @@
     pip install "tritonclient[grpc]"
     python examples/tritonclient_grpc.py 127.0.0.1:8001 [MODEL ...]
 
-Prints, per model, the shapes it answered; the last line is JSON for scripts: the designs sent and
-each model's tendon paths (B, n, 4, 3) in metres.  Inputs and outputs travel as raw tensor
+Prints, per model, the shapes it answered and each design's tip (m); ``--json FILE`` also writes
+the designs sent and each model's tendon paths (B, n, 4, 3) in metres, for scripts.
+Inputs and outputs travel as raw tensor
 contents, tritonclient's way.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 
 import numpy as np
 import tritonclient.grpc as triton
@@ -21,11 +22,20 @@ DESIGNS = np.array([[3.0e10, 1.0e-3, 0.25, 0.008, 0.008, 0.008, 0.008, 0.0, 0.0,
                     [2.0e10, 8.0e-4, 0.20, 0.006, 0.007, 0.008, 0.009, 5.0, -5.0, 0.0, 10.0, 1.0, 2.0, 0.5, 0.0]])
 
 
+def _arguments(default_target: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("target", nargs="?", default=default_target, help="the server (default: %(default)s)")
+    parser.add_argument("models", nargs="*", help="models to ask (default: the four operators and exact)")
+    parser.add_argument("--json", default=None, help="write the designs and every model's tendon paths here")
+    return parser.parse_args()
+
+
 def main() -> None:
-    client = triton.InferenceServerClient(sys.argv[1] if len(sys.argv) > 1 else "127.0.0.1:8001")
+    args = _arguments("127.0.0.1:8001")
+    client = triton.InferenceServerClient(args.target)
     assert client.is_server_live() and client.is_server_ready()
     answers = {}
-    for name in sys.argv[2:] or ["deeponet", "deeponet_pose", "fno", "fno_pose", "exact"]:
+    for name in args.models or ["deeponet", "deeponet_pose", "fno", "fno_pose", "exact"]:
         assert client.is_model_ready(name)
         meta = client.get_model_metadata(name, as_json=True)
         design = triton.InferInput("design", list(DESIGNS.shape), "FP64")
@@ -33,10 +43,13 @@ def main() -> None:
         outputs = [triton.InferRequestedOutput(o["name"]) for o in meta["outputs"] if o["name"] != "residual"]
         result = client.infer(name, [design], outputs=outputs)
         tendons = result.as_numpy("tendons")
+        tips = np.round(result.as_numpy("backbone")[:, -1], 4).tolist()
         print(f"{name}: tendons {tendons.shape}, rotation {result.as_numpy('rotation').shape}, "
-              f"in_distribution {result.as_numpy('in_distribution').tolist()}")
+              f"in_distribution {result.as_numpy('in_distribution').tolist()}, tips (m) {tips}")
         answers[name] = tendons.tolist()
-    print(json.dumps({"designs": DESIGNS.tolist(), "tendons": answers}))
+    if args.json:
+        with open(args.json, "w") as out:
+            json.dump({"designs": DESIGNS.tolist(), "tendons": answers}, out)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import orjson
 from service.model import InverseAnswer, ModelSpec
 from tdcr.engine import Prediction, encode_json, encode_npz
 from tdcr.exact import ExactAnswer
+from tdcr.schemas import RESPONSE_FORMAT_VERSION
 from tdcr.validation import InverseProblem, ShapeRequest, validate_inverse, validate_json
 
 
@@ -49,7 +50,7 @@ class ExactCodec:
         return Decoded(validate_json(payload, target="solver", limits=spec.limits))
 
     def encode(self, decoded: Decoded, answer: ExactAnswer) -> bytes:
-        return orjson.dumps({"results": answer.results()})
+        return orjson.dumps({"format_version": RESPONSE_FORMAT_VERSION, "results": answer.results()})
 
 
 @dataclass(frozen=True)

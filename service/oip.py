@@ -8,8 +8,9 @@ Models and their tensors:
 
 * every operator (kind ``surrogate``): inputs ``design`` FP64 or FP32 ``[-1, 15]`` (raw SI designs
   in the README's feature order) and optionally ``s`` FP64 ``[-1]`` (arclength fractions of L;
-  default the 42-point grid); outputs (metres) ``backbone`` FP32 ``[-1, n, 3]``, ``rotation`` FP32
-  ``[-1, n, 3, 3]``, ``tendons`` FP32 ``[-1, n, 4, 3]``, ``in_distribution`` BOOL ``[-1]``;
+  default the 42-point grid) or ``arclength`` FP64 ``[-1]`` (m, for designs of one length);
+  outputs (metres) ``backbone`` FP32 ``[-1, n, 3]``, ``rotation`` FP32 ``[-1, n, 3, 3]``,
+  ``tendons`` FP32 ``[-1, n, 4, 3]``, ``in_distribution`` BOOL ``[-1]``;
 * ``exact`` (the solver): also the inputs ``gravity`` ``[-1, 3]``, ``density`` ``[-1]``,
   ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``, and the outputs ``converged`` BOOL,
   ``residual`` FP64, ``status`` INT32 (an index into ``tdcr.physics.STATUS``) and
@@ -53,7 +54,8 @@ DATATYPES: dict[str, np.dtype] = {
     "FP32": np.dtype("<f4"), "FP64": np.dtype("<f8"),
 }
 #: The surrogates' tensors; ``n`` (-1) is the number of arclengths.
-SURROGATE_INPUTS = {"design": TensorSpec("FP64", (-1, N_FEATURES)), "s": TensorSpec("FP64", (-1,))}
+SURROGATE_INPUTS = {"design": TensorSpec("FP64", (-1, N_FEATURES)), "s": TensorSpec("FP64", (-1,)),
+                    "arclength": TensorSpec("FP64", (-1,))}
 SURROGATE_OUTPUTS = {"backbone": TensorSpec("FP32", (-1, -1, 3)), "rotation": TensorSpec("FP32", (-1, -1, 3, 3)),
                      "tendons": TensorSpec("FP32", (-1, -1, N_TENDONS, 3)),
                      "in_distribution": TensorSpec("BOOL", (-1,))}
@@ -257,7 +259,8 @@ class OipCodec:
             else:
                 wanted = [n for n in request.outputs if n in OUTPUTS]
                 task = validate_features(inputs["design"], target="surrogate" if spec.kind == "surrogate" else "solver",
-                                         model=spec.name, s=inputs.get("s"), outputs=wanted or ["tendons"],
+                                         model=spec.name, s=inputs.get("s"), arclength=inputs.get("arclength"),
+                                         outputs=wanted or ["tendons"],
                                          limits=spec.limits, loads={n: inputs[n] for n in LOAD_INPUTS if n in inputs})
         except InvalidRequest as exc:
             inputs_named = "input 'design' or 's'" if spec.kind == "surrogate" else "inputs"

@@ -31,13 +31,14 @@ def _invalid(path: str, exc) -> UsageError:
 
 def _cmd_solve(args) -> int:
     from tdcr.exact import solve_request
+    from tdcr.schemas import RESPONSE_FORMAT_VERSION
     from tdcr.validation import InvalidRequest, validate_json
 
     try:
         request = validate_json(_read_text(args.request), target="solver", limits=_unlimited())
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
-    json.dump({"results": solve_request(request).results()}, sys.stdout)
+    json.dump({"format_version": RESPONSE_FORMAT_VERSION, "results": solve_request(request).results()}, sys.stdout)
     sys.stdout.write("\n")
     return 0
 

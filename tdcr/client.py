@@ -30,16 +30,18 @@ class TDCRError(RuntimeError):
         self.status, self.message = status, message
 
 
-def _checked(features: np.ndarray, s) -> np.ndarray:
-    """The one validation path's checks before anything is sent: the same words as the service's
-    422 (:class:`tdcr.checks.InvalidRequest`, a ``ValueError``)."""
+def _request(features: np.ndarray, *, model: str | None, points: int | None, s, arclength, outputs) -> dict:
+    """The ``/predict`` call of a binary request, after the one validation path's checks (nothing
+    is sent for a bad one; the same words as the service's 422: :class:`tdcr.checks.InvalidRequest`,
+    a ``ValueError``)."""
     from tdcr.checks import check_fractions, check_surrogate_features, raise_problems
 
     problems = check_surrogate_features(features)
     if s is not None:
         problems += check_fractions(s)[1]
     raise_problems(problems)
-    return np.asarray(features)
+    return {"content": _npy(np.asarray(features)), "params": _params(model, points, s, arclength, outputs),
+            "headers": {"content-type": NPY, "accept": NPZ}}
 
 
 def _npy(features: np.ndarray) -> bytes:
@@ -48,12 +50,14 @@ def _npy(features: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _params(model: str | None, points: int | None, s, outputs=None) -> list[tuple[str, str]]:
+def _params(model: str | None, points: int | None, s, arclength, outputs=None) -> list[tuple[str, str]]:
     params = [] if model is None else [("model", model)]
     if outputs is not None:
         params.append(("outputs", ",".join(outputs)))
     if s is not None:
         params += [("s", repr(float(v))) for v in s]
+    elif arclength is not None:
+        params += [("arclength", repr(float(v))) for v in arclength]
     elif points is not None:
         params.append(("points", str(points)))
     return params
@@ -88,14 +92,17 @@ class Client:
         self._http.close()
 
     def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = DEFAULT_POINTS, s=None,
-                outputs=None) -> dict:
-        """Binary request: features ``(B, 15)`` -> arrays s, backbone, rotation, tendons, in_distribution.
+                arclength=None, outputs=None) -> dict:
+        """Binary request: SI designs ``(B, 15)`` -> arrays ``s`` ``(B, n)`` (fractions of L),
+        ``arclength`` ``(B, n)`` m, backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons
+        ``(B, n, 4, 3)`` m, in_distribution and finite ``(B,)``.
 
-        ``outputs``: e.g. ``["tendons"]`` to receive (and compute) only those arrays.
+        The arclengths: ``points`` equispaced on [0, L], or ``s`` (fractions of L), or ``arclength``
+        (m, for designs of one length).  ``outputs``: e.g. ``["tendons"]`` to receive (and compute)
+        only those arrays.  Bad designs raise ``ValueError`` before anything is sent.
         """
-        r = self._http.post("/predict", content=_npy(_checked(features, s)), params=_params(model, points, s, outputs),
-                            headers={"content-type": NPY, "accept": NPZ})
-        return _decode(r)
+        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs)
+        return _decode(self._http.post("/predict", **call))
 
     def predict_json(self, request: dict) -> dict:
         return _decode(self._http.post("/predict", json=request))
@@ -121,11 +128,10 @@ class AsyncClient:
         await self._http.aclose()
 
     async def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = DEFAULT_POINTS,
-                      s=None, outputs=None) -> dict:
-        r = await self._http.post("/predict", content=_npy(_checked(features, s)),
-                                  params=_params(model, points, s, outputs),
-                                  headers={"content-type": NPY, "accept": NPZ})
-        return _decode(r)
+                      s=None, arclength=None, outputs=None) -> dict:
+        """As :meth:`Client.predict`."""
+        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs)
+        return _decode(await self._http.post("/predict", **call))
 
     async def predict_json(self, request: dict) -> dict:
         return _decode(await self._http.post("/predict", json=request))

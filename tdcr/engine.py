@@ -23,13 +23,14 @@ import orjson
 from tdcr.design_space import range_warnings
 from tdcr.designs import L_COLUMN
 from tdcr.inverse import tip_by_differences
+from tdcr.schemas import RESPONSE_FORMAT_VERSION
 from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
 
 #: Media types of the binary path.
 NPY = "application/x-npy"
 NPZ = "application/x-npz"
 #: Query parameters of a ``.npy`` request.
-QUERY_FIELDS = ("model", "points", "s", "outputs")
+QUERY_FIELDS = ("model", "points", "s", "arclength", "outputs")
 
 
 class Predictor(Protocol):
@@ -41,14 +42,16 @@ class Predictor(Protocol):
 
 @dataclass(frozen=True)
 class Prediction:
-    """A surrogate's answer: ``model``; ``s`` ``(B, n)`` m; the wanted ``arrays`` (backbone
+    """A surrogate's answer: ``model``; the arclengths as ``fractions`` of L ``(n,)`` and in metres,
+    ``arclength`` ``(B, n)``; the wanted ``arrays`` (backbone
     ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons ``(B, n, 4, 3)`` m; float32 from the graph,
     float64 where post-processed: the pose fit of tendon models, FNO interpolation off the grid); and per
     design the range ``warnings`` (empty: in distribution) and whether its answer is ``finite``
     (far outside the trained ranges a network can overflow; such rows are zeros)."""
 
     model: str
-    s: np.ndarray
+    fractions: np.ndarray
+    arclength: np.ndarray
     arrays: dict[str, np.ndarray]
     warnings: list[list[str]]
     finite: np.ndarray  # (B,) the answer is finite (else its rows are zeros)
@@ -70,11 +73,12 @@ def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits)
                 if len(params.get(k, [])) > 1]
     points = _query_int(params, "points", problems)
     s = _query_floats(params, "s", problems)
+    arclength = _query_floats(params, "arclength", problems)
     if problems:
         raise InvalidRequest(problems)
     features = read_npy(body)
     outputs = params.get("outputs")
-    return validate_features(features, target="surrogate", points=points, s=s,
+    return validate_features(features, target="surrogate", points=points, s=s, arclength=arclength,
                              model=(params.get("model") or [None])[0],
                              outputs=None if outputs is None else outputs[0].split(","), limits=limits)
 
@@ -91,7 +95,7 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Predi
     if not finite.all():
         arrays = {k: np.where(finite.reshape(-1, *[1] * (v.ndim - 1)), v, 0).astype(v.dtype)
                   for k, v in arrays.items()}
-    s = features[:, L_COLUMN, None] * request.fractions[None, :]
+    arclength = features[:, L_COLUMN, None] * request.fractions[None, :]
     tip_jacobian = None
     if request.jacobian:
         def tip_pose(batch: np.ndarray):
@@ -100,28 +104,34 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Predi
 
         with np.errstate(all="ignore"):
             tip_jacobian = np.ascontiguousarray(np.nan_to_num(tip_by_differences(features, tip_pose)[2]))
-    return Prediction(model=model, s=s, arrays=arrays, warnings=range_warnings(features), finite=finite,
-                      tip_jacobian=tip_jacobian)
+    return Prediction(model=model, fractions=request.fractions, arclength=arclength, arrays=arrays,
+                      warnings=range_warnings(features), finite=finite, tip_jacobian=tip_jacobian)
 
 
 def encode_json(prediction: Prediction) -> bytes:
-    """``PredictResponse`` JSON: per design s, backbone, rotation, tendons, in_distribution, warnings."""
+    """``PredictResponse`` JSON (format :data:`tdcr.schemas.RESPONSE_FORMAT_VERSION`): per design s
+    (fractions of L), arclength (m), backbone, rotation, tendons, in_distribution, warnings."""
     arrays = {k: np.ascontiguousarray(v) for k, v in prediction.arrays.items()}  # orjson: C order only
-    s = np.ascontiguousarray(prediction.s)
+    fractions, arclength = np.ascontiguousarray(prediction.fractions), np.ascontiguousarray(prediction.arclength)
     finite = prediction.finite.tolist()
-    results = [{"s": s[j], **{k: v[j] for k, v in arrays.items()}, "in_distribution": not w, "warnings": w,
-                "finite": finite[j]} for j, w in enumerate(prediction.warnings)]
+    results = [{"s": fractions, "arclength": arclength[j], **{k: v[j] for k, v in arrays.items()},
+                "in_distribution": not w, "warnings": w, "finite": finite[j]}
+               for j, w in enumerate(prediction.warnings)]
     if prediction.tip_jacobian is not None:
         for result, jacobian in zip(results, prediction.tip_jacobian, strict=True):
             result["tip_jacobian"] = jacobian
-    return orjson.dumps({"model": prediction.model, "results": results}, option=orjson.OPT_SERIALIZE_NUMPY)
+    return orjson.dumps({"format_version": RESPONSE_FORMAT_VERSION, "model": prediction.model, "results": results},
+                        option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 def encode_npz(prediction: Prediction) -> bytes:
-    """An uncompressed ``.npz`` (what ``np.savez`` writes; floats as float32) of s, the wanted
-    arrays and in_distribution ``(B,)``, each member written in one piece: 19-30 ms against
-    32 ms for ``np.savez``'s chunked writes of an 8192-design answer."""
-    arrays = {"s": prediction.s, "in_distribution": np.array([not w for w in prediction.warnings]),
+    """An uncompressed ``.npz`` (what ``np.savez`` writes; floats as float32) of s ``(B, n)``
+    (fractions of L), arclength ``(B, n)`` m, the wanted arrays and in_distribution ``(B,)``, each
+    member written in one piece: 19-30 ms against 32 ms for ``np.savez``'s chunked writes of an
+    8192-design answer."""
+    s = np.broadcast_to(prediction.fractions, prediction.arclength.shape)
+    arrays = {"s": s, "arclength": prediction.arclength,
+              "in_distribution": np.array([not w for w in prediction.warnings]),
               "finite": prediction.finite}
     arrays |= prediction.arrays
     if prediction.tip_jacobian is not None:

@@ -70,14 +70,14 @@ class SolvedGroup:
     only (a design with non-finite values is reported not converged, status ``not_finite``, those
     values 0 and the residual :data:`NOT_FINITE_RESIDUAL`).
 
-    ``s`` ``(b, n)`` m; ``backbone`` ``(b, n, 3)`` m; ``rotation`` ``(b, n, 3, 3)``; ``tendons``
+    ``arclength`` ``(b, n)`` m; ``backbone`` ``(b, n, 3)`` m; ``rotation`` ``(b, n, 3, 3)``; ``tendons``
     ``(b, n, N_t, 3)`` m; ``converged`` ``(b,)``; ``residual`` ``(b,)`` N; ``status`` ``(b,)`` indices
     into :data:`tdcr.physics.STATUS`; ``error_estimate`` ``(b,)`` (NaN: none); ``tip_jacobian``
     ``(b, 6, N_t)`` or None.
     """
 
     rows: np.ndarray
-    s: np.ndarray
+    arclength: np.ndarray
     backbone: np.ndarray
     rotation: np.ndarray
     tendons: np.ndarray
@@ -91,7 +91,7 @@ class SolvedGroup:
     def of(cls, rows: np.ndarray, sol: RodSolution, *, points: int, tip_jacobian: np.ndarray | None) -> SolvedGroup:
         """The first ``points`` arclengths of ``sol``, made finite."""
         n = slice(points)
-        arrays = {"s": sol.s[:, n], "backbone": sol.backbone[:, n], "rotation": sol.rotation[:, n],
+        arrays = {"arclength": sol.s[:, n], "backbone": sol.backbone[:, n], "rotation": sol.rotation[:, n],
                   "tendons": sol.tendons[:, n]}
         finite = np.isfinite(sol.residual)
         for v in arrays.values():
@@ -106,8 +106,10 @@ class SolvedGroup:
 
 @dataclass(frozen=True)
 class ExactAnswer:
-    """The solver's answer to a :class:`ShapeRequest`, by tendon-count group (:class:`SolvedGroup`)."""
+    """The solver's answer to a :class:`ShapeRequest`: the arclength ``fractions`` of L ``(n,)``, and
+    by tendon-count group the shapes (:class:`SolvedGroup`)."""
 
+    fractions: np.ndarray
     groups: tuple[SolvedGroup, ...]
 
     @property
@@ -115,15 +117,18 @@ class ExactAnswer:
         return sum(len(g.rows) for g in self.groups)
 
     def results(self) -> list[dict]:
-        """One JSON-ready dict per design, in request order: ``s``, ``backbone``, ``rotation``,
+        """One JSON-ready dict per design, in request order: ``s`` (fractions of L), ``arclength``
+        (m), ``backbone``, ``rotation``,
         ``tendons``, ``converged``, ``residual``, ``status`` (a name of :data:`STATUS`),
         ``error_estimate`` (None: none) and, if asked, ``tip_jacobian``; as nested lists."""
         results: list[dict | None] = [None] * self.n_designs
+        fractions = self.fractions.tolist()
         for g in self.groups:
             for j, i in enumerate(g.rows.tolist()):
-                out = {"s": g.s[j].tolist(), "backbone": g.backbone[j].tolist(), "rotation": g.rotation[j].tolist(),
-                       "tendons": g.tendons[j].tolist(), "converged": bool(g.converged[j]),
-                       "residual": float(g.residual[j]), "status": STATUS[int(g.status[j])],
+                out = {"s": fractions, "arclength": g.arclength[j].tolist(), "backbone": g.backbone[j].tolist(),
+                       "rotation": g.rotation[j].tolist(), "tendons": g.tendons[j].tolist(),
+                       "converged": bool(g.converged[j]), "residual": float(g.residual[j]),
+                       "status": STATUS[int(g.status[j])],
                        "error_estimate": None if np.isnan(g.error_estimate[j]) else float(g.error_estimate[j])}
                 if g.tip_jacobian is not None:
                     out["tip_jacobian"] = g.tip_jacobian[j].tolist()
@@ -155,7 +160,7 @@ def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None
             sol = solve(group.designs, fractions, loads=group.loads, options=options, jacobian=request.jacobian)
         tip_jacobian = np.nan_to_num(sol.jacobian[:, tip_index]) if request.jacobian else None
         groups.append(SolvedGroup.of(group.rows, sol, points=request.fractions.size, tip_jacobian=tip_jacobian))
-    return ExactAnswer(groups=tuple(groups))
+    return ExactAnswer(fractions=request.fractions, groups=tuple(groups))
 
 
 def warm_up() -> bool:

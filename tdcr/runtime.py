@@ -107,6 +107,12 @@ class Surrogate:
         pool = ThreadPoolExecutor(workers, thread_name_prefix=f"onnx-{name}") if workers > 1 else None
         return cls(name=name, entry=entry, session=_session(path), chunk=chunk, _pool=pool)
 
+    @classmethod
+    def shipped(cls, name: str, **options) -> Surrogate:
+        """The shipped operator ``name`` (``models/`` of this package, :data:`DEFAULT_MODELS_DIR`),
+        e.g. ``Surrogate.shipped("fno_pose")``; ``options`` as :meth:`load`."""
+        return cls.load(DEFAULT_MODELS_DIR, name, **options)
+
     @property
     def grid(self) -> np.ndarray | None:
         g = self.entry.get("grid")

@@ -40,6 +40,9 @@ def _vector3(bound):
 
 
 #: An arclength fraction: [0, 1], within rounding (``FRACTION_ROUNDING``; clamped onto [0, 1]).
+#: An arclength in metres (in [0, L], checked against each design).
+_Metres = Annotated[float, Field(strict=True, json_schema_extra={"minimum": 0.0,
+                                                                 "maximum": TABLE_I["L"].admissible[1]})]
 _Fraction = Annotated[float, Field(strict=True, json_schema_extra={"minimum": -FRACTION_ROUNDING,
                                                                    "maximum": 1.0 + FRACTION_ROUNDING})]
 
@@ -89,9 +92,15 @@ def _integral_float(value):
     return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
-#: JSON schema: ``points`` and ``s`` are not both given (either may be null).
-_POINTS_OR_S = {"not": {"properties": {"points": {"type": "integer"}, "s": {"type": "array"}},
-                        "required": ["points", "s"]}}
+#: The format of the answers: 2 gives ``s`` as fractions of L and ``arclength`` in metres beside it
+#: (format 1, before 2026-12: ``s`` in metres).
+RESPONSE_FORMAT_VERSION = 2
+
+#: JSON schema: at most one of ``points``, ``s`` and ``arclength`` is given (any may be null).
+_POINTS_OR_S = {"not": {"anyOf": [
+    {"properties": {a: {"type": t} for a, t in pair}, "required": [a for a, _ in pair]}
+    for pair in ((("points", "integer"), ("s", "array")), (("points", "integer"), ("arclength", "array")),
+                 (("s", "array"), ("arclength", "array")))]}}
 
 
 class _Arclengths(BaseModel):
@@ -100,6 +109,9 @@ class _Arclengths(BaseModel):
         None, description=f"number of equispaced arclengths on [0, L] (default {DEFAULT_POINTS})")
     s: list[_Fraction] | None = Field(None, min_length=1, max_length=MAX_POINTS,
                                       description="arclengths as fractions of L, each in [0, 1] (instead of points)")
+    arclength: list[_Metres] | None = Field(None, min_length=1, max_length=MAX_POINTS,
+                                            description="arclengths in metres, each in [0, L], for designs that "
+                                                        "share one L (instead of points or s)")
 
 
 _JACOBIAN = Field(False, description="add tip_jacobian to each result: (6, N_t), rows 0-2 d p(L) / d tau (m/N), "
@@ -137,8 +149,13 @@ class ExactRequest(SolveRequest):
     """Designs (optionally with gravity and tip loads) and arclengths for the physics solver."""
 
 
+_S_OUT = Field(description="(n,) the arclengths as fractions of L")
+_ARCLENGTH_OUT = Field(description="(n,) the arclengths, m")
+
+
 class PredictedShape(BaseModel):
-    s: list[float] = Field(description="arclengths, m")
+    s: list[float] = _S_OUT
+    arclength: list[float] = _ARCLENGTH_OUT
     backbone: list[list[float]] = Field(description="(n, 3) backbone positions, m")
     rotation: list[list[list[float]]] = Field(description="(n, 3, 3) frames, body axes as columns")
     tendons: list[list[list[float]]] = Field(description="(n, N_t, 3) tendon positions, m")
@@ -150,12 +167,14 @@ class PredictedShape(BaseModel):
 
 
 class PredictResponse(BaseModel):
+    format_version: int = Field(RESPONSE_FORMAT_VERSION, description="2: s as fractions of L, arclength in m")
     model: str
     results: list[PredictedShape]
 
 
 class ExactShape(BaseModel):
-    s: list[float]
+    s: list[float] = _S_OUT
+    arclength: list[float] = _ARCLENGTH_OUT
     backbone: list[list[float]]
     rotation: list[list[list[float]]]
     tendons: list[list[list[float]]]
@@ -170,6 +189,7 @@ class ExactShape(BaseModel):
 
 
 class ExactResponse(BaseModel):
+    format_version: int = Field(RESPONSE_FORMAT_VERSION, description="2: s as fractions of L, arclength in m")
     results: list[ExactShape]
 
 

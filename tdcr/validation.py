@@ -129,11 +129,27 @@ def _check_model(model: str | None) -> list[Problem]:
     return []
 
 
-def _fractions(points: int | None, s: Sequence[float] | np.ndarray | None,
-               limits: Limits) -> tuple[np.ndarray | None, list[Problem]]:
-    """Arclength fractions ``(n,)`` from ``points`` or ``s``; nothing is allocated for a bad count."""
+def _fractions(points: int | None, s: Sequence[float] | np.ndarray | None, limits: Limits, *,
+               arclength: Sequence[float] | np.ndarray | None = None,
+               lengths: np.ndarray | None = None) -> tuple[np.ndarray | None, list[Problem]]:
+    """Arclength fractions ``(n,)`` from ``points``, ``s`` (fractions of L) or ``arclength`` (m, for
+    designs of one length: ``lengths`` ``(B,)``); nothing is allocated for a bad count."""
     if points is not None and s is not None:
         return None, [Problem(("s",), "give either 'points' or 's', not both", "points_or_s")]
+    if arclength is not None:
+        if points is not None or s is not None:
+            return None, [Problem(("arclength",), "give one of 'points', 's' and 'arclength'", "points_or_s")]
+        if not 1 <= len(arclength) <= limits.max_points:
+            return None, [Problem(("arclength",), f"must hold 1 to {limits.max_points} arclengths, got "
+                                                  f"{len(arclength)}", "points")]
+        length = float(lengths[0]) if lengths is not None and len(lengths) else float("nan")
+        if lengths is None or not np.all(lengths == length):
+            return None, [Problem(("arclength",), "metres need designs of one length L: give 's' (fractions of "
+                                                  "each design's L) instead", "arclength")]
+        metres = np.asarray(arclength, dtype=np.float64)
+        fractions, problems = check_fractions(metres / length, name="arclength")
+        return fractions, [p._replace(msg=f"must be in [0, L] = [0, {length:g}] m, got {metres[p.loc[1]]:g}")
+                           if len(p.loc) == 2 else p for p in problems]
     if s is None:
         n = DEFAULT_POINTS if points is None else points
         if not 2 <= n <= limits.max_points:
@@ -201,7 +217,8 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     except ValidationError as exc:
         raise InvalidRequest(_what_to_do(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"]), target)
                              for e in exc.errors(include_input=False, include_url=False)) from None
-    fractions, problems = _fractions(request.points, request.s, limits)
+    fractions, problems = _fractions(request.points, request.s, limits, arclength=request.arclength,
+                                     lengths=np.array([d.L for d in request.designs]))
     _check_sizes(len(request.designs), 0 if fractions is None else fractions.size, limits)
     wanted, more = check_outputs(outputs)
     problems += more + _check_model(getattr(request, "model", None))
@@ -256,7 +273,8 @@ def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
 def validate_features(features: np.ndarray, *, target: Target = "surrogate", points: int | None = None,
                       s: Sequence[float] | np.ndarray | None = None, model: str | None = None,
                       outputs: Iterable[str] | None = None, limits: Limits = Limits(),
-                      loads: Mapping[str, np.ndarray] | None = None) -> ShapeRequest:
+                      loads: Mapping[str, np.ndarray] | None = None,
+                      arclength: Sequence[float] | np.ndarray | None = None) -> ShapeRequest:
     """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body or OIP tensors) with arclengths and
     options; for the solver, ``loads``: any of ``gravity`` ``(B, 3)`` m/s^2, ``density`` ``(B,)``
     kg/m^3, ``tip_force`` ``(B, 3)`` N, ``tip_moment`` ``(B, 3)`` N m.
@@ -273,7 +291,8 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
         FeatureLayout.of(features)
     except ValueError as exc:
         raise InvalidRequest([Problem(("designs",), str(exc), "array")]) from None
-    fractions, problems = _fractions(points, s, limits)
+    fractions, problems = _fractions(points, s, limits, arclength=arclength,
+                                     lengths=np.asarray(features[:, 2], dtype=np.float64))
     _check_sizes(len(features), 0 if fractions is None else fractions.size, limits)
     wanted, more = check_outputs(outputs)
     problems += more + _check_model(model)

@@ -112,7 +112,7 @@ def test_the_documented_example_model_is_served_by_every_codec(root):
     text = (root / "docs" / "architecture.md").read_text()
     code = re.search(r"### Adding a model.*?```python\n(.*?)```", text, re.S).group(1)
     namespace: dict = {}
-    exec(code.replace("state.repository.register(StraightRod())", ""), namespace)  # noqa: S102 - our own docs
+    exec(code.replace("repository.register(StraightRod())", ""), namespace)  # noqa: S102 - our own docs
     plane = DataPlane(ModelRepository(), Metrics.create())
     plane.repository.register(namespace["StraightRod"]())
     designs = sample_designs(3, seed=0)

@@ -43,7 +43,8 @@ def test_solve_example_request_matches_the_library(run_tdcr, root, designs_from_
         assert np.array(res["tendons"]).shape == (5, 4, 3)
         assert np.array(res["rotation"]).shape == (5, 3, 3)
         assert relative_l2(np.array(res["tendons"])[None], sol.tendons[j][None])[0] < 1e-14
-        np.testing.assert_allclose(res["s"], sol.s[j])
+        np.testing.assert_allclose(res["arclength"], sol.s[j])  # m
+        np.testing.assert_allclose(res["s"], np.linspace(0, 1, 5))  # fractions of L
 
 
 def test_solve_with_explicit_s_and_mixed_tendon_counts(run_tdcr, tmp_path):
@@ -60,7 +61,8 @@ def test_solve_with_explicit_s_and_mixed_tendon_counts(run_tdcr, tmp_path):
     results = json.loads(out.stdout)["results"]
     assert [len(r["tendons"][0]) for r in results] == [1, 3]
     assert all(r["converged"] for r in results)
-    np.testing.assert_allclose(results[0]["s"], [0.0, 0.1, 0.2])
+    np.testing.assert_allclose(results[0]["arclength"], [0.0, 0.1, 0.2])
+    assert results[0]["s"] == [0.0, 0.5, 1.0]
 
 
 @pytest.mark.parametrize(

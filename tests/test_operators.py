@@ -190,7 +190,8 @@ def test_cli_predict_and_evaluate(root, tiny_models, tiny_data):
     bad = subprocess.run([*cmd, "predict", "examples/request.json", "--model", "nope", "--models-dir", str(models)],
                          capture_output=True, text=True, cwd=root, timeout=120)
     assert bad.returncode == 2 and "nope" in bad.stderr
-    ev = subprocess.run([*cmd, "evaluate", "--data", str(tiny_data), "--models-dir", str(models), "--ood", "20"],
+    ev = subprocess.run([*cmd, "evaluate", "--data", str(tiny_data), "--models-dir", str(models), "--ood", "20",
+                         "--update-manifest"],
                         capture_output=True, text=True, cwd=root, timeout=300)
     assert ev.returncode == 0, ev.stderr
     assert "undeformed baseline" in ev.stdout and "fno_pose" in ev.stdout

@@ -287,7 +287,8 @@ def test_fractions_within_rounding_are_clamped_and_beyond_refused(example_reques
     for route in ("/predict", "/exact"):
         r = httpx.post(server.url + route, json={"designs": [design], "s": fractions}, timeout=60)
         assert r.status_code == 200, r.text
-        assert r.json()["results"][0]["s"][-1] == pytest.approx(length, rel=1e-15)  # clamped onto L
+        result = r.json()["results"][0]
+        assert result["s"][-1] == 1.0 and result["arclength"][-1] == pytest.approx(length, rel=1e-15)  # clamped
         r = httpx.post(server.url + route, json={"designs": [design], "s": fractions[:-1] + [1 + 1e-8]}, timeout=60)
         assert r.status_code == 422 and "s[41]: must be a fraction of L in [0, 1]" in r.json()["message"]
     features = np.array([[design["E"], design["r"], length, *[t["offset"] for t in design["tendons"]],

@@ -45,6 +45,14 @@ def test_every_operation_is_fuzzed(operations):
     assert set(operations) == set(NAMES)
 
 
+def _arclength_beyond_the_design(body) -> bool:
+    """Whether a body's ``arclength`` (m) leaves [0, L] of a design, or its designs differ in L."""
+    if not isinstance(body, dict) or not body.get("arclength"):
+        return False
+    lengths = {d["L"] for d in body["designs"]}
+    return len(lengths) > 1 or max(body["arclength"]) > min(lengths)
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_every_check_passes(live, operations, name):
     """Schemathesis's response checks (status codes, content types, headers and bodies conform to
@@ -59,6 +67,8 @@ def test_every_check_passes(live, operations, name):
     def run(case):
         response = case.call(base_url=live.url, timeout=60)
         case.validate_response(response, excluded_checks=excluded)
+        if response.status_code == 422 and _arclength_beyond_the_design(case.body):
+            return  # metres within each design's L: a bound across fields, which a JSON schema cannot state
         assert response.status_code != 422, (name, response.text[:500])
         assert response.status_code not in (500, 502), (name, response.text[:500])
 
