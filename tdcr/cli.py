@@ -139,6 +139,7 @@ def _cmd_export(args) -> int:
     if meta_path is not None and meta_path.exists():
         full = json.loads(meta_path.read_text())
         meta = {k: full[k] for k in ("n", "seed", "n_train", "n_test", "points")}
+        meta["split_seed"] = full["seed"] + 1  # training.dataset.split_indices: its first n_test are the test set
     for run in args.runs:
         if not (Path(run) / "model.pt").exists():
             raise UsageError(f"{run}: no model.pt (train it first)")

@@ -66,7 +66,7 @@ def test_importing_loads_nothing_heavy(root, module, banned):
 
 #: The transports: they decode, call the data plane and encode, and name no model.
 TRANSPORTS = ("service/grpc_server.py", "service/routers/v2.py", "service/routers/predict.py",
-              "service/routers/exact.py", "service/routers/inverse.py")
+              "service/routers/exact.py", "service/routers/inverse.py", "service/routers/json_route.py")
 
 
 def test_no_transport_names_a_model(root, tiny_models):

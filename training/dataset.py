@@ -201,7 +201,8 @@ def _run_jobs(jobs, points: int, *, workers: int | None, scheduler: str | None):
 
 def split_indices(n: int, seed: int, n_test: int) -> tuple[np.ndarray, np.ndarray]:
     """The train / test split of a dataset of ``n`` designs from ``seed``: a permutation from
-    ``seed + 1``, its first ``n_test`` the test set; sorted indices ``(train, test)``."""
+    ``seed + 1`` (the manifest's ``split_seed``), its first ``n_test`` the test set; sorted
+    indices ``(train, test)``."""
     perm = np.random.default_rng(seed + 1).permutation(n)
     return np.sort(perm[n_test:]), np.sort(perm[:n_test])
 

@@ -10,9 +10,9 @@ from fastapi import APIRouter, Request, Response
 
 from service.codecs import ExactCodec
 from service.deps import State
-from service.errors import from_inference, require_json
-from service.metrics import HTTP
-from service.model import InferenceError, InferenceRequest
+from service.errors import from_inference
+from service.model import InferenceError
+from service.routers import json_route
 from tdcr.schemas import ErrorResponse, ExactResponse
 
 router = APIRouter(tags=["exact"])
@@ -37,11 +37,4 @@ async def exact(request: Request, state: State) -> Response:
         error = from_inference(exc)
         error.headers["connection"] = "close"
         raise error from None
-    require_json(request.headers.get("content-type", ""))
-    body = await request.body()
-    try:
-        answer = await state.plane.infer(None, InferenceRequest(body, ExactCodec()), kind="solver", protocol=HTTP,
-                                         endpoint=ROUTE)
-    except InferenceError as exc:
-        raise from_inference(exc) from None
-    return Response(answer.body, media_type="application/json")
+    return await json_route.answer(request, state, ExactCodec(), kind="solver", endpoint=ROUTE)

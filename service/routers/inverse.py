@@ -12,9 +12,7 @@ from fastapi import APIRouter, Request, Response
 
 from service.codecs import InverseCodec
 from service.deps import State
-from service.errors import from_inference, require_json
-from service.metrics import HTTP
-from service.model import InferenceError, InferenceRequest
+from service.routers import json_route
 from tdcr.schemas import ErrorResponse, InverseResponse
 
 router = APIRouter(tags=["inverse"])
@@ -31,11 +29,4 @@ ROUTE = "/inverse"
         "application/json": {"schema": {"$ref": "#/components/schemas/InverseRequest"}}}}},
 )
 async def inverse(request: Request, state: State) -> Response:
-    require_json(request.headers.get("content-type", ""))
-    body = await request.body()
-    try:
-        answer = await state.plane.infer(None, InferenceRequest(body, InverseCodec()), kind="inverse", protocol=HTTP,
-                                         endpoint=ROUTE)
-    except InferenceError as exc:
-        raise from_inference(exc) from None
-    return Response(answer.body, media_type="application/json")
+    return await json_route.answer(request, state, InverseCodec(), kind="inverse", endpoint=ROUTE)

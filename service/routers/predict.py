@@ -44,7 +44,8 @@ def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[
         "JSON body (`PredictRequest`), or a `.npy` body (`Content-Type: application/x-npy`) holding raw SI "
         "designs `(B, 15)` = [E, r, L, offset_0..3, pitch_0..3, tension_0..3] with `model`, `points` or "
         "repeated `s`, and `outputs` (subset of backbone,rotation,tendons) as query parameters.  "
-        "`Accept: application/x-npz` answers with float32 arrays s (B, n) m, backbone (B, n, 3) m, "
+        "`Accept: application/x-npz` answers with float32 arrays s (B, n) (fractions of L), arclength (B, n) m, "
+        "backbone (B, n, 3) m, "
         "rotation (B, n, 3, 3), tendons (B, n, 4, 3) m and in_distribution (B,)."
     ),
     responses={

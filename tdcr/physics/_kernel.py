@@ -620,11 +620,17 @@ def solve_batch(rods, grid, tols, out):
         res = solve_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
                            rods.tension[b], grid, tols, out.backbone[b], out.rotation[b], out.strains[b],
                            out.tendons[b])
-        _store(out.status, b, res[0])
-        _store(out.residual, b, res[1])
-        _store(out.iterations, b, res[2])
-        _store(out.level, b, res[3])
-        _store(out.estimate, b, res[4])
+        _store_summary(out, b, res)
+
+
+@njit(cache=True, error_model="numpy")
+def _store_summary(out, b, res):
+    """Design ``b``'s status, residual, iterations, level and estimate (``res[:5]``) into :class:`Shapes` ``out``."""
+    _store(out.status, b, res[0])
+    _store(out.residual, b, res[1])
+    _store(out.iterations, b, res[2])
+    _store(out.level, b, res[3])
+    _store(out.estimate, b, res[4])
 
 
 @njit(cache=True, error_model="numpy")
@@ -983,10 +989,6 @@ def solve_loaded_batch(rods, loads, grid, tols, out):
                                   rods.pitch[b], rods.tension[b], loads.f_g[b], loads.f_tip[b], loads.m_tip[b], grid,
                                   tols, out.backbone[b], out.rotation[b], out.strains[b], out.tendons[b],
                                   out.shoot_jac[b])
-        _store(out.status, b, res[0])
-        _store(out.residual, b, res[1])
-        _store(out.iterations, b, res[2])
-        _store(out.level, b, res[3])
-        _store(out.estimate, b, res[4])
+        _store_summary(out, b, res)
         m0 = out.m0[b]
         m0[0], m0[1], m0[2] = res[5], res[6], res[7]
