@@ -62,12 +62,6 @@ class DataPlane:
     def model_metadata(self, name: str, version: str | None = None) -> dict:
         return self.model(name, version=version).metadata()
 
-    def check_capacity(self, kind: Kind) -> None:
-        """:class:`InferenceError` ``saturated`` if the default model of ``kind`` would refuse a
-        request now (checked before a body is read)."""
-        if not self.starting and self.model(None, kind=kind).saturated:
-            raise InferenceError("saturated", "the solver is saturated; retry later")
-
     # -- inference ------------------------------------------------------------------------------
 
     async def infer(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,

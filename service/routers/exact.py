@@ -1,7 +1,9 @@
 """POST /exact: the physics solver, in a bounded process pool with a per-request deadline.
 
 A thin codec: the raw body goes to the data plane with :class:`service.codecs.ExactCodec`; the
-solver model parses, validates, admits, solves and encodes it in one of its processes.
+solver model parses, validates, admits, solves and encodes it in one of its processes.  While every
+solver slot is taken, the ``ExactAdmission`` middleware (service/app.py) answers 503 before the
+body is read.
 """
 
 from __future__ import annotations
@@ -10,8 +12,6 @@ from fastapi import APIRouter, Request, Response
 
 from service.codecs import ExactCodec
 from service.deps import State
-from service.errors import from_inference
-from service.model import InferenceError
 from service.routers import json_route
 from tdcr.schemas import ErrorResponse, ExactResponse
 
@@ -31,10 +31,4 @@ ROUTE = "/exact"
         "application/json": {"schema": {"$ref": "#/components/schemas/ExactRequest"}}}}},
 )
 async def exact(request: Request, state: State) -> Response:
-    try:
-        state.plane.check_capacity("solver")  # before the body is read
-    except InferenceError as exc:  # closing the connection stops the upload of a body nobody will read
-        error = from_inference(exc)
-        error.headers["connection"] = "close"
-        raise error from None
     return await json_route.answer(request, state, ExactCodec(), kind="solver", endpoint=ROUTE)
