@@ -37,17 +37,17 @@ def main() -> None:
     args = parser.parse_args()
     manifest = json.loads((Path(args.models_dir) / "manifest.json").read_text())
     feats = design_space.sample_designs(80_000, seed=123).features()
-    sigma = np.linspace(0, 1, 42)
+    fractions = np.linspace(0, 1, 42)
     print(f"{os.cpu_count()} cores; best of {args.repeats}\n")
     print("| model | B = 1 (ms) | B = 1,000 (ms) | B = 80,000 (s) | 80,000 graph only (s) |")
     print("|---|---:|---:|---:|---:|")
     for name in sorted(manifest["models"]):
         model = Surrogate.load(args.models_dir, name)
-        model.predict(feats[:10], sigma)  # warm-up
-        t1 = best_time(lambda m=model: m.predict(feats[:1], sigma), args.repeats)
-        t1k = best_time(lambda m=model: m.predict(feats[:1000], sigma), args.repeats)
-        t80 = best_time(lambda m=model: m.predict(feats, sigma), max(1, args.repeats // 2))
-        g80 = best_time(lambda m=model: m.run(feats, sigma), max(1, args.repeats // 2))
+        model.predict(feats[:10], fractions)  # warm-up
+        t1 = best_time(lambda m=model: m.predict(feats[:1], fractions), args.repeats)
+        t1k = best_time(lambda m=model: m.predict(feats[:1000], fractions), args.repeats)
+        t80 = best_time(lambda m=model: m.predict(feats, fractions), max(1, args.repeats // 2))
+        g80 = best_time(lambda m=model: m.run(feats, fractions), max(1, args.repeats // 2))
         print(f"| {name} | {1e3 * t1:.2f} | {1e3 * t1k:.1f} | {t80:.3f} | {g80:.3f} |")
 
 

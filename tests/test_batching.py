@@ -54,9 +54,9 @@ def test_a_failing_run_fails_only_its_requests(tiny_models):
 @pytest.mark.parametrize("name", ["deeponet", "fno_pose"])
 def test_chunks_side_by_side_equal_one_call(tiny_models, name):
     feats = design_space.sample_designs(50, seed=12).features()
-    sigma = np.array([0.0, 0.25, 0.5, 1.0])
-    whole = Surrogate.load(tiny_models[1], name, threads=1, chunk=1000).predict(feats, sigma)
-    chunked = Surrogate.load(tiny_models[1], name, threads=2, chunk=7).predict(feats, sigma)
+    fractions = np.array([0.0, 0.25, 0.5, 1.0])
+    whole = Surrogate.load(tiny_models[1], name, threads=1, chunk=1000).predict(feats, fractions)
+    chunked = Surrogate.load(tiny_models[1], name, threads=2, chunk=7).predict(feats, fractions)
     for k in whole:
         np.testing.assert_allclose(chunked[k], whole[k], rtol=1e-5, atol=2e-6)
 

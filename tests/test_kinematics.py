@@ -88,12 +88,12 @@ def test_partial_step_off_the_grid_matches_a_grid_through_those_points():
 @pytest.mark.parametrize("name", list(REGISTRY))
 def test_zero_network_output_is_the_linearized_reference(tiny_hyperparameters, name):
     feats = torch.as_tensor(design_space.sample_designs(4, seed=0).features(), dtype=torch.float32)
-    sigma = torch.linspace(0, 1, 42)
+    fractions = torch.linspace(0, 1, 42)
     model = build_model(name, dict(tiny_hyperparameters[name], inputs="physics", reference="linearized"))
-    heads = model.heads(feats, sigma, torch.zeros(4, 42, model.out_channels))
+    heads = model.heads(feats, fractions, torch.zeros(4, 42, model.out_channels))
     tendons = heads if model.kind == "tendons" else heads[2]
     backbone, rotation = K.linearized_pose(feats, torch.linspace(0, 1, 42), model.geometry.base_angle)
-    expected = K.tendon_positions(backbone, rotation, K.tendon_offsets(feats, sigma, model.geometry.base_angle))
+    expected = K.tendon_positions(backbone, rotation, K.tendon_offsets(feats, fractions, model.geometry.base_angle))
     torch.testing.assert_close(tendons, expected.permute(3, 2, 0, 1), atol=1e-6, rtol=1e-5)
 
 

@@ -62,13 +62,13 @@ def test_schedule_warms_up_and_anneals():
 
 def test_zero_network_output_is_the_undeformed_robot(tiny_hyperparameters):
     feats = torch.as_tensor(design_space.sample_designs(4, seed=0).features(), dtype=torch.float32)
-    sigma = torch.linspace(0, 1, 42)
+    fractions = torch.linspace(0, 1, 42)
     for name in REGISTRY:
         model = build_model(name, tiny_hyperparameters[name])
         out = torch.zeros(4, 42, model.out_channels)
-        heads = model.heads(feats, sigma, out)
+        heads = model.heads(feats, fractions, out)
         tendons = heads if model.kind == "tendons" else heads[2]
-        torch.testing.assert_close(tendons, model.geometry.undeformed_tendons(feats, sigma))
+        torch.testing.assert_close(tendons, model.geometry.undeformed_tendons(feats, fractions))
         if model.kind == "pose":
             torch.testing.assert_close(heads[1], torch.eye(3).expand(4, 42, 3, 3), atol=1e-6, rtol=0)
 
@@ -76,9 +76,9 @@ def test_zero_network_output_is_the_undeformed_robot(tiny_hyperparameters):
 def test_kabsch_recovers_the_solver_pose():
     """The closed-form planar rigid fit: exact on solver data, equal to the SVD optimum on noisy points."""
     d = design_space.sample_designs(5, seed=3)
-    sigma = np.linspace(0, 1, 42)
-    sol = solve(d, sigma)
-    body = tendon_offsets(d.features(), sigma)
+    fractions = np.linspace(0, 1, 42)
+    sol = solve(d, fractions)
+    body = tendon_offsets(d.features(), fractions)
     p, R = rigid_fit(body, sol.tendons)
     np.testing.assert_allclose(p, sol.backbone, atol=1e-12)
     np.testing.assert_allclose(R, sol.rotation, atol=1e-9)
@@ -133,11 +133,11 @@ def test_onnx_matches_torch(tiny_models, name):
         else [np.linspace(0, 1, 42)]
     names = ["tendons"] if model.kind == "tendons" else ["backbone", "rotation", "tendons"]
     # FNO graphs switch between a small-batch and a large-batch layout: 3 and 64 designs test both
-    for sigma, batch in [(sigma, batch) for sigma in sigmas for batch in (3, 64)]:
-        raw = surrogate.run(feats[:batch], sigma)
+    for fractions, batch in [(fractions, batch) for fractions in sigmas for batch in (3, 64)]:
+        raw = surrogate.run(feats[:batch], fractions)
         with torch.no_grad():
             x = torch.as_tensor(feats[:batch], dtype=torch.float32)
-            ref = model(x, torch.as_tensor(sigma, dtype=torch.float32)) if deeponet else model(x)
+            ref = model(x, torch.as_tensor(fractions, dtype=torch.float32)) if deeponet else model(x)
         ref = ref if isinstance(ref, tuple) else (ref,)
         for got, want in zip([raw[k] for k in names], ref, strict=True):
             assert got.shape == want.shape
@@ -208,7 +208,7 @@ def test_batch_last_network_equals_the_channels_last_one(tiny_hyperparameters, n
     hyper = dict(tiny_hyperparameters[name], inputs="physics", reference="linearized")
     model = build_model(name, hyper).double().eval()
     feats = torch.as_tensor(design_space.sample_designs(5, seed=3).features())
-    sigma = torch.linspace(0, 1, 42, dtype=torch.float64)
+    fractions = torch.linspace(0, 1, 42, dtype=torch.float64)
     with torch.no_grad():
-        torch.testing.assert_close(model.raw_batch_last(feats, sigma), model.raw(feats, sigma).permute(2, 1, 0),
+        torch.testing.assert_close(model.raw_batch_last(feats, fractions), model.raw(feats, fractions).permute(2, 1, 0),
                                    atol=1e-12, rtol=1e-10)

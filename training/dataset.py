@@ -232,7 +232,7 @@ def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> d
         "n_tendons": design_space.N_TENDONS,
         "feature_names": design_space.feature_names(),
         "ranges": {k: asdict(v) for k, v in design_space.TABLE_I.items()},
-        "s_fraction": np.linspace(0.0, 1.0, cfg.points).tolist(),
+        "fractions": np.linspace(0.0, 1.0, cfg.points).tolist(),  # the arclengths, fractions of L
         "solver": asdict(SolverOptions()),
         "converged": converged,
         "not_converged": cfg.n - converged,

@@ -91,7 +91,7 @@ def _inference_seconds(model_path: str, sizes: tuple[int, ...]) -> dict[int, flo
     model.to(device)
     low, high = design_space.feature_bounds()
     rng = np.random.default_rng(0)
-    sigma = torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS, device=device)
+    fractions = torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS, device=device)
     best = {}
     with torch.no_grad():
         for n in sizes:
@@ -102,8 +102,8 @@ def _inference_seconds(model_path: str, sizes: tuple[int, ...]) -> dict[int, flo
                     torch.cuda.synchronize()
                 t0 = time.perf_counter()
                 ref = (None if model.config.reference == "undeformed"
-                       else model.reference(x, getattr(model, "grid", sigma)))
-                model.tendons(x, sigma, ref)
+                       else model.reference(x, getattr(model, "grid", fractions)))
+                model.tendons(x, fractions, ref)
                 if device.type == "cuda":
                     torch.cuda.synchronize()
                 times.append(time.perf_counter() - t0)

@@ -212,13 +212,14 @@ def predict_tendons(model, features: np.ndarray, *, chunk: int = 2048) -> np.nda
     """A trained torch operator's tendon positions on the 42-point grid, m, ``(B, n, N_t, 3)``."""
     import torch
 
-    sigma = torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS, dtype=torch.float32)
+    fractions = torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS, dtype=torch.float32)
     parts = []
     with torch.no_grad():
         for i in range(0, len(features), chunk):
             x = torch.as_tensor(features[i:i + chunk], dtype=torch.float32)
-            ref = None if model.config.reference == "undeformed" else model.reference(x, getattr(model, "grid", sigma))
-            parts.append(model.tendons(x, sigma, ref).double().numpy())
+            grid = getattr(model, "grid", fractions)
+            ref = None if model.config.reference == "undeformed" else model.reference(x, grid)
+            parts.append(model.tendons(x, fractions, ref).double().numpy())
     return np.concatenate(parts)
 
 
@@ -354,18 +355,18 @@ def study_ood(ctx: Context) -> int:
     models: dict[tuple[str, str], object] = {}
     unfinished = _run_all(ctx, runs.values(), lambda spec, _r: models.__setitem__(
         (spec.preset, spec.model), load_trained(ctx.runs / spec.key / "model.pt")[0]))
-    sigma = np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)
+    fractions = np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)
     protocols = {"paper": (design_space.OOD_BINS, design_space.sample_ood_designs),
                  "widened": (WIDENED_BINS, widened_ood_designs)}
     for protocol, (bins, sampler) in protocols.items():
         for k, bin_range in enumerate(bins):
             label = f"{100 * bin_range[0]:+.0f}..{100 * bin_range[1]:+.0f} %"
             designs = sampler(ctx.budget.ood_designs, bin_range, seed=1000 * (protocol == "widened") + k)
-            sol = solve(designs, sigma)
+            sol = solve(designs, fractions)
             features, truth = designs.features()[sol.converged], sol.tendons[sol.converged]
             base = {**_record_base(ctx, "ood"), "protocol": protocol, "bin": label, "bin_range": list(bin_range),
                     "designs": int(sol.converged.sum()), "not_converged": int((~sol.converged).sum())}
-            rows = [("-", name, fn(features, sigma)) for name, fn in BASELINES.items()]
+            rows = [("-", name, fn(features, fractions)) for name, fn in BASELINES.items()]
             rows += [(p, m, predict_tendons(model, features)) for (p, m), model in models.items()]
             for preset, name, pred in rows:
                 if (protocol, label, preset, name) in have:
@@ -404,12 +405,12 @@ def study_worst(ctx: Context) -> int:
     have = {(r["preset"], r["model"]) for r in records(path)}
     features, truth = _test_split(ctx.data, ctx.budget.eval_designs)
     traits = design_traits(features)
-    sigma = np.linspace(0.0, 1.0, truth.shape[1])
+    fractions = np.linspace(0.0, 1.0, truth.shape[1])
     predictions: dict[tuple[str, str], tuple[np.ndarray, dict]] = {}
     # the shipped models (tuned preset, onnxruntime) ...
     for name in ctx.models:
         if (ctx.models_dir / "manifest.json").exists():
-            pred = Surrogate.load(ctx.models_dir, name).predict(features, sigma)["tendons"]
+            pred = Surrogate.load(ctx.models_dir, name).predict(features, fractions)["tendons"]
             predictions[("shipped", name)] = (pred, {"models_dir": str(ctx.models_dir)})
     # ... and the studies' largest runs of each preset
     runs = _largest_runs(ctx)
@@ -482,18 +483,18 @@ def study_timing(ctx: Context) -> int:
     if (ctx.models_dir / "manifest.json").exists():
         rng = np.random.default_rng(0)
         low, high = design_space.feature_bounds()
-        sigma = np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)
+        fractions = np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)
         for name in ctx.models:
             model = Surrogate.load(ctx.models_dir, name)
             for n in b.inference_sizes:
                 if ("inference", "shipped", name, n) in have:
                     continue
                 x = rng.uniform(low, high, size=(n, low.size))
-                model.predict(x, sigma)  # warm-up
+                model.predict(x, fractions)  # warm-up
                 times = []
                 for _ in range(b.inference_repeats):
                     t0 = time.perf_counter()
-                    model.predict(x, sigma)
+                    model.predict(x, fractions)
                     times.append(time.perf_counter() - t0)
                 _append(path, {**_record_base(ctx, "timing"), "kind": "inference", "preset": "shipped",
                                "model": name, "n": n, "seconds": min(times), "repeats": b.inference_repeats,

@@ -25,17 +25,17 @@ def summary(errors: np.ndarray) -> dict:
             "p95": float(np.percentile(errors, 95)), "n": int(errors.size)}
 
 
-def undeformed_tendons(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+def undeformed_tendons(features: np.ndarray, fractions: np.ndarray) -> np.ndarray:
     """The straight robot with the design's routing, m, ``(B, n, 4, 3)``."""
-    rho = tendon_offsets(features, sigma)
-    rho[..., 2] += (features[:, L_COLUMN, None] * sigma[None, :])[..., None]
+    rho = tendon_offsets(features, fractions)
+    rho[..., 2] += (features[:, L_COLUMN, None] * fractions[None, :])[..., None]
     return rho
 
 
-def linearized_tendons(features: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+def linearized_tendons(features: np.ndarray, fractions: np.ndarray) -> np.ndarray:
     """The operators' reference robot (first-order strains, no network), m, ``(B, n, 4, 3)``."""
     designs = DesignBatch.from_features(features)
-    return solve(designs, sigma, options=SolverOptions(linearized=True)).tendons
+    return solve(designs, fractions, options=SolverOptions(linearized=True)).tendons
 
 
 BASELINES = {"undeformed baseline": undeformed_tendons, "linearized reference": linearized_tendons}
@@ -69,13 +69,13 @@ def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batc
     feats, truth = test["features"], test["tendons"]
     if keep is not None:
         feats, truth = feats[keep], truth[keep]
-    sigma = np.linspace(0.0, 1.0, truth.shape[1])
-    results = {label: summary(relative_l2(np.concatenate([fn(feats[i:i + batch], sigma)
+    fractions = np.linspace(0.0, 1.0, truth.shape[1])
+    results = {label: summary(relative_l2(np.concatenate([fn(feats[i:i + batch], fractions)
                                                          for i in range(0, len(feats), batch)]), truth))
                for label, fn in BASELINES.items()}
     for name in names:
         model = Surrogate.load(models_dir, name)
-        pred = np.concatenate([model.predict(feats[i:i + batch], sigma)["tendons"]
+        pred = np.concatenate([model.predict(feats[i:i + batch], fractions)["tendons"]
                                for i in range(0, len(feats), batch)])
         results[name] = summary(relative_l2(pred, truth))
     return results
@@ -84,18 +84,18 @@ def evaluate(models_dir: str | Path, data: str | Path, names: list[str], *, batc
 def evaluate_ood(models_dir: str | Path, names: list[str], *, n: int = 1000, seed: int = 0) -> dict:
     """The paper's out-of-distribution test: for each bin, ``n`` designs with every parameter at
     high * (1 + p), p uniform in the bin, solved exactly; mean relative l2 per model and bin."""
-    sigma = np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)
+    fractions = np.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)
     models = {name: Surrogate.load(models_dir, name) for name in names}
     table: dict[str, dict[str, float]] = {}
     for k, bin_range in enumerate(design_space.OOD_BINS):
         designs = design_space.sample_ood_designs(n, bin_range, seed=seed + k)
-        sol = solve(designs, sigma)
+        sol = solve(designs, fractions)
         ok = sol.converged
         feats, truth = designs.features()[ok], sol.tendons[ok]
         label = f"{100 * bin_range[0]:+.0f}..{100 * bin_range[1]:+.0f} %"
-        row = {label: float(relative_l2(fn(feats, sigma), truth).mean()) for label, fn in BASELINES.items()}
+        row = {label: float(relative_l2(fn(feats, fractions), truth).mean()) for label, fn in BASELINES.items()}
         for name, model in models.items():
-            row[name] = float(relative_l2(model.predict(feats, sigma)["tendons"], truth).mean())
+            row[name] = float(relative_l2(model.predict(feats, fractions)["tendons"], truth).mean())
         table[label] = row
     return table
 

@@ -143,8 +143,8 @@ class ReferenceRobot(NamedTuple):
 
 
 def linearized_reference(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Tensor,
-                         sigma: torch.Tensor | None = None) -> ReferenceRobot:
-    """The reference robot on the uniform ``grid`` ``(K + 1,)``, or at any ``sigma`` ``(m,)`` by one
+                         fractions: torch.Tensor | None = None) -> ReferenceRobot:
+    """The reference robot on the uniform ``grid`` ``(K + 1,)``, or at any ``fractions`` ``(m,)`` by one
     partial Magnus step from the grid point below (:func:`partial_step`).
 
     The sines and cosines of the tendon angles at the grid nodes give the strains there, at the
@@ -159,53 +159,53 @@ def linearized_reference(features: torch.Tensor, grid: torch.Tensor, base_angle:
     xi_nodes = strain_prior(features, grid, base_angle, (sin, cos))  # (6, K + 1, B)
     xi_mid = strain_prior(features, grid[:-1], base_angle, mid_trig)
     backbone, rotation = magnus_kinematics(xi_nodes, xi_mid, features[:, 2] * (grid[1] - grid[0]))
-    if sigma is None:
+    if fractions is None:
         return ReferenceRobot(backbone, rotation, *_offsets(features, (sin, cos)))
-    trig_end = tendon_trig(features, sigma, base_angle)
-    backbone, rotation = _partial_step(backbone, rotation, xi_nodes, features, sigma, base_angle, trig_end)
+    trig_end = tendon_trig(features, fractions, base_angle)
+    backbone, rotation = _partial_step(backbone, rotation, xi_nodes, features, fractions, base_angle, trig_end)
     return ReferenceRobot(backbone, rotation, *_offsets(features, trig_end))
 
 
-def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch.Tensor, sigma: torch.Tensor,
+def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch.Tensor, fractions: torch.Tensor,
                  base_angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Poses at any ``sigma`` ``(m,)`` from poses on the uniform grid of ``n`` points: from the grid
+    """Poses at any ``fractions`` ``(m,)`` from poses on the uniform grid of ``n`` points: from the grid
     point s_k just below, one 4th-order Magnus step with the prior strains at s_k, (s_k + s) / 2, s.
 
     Args:
         backbone: ``(3, n, B)`` m; rotation: ``(3, 3, n, B)`` on the grid j / (n - 1).
-        features: raw SI designs ``(B, F)``; sigma: fractions of L ``(m,)``.
+        features: raw SI designs ``(B, F)``; fractions: arclength fractions of L ``(m,)``.
 
     Returns:
         ``(backbone (3, m, B) m, rotation (3, 3, m, B))``.
     """
-    grid = torch.linspace(0.0, 1.0, backbone.shape[1], dtype=sigma.dtype, device=sigma.device)
+    grid = torch.linspace(0.0, 1.0, backbone.shape[1], dtype=fractions.dtype, device=fractions.device)
     xi_nodes = strain_prior(features, grid, base_angle)
-    return _partial_step(backbone, rotation, xi_nodes, features, sigma, base_angle,
-                         tendon_trig(features, sigma, base_angle))
+    return _partial_step(backbone, rotation, xi_nodes, features, fractions, base_angle,
+                         tendon_trig(features, fractions, base_angle))
 
 
 def _partial_step(backbone: torch.Tensor, rotation: torch.Tensor, xi_nodes: torch.Tensor, features: torch.Tensor,
-                  sigma: torch.Tensor, base_angle: torch.Tensor, trig_end: tuple[torch.Tensor, torch.Tensor]
+                  fractions: torch.Tensor, base_angle: torch.Tensor, trig_end: tuple[torch.Tensor, torch.Tensor]
                   ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`partial_step` given the grid strains ``xi_nodes`` ``(6, n, B)`` and the trig at ``sigma``."""
+    """:func:`partial_step` given the grid strains ``xi_nodes`` ``(6, n, B)`` and the trig at ``fractions``."""
     intervals = backbone.shape[1] - 1
-    k = torch.clamp(torch.floor(sigma * intervals), 0, intervals - 1).long()  # (m,)
-    s_k = k.to(sigma.dtype) / intervals
+    k = torch.clamp(torch.floor(fractions * intervals), 0, intervals - 1).long()  # (m,)
+    s_k = k.to(fractions.dtype) / intervals
     xa = xi_nodes[:, k]
-    xm = strain_prior(features, 0.5 * (s_k + sigma), base_angle)
-    xb = strain_prior(features, sigma, base_angle, trig_end)
-    rot_s, pos_s = _magnus_step(xa, xm, xb, (sigma - s_k)[:, None] * features[:, 2])  # step (m, B) m
+    xm = strain_prior(features, 0.5 * (s_k + fractions), base_angle)
+    xb = strain_prior(features, fractions, base_angle, trig_end)
+    rot_s, pos_s = _magnus_step(xa, xm, xb, (fractions - s_k)[:, None] * features[:, 2])  # step (m, B) m
     rot_k, pos_k = rotation[:, :, k], backbone[:, k]
     return pos_k + matvec3(rot_k, pos_s), matmul3(rot_k, rot_s)
 
 
-def tendon_trig(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor
+def tendon_trig(features: torch.Tensor, fractions: torch.Tensor, base_angle: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """sin and cos of the tendon angles phi_i(s) = 2 pi i / N_t + q_i s, each ``(N_t, n, B)``, for
-    ``sigma`` ``(n,)`` or ``(n, B)`` fractions of L (shared by the strains and the tendon offsets)."""
+    ``fractions`` ``(n,)`` or ``(n, B)`` fractions of L (shared by the strains and the tendon offsets)."""
     t = base_angle.shape[0]
     f = features.T  # (F, B)
-    s = (sigma[:, None] if sigma.dim() == 1 else sigma) * f[2]  # (n, B) m
+    s = (fractions[:, None] if fractions.dim() == 1 else fractions) * f[2]  # (n, B) m
     phi = base_angle[:, None, None] + f[3 + t:3 + 2 * t, None, :] * s  # (N_t, n, B) rad
     return torch.sin(phi), torch.cos(phi)
 
@@ -241,7 +241,7 @@ def _tendon_sum(x: torch.Tensor) -> torch.Tensor:
     return total.reshape(x.shape[1:])
 
 
-def strain_prior(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor,
+def strain_prior(features: torch.Tensor, fractions: torch.Tensor, base_angle: torch.Tensor,
                  trig: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Body strains of the local equilibrium (W1, W2) with the tendon tangents of the undeformed rod.
 
@@ -252,15 +252,15 @@ def strain_prior(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.
 
     Args:
         features: raw SI designs ``(B, 3 + 3 N_t)``.
-        sigma: arclength fractions ``(n,)`` or ``(n, B)``.
+        fractions: arclength fractions ``(n,)`` or ``(n, B)``.
         base_angle: tendon angles 2 pi i / N_t, rad, ``(N_t,)``.
-        trig: :func:`tendon_trig` at ``sigma`` when already computed.
+        trig: :func:`tendon_trig` at ``fractions`` when already computed.
 
     Returns:
         ``(6, n, B)``: nu (1) and kappa (rad/m).
     """
     t = base_angle.shape[0]
-    sin, cos = tendon_trig(features, sigma, base_angle) if trig is None else trig
+    sin, cos = tendon_trig(features, fractions, base_angle) if trig is None else trig
     f = features.T  # (F, B)
     e, r = f[0], f[1]
     offset, pitch, tension = f[3:3 + t, None, :], f[3 + t:3 + 2 * t, None, :], f[3 + 2 * t:, None, :]  # (N_t, 1, B)
@@ -277,9 +277,9 @@ def strain_prior(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.
     return torch.cat([nu_x, nu_y, nu_z, kappa_x, kappa_y, kappa_z])
 
 
-def tendon_offsets(features: torch.Tensor, sigma: torch.Tensor, base_angle: torch.Tensor) -> torch.Tensor:
+def tendon_offsets(features: torch.Tensor, fractions: torch.Tensor, base_angle: torch.Tensor) -> torch.Tensor:
     """Body-frame tendon offsets rho_i(s), m, ``(2, N_t, n, B)`` (x and y; z is 0)."""
-    return torch.stack(_offsets(features, tendon_trig(features, sigma, base_angle)))
+    return torch.stack(_offsets(features, tendon_trig(features, fractions, base_angle)))
 
 
 def _offsets(features: torch.Tensor, trig: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:

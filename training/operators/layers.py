@@ -140,18 +140,18 @@ class DesignGeometry(nn.Module):
         log_ei = (torch.log(ei) - _LOG_EI_MID) / _LOG_EI_HALF
         return torch.cat([a, bend, log_ei, pitch * length / 7.0], dim=1)
 
-    def rho(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-        """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` for ``sigma`` ``(n,)`` fractions of L."""
+    def rho(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
+        """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` at the arclength ``fractions`` ``(n,)`` of L."""
         t = self.n_tendons
         length = features[:, 2:3]  # (B, 1)
         offset = features[:, 3:3 + t][:, None, :]  # (B, 1, N_t)
         pitch = features[:, 3 + t:3 + 2 * t][:, None, :]
-        s = length * sigma[None, :]  # (B, n) m
+        s = length * fractions[None, :]  # (B, n) m
         phi = self.base_angle + pitch * s[:, :, None]  # (B, n, N_t)
         return torch.stack([offset * torch.cos(phi), offset * torch.sin(phi), torch.zeros_like(phi)], dim=-1)
 
-    def undeformed_tendons(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    def undeformed_tendons(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
         """Tendon positions of the straight rod, m, ``(B, n, N_t, 3)``."""
-        rho = self.rho(features, sigma)
-        z = (features[:, 2:3] * sigma[None, :])[:, :, None, None]  # (B, n, 1, 1)
+        rho = self.rho(features, fractions)
+        z = (features[:, 2:3] * fractions[None, :])[:, :, None, None]  # (B, n, 1, 1)
         return rho + torch.cat([torch.zeros_like(z), torch.zeros_like(z), z], dim=-1)

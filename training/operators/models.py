@@ -77,7 +77,7 @@ class _OperatorBase(nn.Module):
         low, high = design_space.feature_bounds(N_T)
         self.geometry = DesignGeometry(torch.as_tensor(low), torch.as_tensor(high), N_T)
 
-    def raw(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+    def raw(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def encode(self, features: torch.Tensor) -> torch.Tensor:
@@ -92,49 +92,49 @@ class _OperatorBase(nn.Module):
     def n_inputs(self) -> int:
         return N_FEATURES + (2 * N_T + 3 if self.config.inputs == "physics" else 0)
 
-    def reference(self, features: torch.Tensor, sigma: torch.Tensor) -> kinematics.ReferenceRobot:
+    def reference(self, features: torch.Tensor, fractions: torch.Tensor) -> kinematics.ReferenceRobot:
         """The linearised reference robot, batch last (:class:`kinematics.ReferenceRobot`), on the
-        model's grid or (DeepONet) at any ``sigma``: one Magnus step from the grid point below."""
+        model's grid or (DeepONet) at any ``fractions``: one Magnus step from the grid point below."""
         grid = self.reference_grid
         return kinematics.linearized_reference(features, grid, self.geometry.base_angle,
-                                               None if sigma is grid else sigma)
+                                               None if fractions is grid else fractions)
 
-    def raw_batch_last(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
         """:meth:`raw` with the batch last, ``(C, n, B)``."""
-        return self.raw(features, sigma).permute(2, 1, 0)
+        return self.raw(features, fractions).permute(2, 1, 0)
 
-    def outputs(self, features: torch.Tensor, sigma: torch.Tensor, ref=None):
+    def outputs(self, features: torch.Tensor, fractions: torch.Tensor, ref=None):
         """Tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons) for pose models."""
         if self.config.reference == "linearized":
-            return self._linearized_heads(features, sigma, self.raw_batch_last(features, sigma), ref)
-        return self.heads(features, sigma, self.raw(features, sigma), ref)
+            return self._linearized_heads(features, fractions, self.raw_batch_last(features, fractions), ref)
+        return self.heads(features, fractions, self.raw(features, fractions), ref)
 
-    def heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor, ref=None):
+    def heads(self, features: torch.Tensor, fractions: torch.Tensor, out: torch.Tensor, ref=None):
         """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons).
 
         ``ref``: the precomputed :meth:`reference` (training caches it); computed when omitted.
         """
         if self.config.reference == "linearized":
-            return self._linearized_heads(features, sigma, out.permute(2, 1, 0), ref)
+            return self._linearized_heads(features, fractions, out.permute(2, 1, 0), ref)
         length = features[:, 2:3, None]  # (B, 1, 1)
-        rho = self.geometry.rho(features, sigma)  # (B, n, N_t, 3)
+        rho = self.geometry.rho(features, fractions)  # (B, n, N_t, 3)
         if self.kind == "tendons":
             b, n = out.shape[0], out.shape[1]
-            return self.geometry.undeformed_tendons(features, sigma) + length[..., None] * out.reshape(b, n, N_T, 3)
+            return self.geometry.undeformed_tendons(features, fractions) + length[..., None] * out.reshape(b, n, N_T, 3)
         e1 = torch.tensor([1.0, 0.0, 0.0], dtype=out.dtype, device=out.device)
         e2 = torch.tensor([0.0, 1.0, 0.0], dtype=out.dtype, device=out.device)
-        s = features[:, 2:3] * sigma[None, :]  # (B, n)
+        s = features[:, 2:3] * fractions[None, :]  # (B, n)
         straight = torch.stack([torch.zeros_like(s), torch.zeros_like(s), s], dim=-1)
         backbone = straight + length * out[..., 0:3]
         rotation = gram_schmidt(e1 + out[..., 3:6], e2 + out[..., 6:9])  # (B, n, 3, 3)
         tendons = backbone[:, :, None, :] + torch.einsum("bnij,bntj->bnti", rotation, rho)
         return backbone, rotation, tendons
 
-    def _linearized_heads(self, features: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor, ref):
+    def _linearized_heads(self, features: torch.Tensor, fractions: torch.Tensor, out: torch.Tensor, ref):
         """The heads around the linearised reference, computed batch last (``out`` ``(C, n, B)``);
         corrections in units of L / 100; tendon channels are ordered (tendon, coordinate)."""
         if ref is None:
-            ref = self.reference(features, sigma)
+            ref = self.reference(features, fractions)
         scale = features[:, 2] * _LINEARIZED_SCALE  # (B,) m
         n, b = out.shape[1], out.shape[2]
         if self.kind == "tendons":
@@ -148,9 +148,9 @@ class _OperatorBase(nn.Module):
         tendons = kinematics.tendon_positions(backbone, rotation, (ref.rho_x, ref.rho_y))
         return tuple(kinematics.batch_first(x) for x in (backbone, rotation, tendons))
 
-    def tendons(self, features: torch.Tensor, sigma: torch.Tensor, ref=None) -> torch.Tensor:
+    def tendons(self, features: torch.Tensor, fractions: torch.Tensor, ref=None) -> torch.Tensor:
         """Predicted tendon positions ``(B, n, N_t, 3)`` m (what both losses compare)."""
-        out = self.outputs(features, sigma, ref)
+        out = self.outputs(features, fractions, ref)
         return out if self.kind == "tendons" else out[2]
 
 
@@ -167,15 +167,15 @@ class DeepONet(_OperatorBase):
         self.bias = nn.Parameter(torch.zeros(c))
         self.register_buffer("_reference_grid", torch.linspace(0.0, 1.0, _REFERENCE_POINTS), persistent=False)
 
-    def raw(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    def raw(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
         c, p = self.out_channels, self.config.p
         b = self.branch(self.encode(features)).reshape(-1, c, p)  # (B, C, p)
-        t = self.trunk(2.0 * sigma[:, None] - 1.0).reshape(-1, c, p)  # (n, C, p)
+        t = self.trunk(2.0 * fractions[:, None] - 1.0).reshape(-1, c, p)  # (n, C, p)
         # out[b, n, c] = sum_k b[b, c, k] t[n, c, k], as one batched MatMul over c (fast in onnxruntime)
         out = torch.matmul(b.permute(1, 0, 2), t.permute(1, 2, 0))  # (C, B, n)
         return out.permute(1, 2, 0) + self.bias
 
-    def raw_batch_last(self, features: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
         """:meth:`raw` as ``(C, n, B)``, with the trunk folded into the branch's last (linear) layer.
 
         With branch(d)_c = W_c h(d) + b_c (W_c ``(p, width)``, h the last hidden layer),
@@ -186,14 +186,14 @@ class DeepONet(_OperatorBase):
         c, p = self.out_channels, self.config.p
         hidden = self.branch[:-1](self.encode(features))  # (B, width)
         last = self.branch[-1]
-        n = sigma.shape[0]
-        t = self.trunk(2.0 * sigma[:, None] - 1.0).reshape(-1, c, p).permute(1, 0, 2)  # (C, n, p)
+        n = fractions.shape[0]
+        t = self.trunk(2.0 * fractions[:, None] - 1.0).reshape(-1, c, p).permute(1, 0, 2)  # (C, n, p)
         folded = torch.matmul(t, last.weight.reshape(c, p, -1)).reshape(c * n, -1)  # (C n, width)
         offset = torch.matmul(t, last.bias.reshape(c, p, 1)) + self.bias[:, None, None]  # (C, n, 1)
         return (torch.matmul(folded, hidden.T) + offset.reshape(c * n, 1)).reshape(c, n, -1)
 
-    def forward(self, features: torch.Tensor, sigma: torch.Tensor):
-        return self.outputs(features, sigma)
+    def forward(self, features: torch.Tensor, fractions: torch.Tensor):
+        return self.outputs(features, fractions)
 
     @property
     def reference_grid(self) -> torch.Tensor:
@@ -218,7 +218,7 @@ class FNO(_OperatorBase):
         self.dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
         self.project = nn.Linear(w, self.out_channels)
 
-    def raw(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
+    def raw(self, features: torch.Tensor, fractions: torch.Tensor | None = None) -> torch.Tensor:
         b, n = features.shape[0], self.config.n_points
         d = self.encode(features)[:, None, :].expand(b, n, self.n_inputs)
         s = (2.0 * self.grid - 1.0)[None, :, None].expand(b, n, 1)
@@ -229,12 +229,12 @@ class FNO(_OperatorBase):
                 x = self.dropout(torch.relu(x))
         return self.project(x)  # (B, n, C)
 
-    def raw_batch_last(self, features: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
+    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor | None = None) -> torch.Tensor:
         """:meth:`raw` computed channels first and batch last, ``(C, n, B)``: every channel map is
         one GEMM over all points and designs, with no transpose of the ``(B, n, W)`` activations.
         The lift of [s, design] is the sum of its two parts (the design is constant along s)."""
         if self.config.mixing != "shared":
-            return super().raw_batch_last(features, sigma)
+            return super().raw_batch_last(features, fractions)
         n = self.config.n_points
         d = self.encode(features)  # (B, F)
         w_lift = self.lift.weight  # (W, 1 + F)
@@ -252,7 +252,7 @@ class FNO(_OperatorBase):
     def forward(self, features: torch.Tensor):
         return self.outputs(features, self.grid)
 
-    def tendons(self, features: torch.Tensor, sigma: torch.Tensor | None = None, ref=None) -> torch.Tensor:
+    def tendons(self, features: torch.Tensor, fractions: torch.Tensor | None = None, ref=None) -> torch.Tensor:
         out = self.outputs(features, self.grid, ref)
         return out if self.kind == "tendons" else out[2]
 

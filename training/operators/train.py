@@ -115,12 +115,12 @@ def _load_split(data: str | Path, split: str, n: int | None, device) -> tuple[to
             torch.as_tensor(tendons, dtype=torch.float32, device=device))
 
 
-def _reference(model, features: torch.Tensor, sigma: torch.Tensor, chunk: int = 4096):
+def _reference(model, features: torch.Tensor, fractions: torch.Tensor, chunk: int = 4096):
     """The model's reference robot for every design (a fixed function of the design: computed once),
     batch last (:class:`~training.operators.kinematics.ReferenceRobot`), or ``None`` for the undeformed robot."""
     if model.config.reference == "undeformed":
         return None
-    points = getattr(model, "grid", sigma)  # FNOs answer on their own grid
+    points = getattr(model, "grid", fractions)  # FNOs answer on their own grid
     with torch.no_grad():
         parts = [model.reference(features[i:i + chunk], points) for i in range(0, features.shape[0], chunk)]
     return type(parts[0])(*(torch.cat(field, dim=-1) for field in zip(*parts, strict=True)))
@@ -160,8 +160,8 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
     opt = torch.optim.Adam(model.parameters(), lr=cfg.schedule.initial)
     x_train, y_train = _load_split(data, "train", cfg.n_train, device)
     x_mon, y_mon = _load_split(data, "test", monitor_designs, device)
-    sigma = torch.linspace(0.0, 1.0, y_train.shape[1], device=device)
-    ref_train, ref_mon = _reference(model, x_train, sigma), _reference(model, x_mon, sigma)
+    fractions = torch.linspace(0.0, 1.0, y_train.shape[1], device=device)
+    ref_train, ref_mon = _reference(model, x_train, fractions), _reference(model, x_mon, fractions)
 
     ckpt_path = out / "checkpoint.pt"
     start_epoch, elapsed, best, stale = 0, 0.0, float("inf"), 0
@@ -197,7 +197,7 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         for i in range(0, n, cfg.batch_size):
             idx = perm[i:i + cfg.batch_size]
             ref = None if ref_train is None else type(ref_train)(*(x[..., idx] for x in ref_train))
-            loss = loss_fn(model.tendons(x_train[idx], sigma, ref), y_train[idx], cfg.loss)
+            loss = loss_fn(model.tendons(x_train[idx], fractions, ref), y_train[idx], cfg.loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.clip_grad_norm is not None:
@@ -212,7 +212,7 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         if epoch % 10 == 0 or epoch == cfg.epochs:
             model.eval()
             with torch.no_grad():
-                record["monitor_rel_l2"] = float(relative_l2(model.tendons(x_mon, sigma, ref_mon), y_mon).mean())
+                record["monitor_rel_l2"] = float(relative_l2(model.tendons(x_mon, fractions, ref_mon), y_mon).mean())
         log.write(json.dumps(record) + "\n")
         log.flush()
         if bar is not None:
