@@ -50,17 +50,6 @@ def _die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
-def exact_response(body: bytes, **kwargs) -> tuple[int, bytes]:
-    """/exact's whole work in a worker (``tdcr.exact.answer_json``), its answer already JSON-encoded:
-    one bytes object crosses the pipe instead of pickled nested lists.  Returns ``(designs, JSON)``."""
-    import orjson
-
-    from tdcr.exact import answer_json
-
-    results = answer_json(body, **kwargs)
-    return len(results), orjson.dumps({"results": results})
-
-
 def _serve(conn: Connection, parent: int) -> None:
     """Worker loop: ``(fn, args, kwargs, expected exception types)`` in, ``(ok, result or exception)`` out."""
     _die_with_parent(parent)

@@ -11,7 +11,7 @@ import numpy as np
 
 from tdcr.design_space import DEFAULT_POINTS
 from tdcr.physics import STATUS, RodSolution, SolverOptions, Status, solve
-from tdcr.validation import Limits, ShapeRequest, validate_json
+from tdcr.validation import ShapeRequest
 
 
 @dataclass(frozen=True)
@@ -48,16 +48,6 @@ def admit(request: ShapeRequest, budget: WorkBudget | None) -> None:
     """:class:`TooMuchWork` if ``request`` is estimated over ``budget`` (None: no budget)."""
     if budget is not None and (estimate := budget.estimate(request)) > budget.max_seconds:
         raise TooMuchWork(estimate, budget.max_seconds)
-
-
-def answer_json(body: bytes, *, limits: Limits, budget: WorkBudget | None = None) -> list[dict]:
-    """Validate a JSON ``SolveRequest``, admit it and solve it; one dict per design (``tdcr solve``).
-
-    Raises :class:`tdcr.validation.InvalidRequest` or :class:`TooMuchWork`.
-    """
-    request = validate_json(body, target="solver", limits=limits)
-    admit(request, budget)
-    return solve_request(request).results()
 
 
 #: The residual reported for a design whose residual is not finite (JSON has no inf or NaN).
