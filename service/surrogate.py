@@ -24,6 +24,7 @@ class SurrogateModel(Model):
     platform = "onnxruntime_onnx"
     inputs = SURROGATE_INPUTS
     outputs = SURROGATE_OUTPUTS
+    blocking = True  # infer_blocking answers on the caller's worker thread (/predict)
 
     def __init__(self, surrogate: Surrogate, *, limits: Limits, batcher: Batcher):
         self.name = surrogate.name
@@ -35,8 +36,6 @@ class SurrogateModel(Model):
         return {"sha256": entry["sha256"], "architecture": entry["architecture"], "kind": entry["kind"],
                 "metrics": orjson.dumps(entry.get("metrics")).decode(),
                 "ranges": orjson.dumps(entry.get("ranges")).decode()}
-
-    blocking = True
 
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         return await run_in_threadpool(self.infer_blocking, request)  # decode, run and encode in one thread hop
