@@ -20,6 +20,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Literal, Protocol
 
 from tdcr.validation import Limits, Problem, quote
@@ -118,8 +119,9 @@ class Model(ABC):
     required: tuple[str, ...] = ("design",)
     limits: Limits = Limits()
 
-    @property
+    @cached_property
     def spec(self) -> ModelSpec:
+        """What a codec needs of this model (built once: name, tensors and limits do not change)."""
         return ModelSpec(name=self.name, kind=self.kind, inputs=self.inputs, outputs=self.outputs,
                          required=self.required, limits=self.limits)
 

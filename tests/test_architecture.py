@@ -130,3 +130,14 @@ def test_the_documented_example_model_is_served_by_every_codec(root):
     out = orjson.loads(answer.body[0])["outputs"][0]
     assert out["shape"] == [3, 42, 3]
     assert np.asarray(out["data"]).reshape(3, 42, 3)[2, -1, 2] == pytest.approx(designs.L[2], rel=1e-6)
+
+
+def test_every_transport_maps_every_error_kind():
+    """The data plane's error kinds, each mapped once per transport: REST JSON, OIP REST, gRPC."""
+    from service.errors import STATUS
+    from service.grpc_server import STATUS_CODES
+    from service.model import ERROR_KINDS
+    from service.oip import HTTP_STATUS
+
+    for mapping in (STATUS, HTTP_STATUS, STATUS_CODES):
+        assert set(mapping) == set(ERROR_KINDS)
