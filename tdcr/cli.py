@@ -87,7 +87,8 @@ def _cmd_generate(args) -> int:
         if density is not None and len(density) != 2:
             raise ValueError(f"--density: LOW,HIGH in kg/m^3, got {args.density!r}")
         loads = LoadSpace(gravity=args.gravity, gravity_magnitude=args.gravity_magnitude, density=density,
-                          tip_force=args.tip_force, tip_moment=args.tip_moment)
+                          tip_force=args.tip_force, tip_moment=args.tip_moment, tip_fraction=args.tip_fraction,
+                          unloaded_fraction=args.unloaded_fraction)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     cfg = GenerateConfig(n=args.n, seed=args.seed, points=args.points, shard_size=args.shard_size, loads=loads)
@@ -384,6 +385,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--density", default=None, help="LOW,HIGH backbone density range, kg/m^3 (with --gravity)")
     p.add_argument("--tip-force", type=float, default=0.0, help="largest tip force, N (uniform direction)")
     p.add_argument("--tip-moment", type=float, default=0.0, help="largest tip moment, N m (uniform direction)")
+    p.add_argument("--tip-fraction", type=float, default=1.0, help="share of the designs with tip loads, in [0, 1]")
+    p.add_argument("--unloaded-fraction", type=float, default=0.0,
+                   help="share of the designs with no load at all (mixed data for a loaded operator), in [0, 1]")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_generate)
 

@@ -139,6 +139,9 @@ class LoadSpace:
         density: ``(low, high)`` backbone density range, kg/m^3 (needed with gravity).
         tip_force: largest tip force, N: |F| uniform in [0, tip_force], direction uniform on the sphere.
         tip_moment: largest tip moment, N m, likewise.
+        tip_fraction: share of the designs that carry the tip loads (the others carry none).
+        unloaded_fraction: share of the designs with no load at all (no gravity, no tip load), so
+            that one dataset teaches a loaded operator both cases.
     """
 
     gravity: str = "none"
@@ -146,6 +149,8 @@ class LoadSpace:
     density: tuple[float, float] | None = None
     tip_force: float = 0.0
     tip_moment: float = 0.0
+    tip_fraction: float = 1.0
+    unloaded_fraction: float = 0.0
 
     def __post_init__(self):
         fixed = self._fixed_gravity()
@@ -163,6 +168,9 @@ class LoadSpace:
             raise ValueError(f"tip force: must be in [0, {LOADS['tip_force'].admissible[1]:g}] N")
         if not 0.0 <= self.tip_moment <= LOADS["tip_moment"].admissible[1]:
             raise ValueError(f"tip moment: must be in [0, {LOADS['tip_moment'].admissible[1]:g}] N m")
+        for name in ("tip_fraction", "unloaded_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name.replace('_', ' ')}: must be in [0, 1]")
 
     def _fixed_gravity(self) -> np.ndarray | None:
         if self.gravity in ("none", "sphere"):
@@ -197,7 +205,35 @@ class LoadSpace:
             density = rng.uniform(*self.density, size=n)
         force = directions() * rng.uniform(0.0, self.tip_force, size=(n, 1))
         moment = directions() * rng.uniform(0.0, self.tip_moment, size=(n, 1))
+        if self.tip_fraction < 1.0 or self.unloaded_fraction > 0.0:  # a stream of its own: the draws above keep
+            shares = np.random.default_rng([seed, 0x5A4E]).uniform(size=(2, n))
+            untipped = shares[0] >= self.tip_fraction
+            force[untipped], moment[untipped] = 0.0, 0.0
+            unloaded = shares[1] < self.unloaded_fraction
+            force[unloaded], moment[unloaded] = 0.0, 0.0
+            if gravity is not None:
+                gravity[unloaded] = 0.0
         return ExternalLoads(gravity=gravity, density=density, tip_force=force, tip_moment=moment)
+
+    def ranges(self) -> dict[str, list[float]]:
+        """The loads this space holds, as the manifest records them: ``|gravity|`` in m/s^2, density
+        in kg/m^3 (of designs in gravity), ``|tip_force|`` in N and ``|tip_moment|`` in N m, each
+        ``[low, high]``."""
+        fixed = self._fixed_gravity()
+        g_high = 0.0 if self.gravity == "none" else (
+            self.gravity_magnitude if fixed is None else float(np.linalg.norm(fixed)))
+        return {"gravity": [0.0, g_high], "density": list(self.density) if self.density else [0.0, 0.0],
+                "tip_force": [0.0, self.tip_force], "tip_moment": [0.0, self.tip_moment]}
+
+
+#: The loads of the loaded operators' benchmark (issue 24): |g| = 9.81 m/s^2 in a uniform direction,
+#: steel-like densities, and on 30 % of the designs a tip force up to 0.02 N and moment up to 0.002 N m.
+BENCHMARK_LOADS = LoadSpace(gravity="sphere", gravity_magnitude=9.81, density=(6450.0, 8000.0),
+                            tip_force=0.02, tip_moment=0.002, tip_fraction=0.3)
+#: The loaded operators' training loads: the benchmark's, with tip loads on half the designs and a
+#: fifth of the designs unloaded, so that one model answers both.
+TRAINING_LOADS = LoadSpace(gravity="sphere", gravity_magnitude=9.81, density=(6450.0, 8000.0),
+                           tip_force=0.02, tip_moment=0.002, tip_fraction=0.5, unloaded_fraction=0.2)
 
 
 def normalize(features: np.ndarray, n_tendons: int = N_TENDONS) -> np.ndarray:

@@ -16,6 +16,11 @@ import numpy as np
 E_COLUMN, R_COLUMN, L_COLUMN = 0, 1, 2
 #: The per-tendon feature groups, in column order.
 TENDON_GROUPS = ("offset", "pitch", "tension")
+#: Columns of the loads matrix ``(B, 10)`` of the loaded operators (the ONNX input ``loads``):
+#: gravity (3, m/s^2), density (kg/m^3), tip force (3, N), tip moment (3, N m), base frame.
+LOAD_COLUMNS: dict[str, slice] = {"gravity": slice(0, 3), "density": slice(3, 4), "tip_force": slice(4, 7),
+                                  "tip_moment": slice(7, 10)}
+N_LOAD_COLUMNS = 10
 
 
 @dataclass(frozen=True)
@@ -171,6 +176,25 @@ class ExternalLoads:
         F = zeros if self.tip_force is None else np.asarray(self.tip_force, float).reshape(n_designs, 3)
         M = zeros if self.tip_moment is None else np.asarray(self.tip_moment, float).reshape(n_designs, 3)
         return f_g, F, M
+
+    def matrix(self, n_designs: int) -> np.ndarray:
+        """The loads as the loaded operators take them, ``(B, 10)`` (:data:`LOAD_COLUMNS`); absent
+        loads are zeros, and a design without gravity has density 0."""
+        out = np.zeros((n_designs, N_LOAD_COLUMNS))
+        for name, columns in LOAD_COLUMNS.items():
+            value = getattr(self, name)
+            if value is not None:
+                out[:, columns] = np.asarray(value, dtype=np.float64).reshape(n_designs, -1)
+        if self.gravity is None:
+            out[:, LOAD_COLUMNS["density"]] = 0.0
+        return out
+
+    @classmethod
+    def from_matrix(cls, matrix: np.ndarray) -> ExternalLoads:
+        """Inverse of :meth:`matrix` for ``(B, 10)`` arrays."""
+        matrix = np.asarray(matrix, dtype=np.float64)
+        return cls(**{name: matrix[:, columns].reshape(len(matrix), -1).squeeze(-1) if name == "density"
+                      else matrix[:, columns] for name, columns in LOAD_COLUMNS.items()})
 
     def take(self, index) -> ExternalLoads:
         """The loads of the designs selected by an integer index array or slice."""

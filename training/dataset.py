@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.designs import LOAD_COLUMNS, N_LOAD_COLUMNS, DesignBatch, ExternalLoads
 from tdcr.physics import STATUS, SolverOptions, solve
 
 FORMAT_VERSION = 1
@@ -244,6 +244,15 @@ def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> d
     }
     _write_json_atomic(out / "metadata.json", meta)
     return meta
+
+
+def load_matrix(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """The loads of loaded dataset arrays as the loaded operators take them, ``(B, 10)``
+    (:data:`tdcr.designs.LOAD_COLUMNS`); zeros for a dataset made without loads."""
+    n = len(arrays["features"])
+    if "tip_force" not in arrays:
+        return np.zeros((n, N_LOAD_COLUMNS))
+    return ExternalLoads(**{k: arrays[k] for k in LOAD_COLUMNS}).matrix(n)
 
 
 def load(path: str | Path, split: str = "all", *, converged_only: bool = True) -> dict[str, np.ndarray]:

@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import torch
 
+from tdcr.designs import LOAD_COLUMNS
 from tdcr.physics.cosserat import POISSON_RATIO
 
 
@@ -185,15 +186,22 @@ def partial_step(backbone: torch.Tensor, rotation: torch.Tensor, features: torch
 
 
 def _partial_step(backbone: torch.Tensor, rotation: torch.Tensor, xi_nodes: torch.Tensor, features: torch.Tensor,
-                  fractions: torch.Tensor, base_angle: torch.Tensor, trig_end: tuple[torch.Tensor, torch.Tensor]
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`partial_step` given the grid strains ``xi_nodes`` ``(6, n, B)`` and the trig at ``fractions``."""
+                  fractions: torch.Tensor, base_angle: torch.Tensor, trig_end: tuple[torch.Tensor, torch.Tensor],
+                  *, extra: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`partial_step` given the grid strains ``xi_nodes`` ``(6, n, B)`` and the trig at ``fractions``;
+    ``extra`` ``(6, n, B)``: strains added on the grid (the loads'), linear between grid points."""
     intervals = backbone.shape[1] - 1
     k = torch.clamp(torch.floor(fractions * intervals), 0, intervals - 1).long()  # (m,)
     s_k = k.to(fractions.dtype) / intervals
     xa = xi_nodes[:, k]
     xm = strain_prior(features, 0.5 * (s_k + fractions), base_angle)
     xb = strain_prior(features, fractions, base_angle, trig_end)
+    if extra is not None:
+        below, above = extra[:, k], extra[:, k + 1]
+        u = ((fractions - s_k) * intervals)[:, None]  # position inside the interval, (m, 1)
+        xa = xa + below
+        xm = xm + below + (0.5 * u) * (above - below)
+        xb = xb + below + u * (above - below)
     rot_s, pos_s = _magnus_step(xa, xm, xb, (fractions - s_k)[:, None] * features[:, 2])  # step (m, B) m
     rot_k, pos_k = rotation[:, :, k], backbone[:, k]
     return pos_k + matvec3(rot_k, pos_s), matmul3(rot_k, rot_s)
@@ -262,13 +270,10 @@ def strain_prior(features: torch.Tensor, fractions: torch.Tensor, base_angle: to
     t = base_angle.shape[0]
     sin, cos = tendon_trig(features, fractions, base_angle) if trig is None else trig
     f = features.T  # (F, B)
-    e, r = f[0], f[1]
     offset, pitch, tension = f[3:3 + t, None, :], f[3 + t:3 + 2 * t, None, :], f[3 + 2 * t:, None, :]  # (N_t, 1, B)
     oq = offset * pitch
     w = tension / torch.sqrt(1.0 + oq * oq)  # tau_i / c_i
-    g = e / (2.0 * (1.0 + POISSON_RATIO))
-    area, inertia = math.pi * r * r, (math.pi / 4.0) * r**4
-    ga, ea, ei, gj = g * area, e * area, e * inertia, 2.0 * g * inertia  # (B,)
+    ga, ea, ei, gj = Stiffness.of(features)  # (B,) each
     coef = torch.stack([oq * w / ga, -offset * w / ei], dim=1)  # (N_t, 2, 1, B): nu_x, kappa_x per sin phi_i
     nu_x, kappa_x = _tendon_sum(coef * sin[:, None]).split(1, dim=0)  # (1, n, B) each
     nu_y, kappa_y = _tendon_sum(-coef * cos[:, None]).split(1, dim=0)
@@ -320,3 +325,105 @@ def batch_first(x: torch.Tensor) -> torch.Tensor:
     d = x.dim()
     lead = x.permute(d - 2, *range(d - 2), d - 1)  # (n, D..., B)
     return lead.reshape(-1, x.shape[-1]).T.reshape(-1, *lead.shape[:-1])
+
+
+_GRAVITY, _DENSITY, _FORCE, _MOMENT = (LOAD_COLUMNS[k] for k in ("gravity", "density", "tip_force", "tip_moment"))
+
+
+class Stiffness(NamedTuple):
+    """Section stiffnesses of the designs, ``(B,)`` each: G A and E A (N), E I and G J (N m^2)."""
+
+    ga: torch.Tensor
+    ea: torch.Tensor
+    ei: torch.Tensor
+    gj: torch.Tensor
+
+    @classmethod
+    def of(cls, features: torch.Tensor) -> Stiffness:
+        """From raw SI designs ``(B, F)``: a solid circular section of radius r (the solver's
+        ``material()``: G = E / (2 (1 + nu)), I = pi r^4 / 4, J = 2 I)."""
+        e, r = features[:, 0], features[:, 1]
+        g = e / (2.0 * (1.0 + POISSON_RATIO))
+        area, inertia = math.pi * r * r, (math.pi / 4.0) * r**4
+        return cls(g * area, e * area, e * inertia, 2.0 * g * inertia)
+
+
+def external_wrench(features: torch.Tensor, loads: torch.Tensor, backbone: torch.Tensor, grid: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Internal force and moment that gravity and the tip wrench cause along a given shape.
+
+    Static equilibrium of the piece [s, L] (Rucker & Webster 2011, eqs. 3-4 integrated), base frame:
+    n(s) = f (L - s) + F and m(s) = int_s^L (p(t) - p(s)) dt x f + (p(L) - p(s)) x F + M, with
+    the weight per length f = rho A g.  The integral is the trapezoid rule on ``grid``.
+
+    Args:
+        features: raw SI designs ``(B, F)``; loads: ``(B, 10)`` (:data:`tdcr.designs.LOAD_COLUMNS`).
+        backbone: the shape p(s), m, ``(3, n, B)``, on the uniform ``grid`` ``(n,)`` of fractions of L.
+
+    Returns:
+        ``(n (3, n, B) N, m (3, n, B) N m)``.
+    """
+    loads_t = loads.T  # (10, B)
+    length, r = features[:, 2], features[:, 1]
+    weight = loads_t[_GRAVITY] * (loads_t[_DENSITY] * (math.pi * r * r))  # (3, B) N/m
+    force, moment = loads_t[_FORCE][:, None], loads_t[_MOMENT][:, None]  # (3, 1, B)
+    remaining = (1.0 - grid)[:, None] * length  # L - s, (n, B) m
+    h = (grid[1] - grid[0]) * length  # (B,)
+    pieces = (0.5 * h) * (backbone[:, 1:] + backbone[:, :-1])  # (3, K, B)
+    done = torch.cumsum(pieces, dim=1)
+    total = done[:, -1:]
+    tail = torch.cat([total, total - done], dim=1)  # int_s^L p dt, (3, n, B)
+    lever = tail - remaining * backbone  # int_s^L (p(t) - p(s)) dt
+    force_s = weight[:, None] * remaining + force
+    moment_s = cross3(lever, weight[:, None].expand_as(lever)) + cross3(backbone[:, -1:] - backbone,
+                                                                      force.expand_as(backbone)) + moment
+    return force_s, moment_s
+
+
+def load_strains(features: torch.Tensor, loads: torch.Tensor, backbone: torch.Tensor, rotation: torch.Tensor,
+                 grid: torch.Tensor) -> torch.Tensor:
+    """Body strains that the loads add to the tendons' along a given pose (the linear constitutive
+    law, eq. 5: nu - e3 = K_se^-1 R^T n, kappa = K_bt^-1 R^T m), ``(6, n, B)``.
+
+    ``backbone`` ``(3, n, B)`` m and ``rotation`` ``(3, 3, n, B)`` on the uniform ``grid`` ``(n,)``.
+    """
+    force, moment = external_wrench(features, loads, backbone, grid)
+    rt = rotation.transpose(0, 1)
+    force_b, moment_b = matvec3(rt, force), matvec3(rt, moment)  # body frame
+    k = Stiffness.of(features)
+    shear = torch.stack([k.ga, k.ga, k.ea])[:, None]  # (3, 1, B)
+    bend = torch.stack([k.ei, k.ei, k.gj])[:, None]
+    return torch.cat([force_b / shear, moment_b / bend])
+
+
+def loaded_reference(features: torch.Tensor, loads: torch.Tensor, grid: torch.Tensor, base_angle: torch.Tensor,
+                     fractions: torch.Tensor | None = None, *, iterations: int = 2) -> ReferenceRobot:
+    """The reference robot under gravity and a tip wrench: the tendons' first-order strains
+    (:func:`strain_prior`) plus the small-deflection response to the loads (:func:`load_strains`),
+    integrated by :func:`magnus_kinematics`; ``iterations`` fixed-point passes, each taking the load
+    lever arms from the previous shape (the first from the tendon-only reference).  Zero loads give
+    :func:`linearized_reference` exactly.
+
+    On the uniform ``grid`` ``(K + 1,)``, or at any ``fractions`` ``(m,)`` by one partial Magnus
+    step from the grid point below, with the load strains interpolated linearly along it.
+    """
+    sin, cos = _grid_trig(features, grid, base_angle)
+    t = base_angle.shape[0]
+    half_turn = features.T[3 + t:3 + 2 * t, None, :] * (0.5 * features[:, 2] * (grid[1] - grid[0]))
+    sin_h, cos_h = torch.sin(half_turn), torch.cos(half_turn)
+    mid_trig = (sin[:, :-1] * cos_h + cos[:, :-1] * sin_h, cos[:, :-1] * cos_h - sin[:, :-1] * sin_h)
+    tendon_nodes = strain_prior(features, grid, base_angle, (sin, cos))  # (6, K + 1, B)
+    tendon_mid = strain_prior(features, grid[:-1], base_angle, mid_trig)
+    step = features[:, 2] * (grid[1] - grid[0])
+    backbone, rotation = magnus_kinematics(tendon_nodes, tendon_mid, step)
+    extra = torch.zeros_like(tendon_nodes)
+    for _ in range(iterations):
+        extra = load_strains(features, loads, backbone, rotation, grid)
+        backbone, rotation = magnus_kinematics(tendon_nodes + extra, tendon_mid + 0.5 * (extra[:, 1:] + extra[:, :-1]),
+                                               step)
+    if fractions is None:
+        return ReferenceRobot(backbone, rotation, *_offsets(features, (sin, cos)))
+    trig_end = tendon_trig(features, fractions, base_angle)
+    backbone, rotation = _partial_step(backbone, rotation, tendon_nodes, features, fractions, base_angle, trig_end,
+                                       extra=extra)
+    return ReferenceRobot(backbone, rotation, *_offsets(features, trig_end))

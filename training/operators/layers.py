@@ -7,6 +7,9 @@ import math
 import torch
 from torch import nn
 
+from tdcr import design_space
+from tdcr.designs import LOAD_COLUMNS
+
 
 def mlp(sizes: list[int], activation: type[nn.Module], dropout: float = 0.0) -> nn.Sequential:
     """Linear layers of the given sizes with ``activation`` (and optional dropout) between them; last is linear."""
@@ -107,6 +110,12 @@ _LOG_EI_HIGH = math.log(45.5e9 * math.pi * 1.5e-3**4 / 4)
 _LOG_EI_MID, _LOG_EI_HALF = (_LOG_EI_LOW + _LOG_EI_HIGH) / 2, (_LOG_EI_HIGH - _LOG_EI_LOW) / 2
 
 
+#: The trained load magnitudes ``[low, high]`` (:data:`tdcr.design_space.TRAINING_LOADS`), input scales.
+_LOAD_RANGES = design_space.TRAINING_LOADS.ranges()
+#: Network inputs per load vector (:meth:`DesignGeometry.load_features`).
+N_LOAD_FEATURES = 18
+
+
 class DesignGeometry(nn.Module):
     """Undeformed-robot geometry and input normalisation, inside the graph.
 
@@ -139,6 +148,20 @@ class DesignGeometry(nn.Module):
         bend = torch.stack([(a * torch.cos(self.base_angle)).sum(1), (a * torch.sin(self.base_angle)).sum(1)], dim=1)
         log_ei = (torch.log(ei) - _LOG_EI_MID) / _LOG_EI_HALF
         return torch.cat([a, bend, log_ei, pitch * length / 7.0], dim=1)
+
+    def load_features(self, features: torch.Tensor, loads: torch.Tensor) -> torch.Tensor:
+        """Network inputs of the loads ``(B, 10)`` (gravity, density, tip force, tip moment, base
+        frame, SI), ``(B, 18)``: the small-deflection groups w L^3 / (E I) (weight per length
+        w = rho pi r^2 g), F L^2 / (E I) and M L / (E I), each a 3-vector of about unit size over the
+        training loads, then g, F and M over their largest trained magnitudes."""
+        e, r, length = features[:, 0:1], features[:, 1:2], features[:, 2:3]
+        ei = e * (math.pi / 4.0) * r**4
+        gravity, density, force, moment = (loads[:, LOAD_COLUMNS[k]] for k in ("gravity", "density", "tip_force",
+                                                                              "tip_moment"))
+        weight = gravity * density * (math.pi * r * r)  # (B, 3) N/m
+        return torch.cat([weight * length**3 / ei, force * length**2 / ei, moment * length / ei,
+                          gravity / _LOAD_RANGES["gravity"][1], force / _LOAD_RANGES["tip_force"][1],
+                          moment / _LOAD_RANGES["tip_moment"][1]], dim=1)
 
     def rho(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
         """Body-frame tendon offsets rho_i(s), m, ``(B, n, N_t, 3)`` at the arclength ``fractions`` ``(n,)`` of L."""

@@ -25,7 +25,7 @@ from torch import nn
 
 from tdcr import design_space
 from training.operators import kinematics
-from training.operators.layers import DesignGeometry, SpectralConv1d, gram_schmidt, mlp
+from training.operators.layers import N_LOAD_FEATURES, DesignGeometry, SpectralConv1d, gram_schmidt, mlp
 
 N_T = design_space.N_TENDONS
 N_FEATURES = 3 + 3 * N_T
@@ -47,6 +47,8 @@ class DeepONetConfig:
     dropout: float = 0.0
     inputs: str = "table"
     reference: str = "undeformed"
+    loads: bool = False
+    load_iterations: int = 2
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,8 @@ class FNOConfig:
     mixing: str = "shared"
     inputs: str = "table"
     reference: str = "undeformed"
+    loads: bool = False
+    load_iterations: int = 2
 
 
 class _OperatorBase(nn.Module):
@@ -72,50 +76,68 @@ class _OperatorBase(nn.Module):
             raise ValueError(f"reference must be 'undeformed' or 'linearized', not {config.reference!r}")
         if kind not in ("tendons", "pose"):
             raise ValueError(f"unknown kind {kind!r}")
+        if config.loads and config.reference != "linearized":
+            raise ValueError("a loaded operator needs reference='linearized' (the loaded reference robot)")
         self.kind = kind
         self.out_channels = 3 * N_T if kind == "tendons" else 9
         low, high = design_space.feature_bounds(N_T)
         self.geometry = DesignGeometry(torch.as_tensor(low), torch.as_tensor(high), N_T)
 
-    def raw(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+    def raw(self, features: torch.Tensor, fractions: torch.Tensor, loads=None) -> torch.Tensor:  # pragma: no cover
         raise NotImplementedError
 
-    def encode(self, features: torch.Tensor) -> torch.Tensor:
+    def encode(self, features: torch.Tensor, loads: torch.Tensor | None = None) -> torch.Tensor:
         """Network input from raw SI designs: the Table I affine map (``inputs='table'``, the paper's),
-        plus the linearised-model groups of :meth:`DesignGeometry.physics_features` (``'physics'``)."""
+        plus the linearised-model groups of :meth:`DesignGeometry.physics_features` (``'physics'``),
+        plus for loaded models the load groups of :meth:`DesignGeometry.load_features` of the loads
+        ``(B, 10)`` (zero when omitted)."""
         x = self.geometry.normalize(features)
         if self.config.inputs == "physics":
             x = torch.cat([x, self.geometry.physics_features(features)], dim=1)
+        if self.config.loads:
+            x = torch.cat([x, self.geometry.load_features(features, self._loads(features, loads))], dim=1)
         return x
+
+    @staticmethod
+    def _loads(features: torch.Tensor, loads: torch.Tensor | None) -> torch.Tensor:
+        return features.new_zeros(features.shape[0], 10) if loads is None else loads
 
     @property
     def n_inputs(self) -> int:
-        return N_FEATURES + (2 * N_T + 3 if self.config.inputs == "physics" else 0)
+        return (N_FEATURES + (2 * N_T + 3 if self.config.inputs == "physics" else 0)
+                + (N_LOAD_FEATURES if self.config.loads else 0))
 
-    def reference(self, features: torch.Tensor, fractions: torch.Tensor) -> kinematics.ReferenceRobot:
+    def reference(self, features: torch.Tensor, fractions: torch.Tensor, loads: torch.Tensor | None = None
+                  ) -> kinematics.ReferenceRobot:
         """The linearised reference robot, batch last (:class:`kinematics.ReferenceRobot`), on the
-        model's grid or (DeepONet) at any ``fractions``: one Magnus step from the grid point below."""
+        model's grid or (DeepONet) at any ``fractions``: one Magnus step from the grid point below.
+        Loaded models: the loaded reference (:func:`kinematics.loaded_reference`) of ``loads`` ``(B, 10)``."""
         grid = self.reference_grid
-        return kinematics.linearized_reference(features, grid, self.geometry.base_angle,
-                                               None if fractions is grid else fractions)
+        at = None if fractions is grid else fractions
+        if self.config.loads:
+            return kinematics.loaded_reference(features, self._loads(features, loads), grid, self.geometry.base_angle,
+                                               at, iterations=self.config.load_iterations)
+        return kinematics.linearized_reference(features, grid, self.geometry.base_angle, at)
 
-    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
+    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor, loads=None) -> torch.Tensor:
         """:meth:`raw` with the batch last, ``(C, n, B)``."""
-        return self.raw(features, fractions).permute(2, 1, 0)
+        return self.raw(features, fractions, loads).permute(2, 1, 0)
 
-    def outputs(self, features: torch.Tensor, fractions: torch.Tensor, ref=None):
-        """Tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons) for pose models."""
+    def outputs(self, features: torch.Tensor, fractions: torch.Tensor, ref=None, loads=None):
+        """Tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons) for pose models; ``loads``
+        ``(B, 10)`` for loaded models."""
         if self.config.reference == "linearized":
-            return self._linearized_heads(features, fractions, self.raw_batch_last(features, fractions), ref)
+            return self._linearized_heads(features, fractions, self.raw_batch_last(features, fractions, loads), ref,
+                                          loads)
         return self.heads(features, fractions, self.raw(features, fractions), ref)
 
-    def heads(self, features: torch.Tensor, fractions: torch.Tensor, out: torch.Tensor, ref=None):
+    def heads(self, features: torch.Tensor, fractions: torch.Tensor, out: torch.Tensor, ref=None, loads=None):
         """``out`` ``(B, n, C)`` -> tendons ``(B, n, N_t, 3)`` m, or (backbone, rotation, tendons).
 
         ``ref``: the precomputed :meth:`reference` (training caches it); computed when omitted.
         """
         if self.config.reference == "linearized":
-            return self._linearized_heads(features, fractions, out.permute(2, 1, 0), ref)
+            return self._linearized_heads(features, fractions, out.permute(2, 1, 0), ref, loads)
         length = features[:, 2:3, None]  # (B, 1, 1)
         rho = self.geometry.rho(features, fractions)  # (B, n, N_t, 3)
         if self.kind == "tendons":
@@ -130,11 +152,11 @@ class _OperatorBase(nn.Module):
         tendons = backbone[:, :, None, :] + torch.einsum("bnij,bntj->bnti", rotation, rho)
         return backbone, rotation, tendons
 
-    def _linearized_heads(self, features: torch.Tensor, fractions: torch.Tensor, out: torch.Tensor, ref):
+    def _linearized_heads(self, features: torch.Tensor, fractions: torch.Tensor, out: torch.Tensor, ref, loads=None):
         """The heads around the linearised reference, computed batch last (``out`` ``(C, n, B)``);
         corrections in units of L / 100; tendon channels are ordered (tendon, coordinate)."""
         if ref is None:
-            ref = self.reference(features, fractions)
+            ref = self.reference(features, fractions, loads)
         scale = features[:, 2] * _LINEARIZED_SCALE  # (B,) m
         n, b = out.shape[1], out.shape[2]
         if self.kind == "tendons":
@@ -148,9 +170,9 @@ class _OperatorBase(nn.Module):
         tendons = kinematics.tendon_positions(backbone, rotation, (ref.rho_x, ref.rho_y))
         return tuple(kinematics.batch_first(x) for x in (backbone, rotation, tendons))
 
-    def tendons(self, features: torch.Tensor, fractions: torch.Tensor, ref=None) -> torch.Tensor:
+    def tendons(self, features: torch.Tensor, fractions: torch.Tensor, ref=None, loads=None) -> torch.Tensor:
         """Predicted tendon positions ``(B, n, N_t, 3)`` m (what both losses compare)."""
-        out = self.outputs(features, fractions, ref)
+        out = self.outputs(features, fractions, ref, loads)
         return out if self.kind == "tendons" else out[2]
 
 
@@ -167,15 +189,15 @@ class DeepONet(_OperatorBase):
         self.bias = nn.Parameter(torch.zeros(c))
         self.register_buffer("_reference_grid", torch.linspace(0.0, 1.0, _REFERENCE_POINTS), persistent=False)
 
-    def raw(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
+    def raw(self, features: torch.Tensor, fractions: torch.Tensor, loads=None) -> torch.Tensor:
         c, p = self.out_channels, self.config.p
-        b = self.branch(self.encode(features)).reshape(-1, c, p)  # (B, C, p)
+        b = self.branch(self.encode(features, loads)).reshape(-1, c, p)  # (B, C, p)
         t = self.trunk(2.0 * fractions[:, None] - 1.0).reshape(-1, c, p)  # (n, C, p)
         # out[b, n, c] = sum_k b[b, c, k] t[n, c, k], as one batched MatMul over c (fast in onnxruntime)
         out = torch.matmul(b.permute(1, 0, 2), t.permute(1, 2, 0))  # (C, B, n)
         return out.permute(1, 2, 0) + self.bias
 
-    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
+    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor, loads=None) -> torch.Tensor:
         """:meth:`raw` as ``(C, n, B)``, with the trunk folded into the branch's last (linear) layer.
 
         With branch(d)_c = W_c h(d) + b_c (W_c ``(p, width)``, h the last hidden layer),
@@ -184,7 +206,7 @@ class DeepONet(_OperatorBase):
         C p (width + n) (32 k instead of 127 k for the paper's sizes), and no large transpose.
         """
         c, p = self.out_channels, self.config.p
-        hidden = self.branch[:-1](self.encode(features))  # (B, width)
+        hidden = self.branch[:-1](self.encode(features, loads))  # (B, width)
         last = self.branch[-1]
         n = fractions.shape[0]
         t = self.trunk(2.0 * fractions[:, None] - 1.0).reshape(-1, c, p).permute(1, 0, 2)  # (C, n, p)
@@ -192,8 +214,8 @@ class DeepONet(_OperatorBase):
         offset = torch.matmul(t, last.bias.reshape(c, p, 1)) + self.bias[:, None, None]  # (C, n, 1)
         return (torch.matmul(folded, hidden.T) + offset.reshape(c * n, 1)).reshape(c, n, -1)
 
-    def forward(self, features: torch.Tensor, fractions: torch.Tensor):
-        return self.outputs(features, fractions)
+    def forward(self, features: torch.Tensor, fractions: torch.Tensor, loads: torch.Tensor | None = None):
+        return self.outputs(features, fractions, loads=loads)
 
     @property
     def reference_grid(self) -> torch.Tensor:
@@ -218,9 +240,9 @@ class FNO(_OperatorBase):
         self.dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
         self.project = nn.Linear(w, self.out_channels)
 
-    def raw(self, features: torch.Tensor, fractions: torch.Tensor | None = None) -> torch.Tensor:
+    def raw(self, features: torch.Tensor, fractions: torch.Tensor | None = None, loads=None) -> torch.Tensor:
         b, n = features.shape[0], self.config.n_points
-        d = self.encode(features)[:, None, :].expand(b, n, self.n_inputs)
+        d = self.encode(features, loads)[:, None, :].expand(b, n, self.n_inputs)
         s = (2.0 * self.grid - 1.0)[None, :, None].expand(b, n, 1)
         x = self.lift(torch.cat([s, d], dim=-1))  # (B, n, W)
         for k, (spec, point) in enumerate(zip(self.spectral, self.pointwise, strict=True)):
@@ -229,14 +251,14 @@ class FNO(_OperatorBase):
                 x = self.dropout(torch.relu(x))
         return self.project(x)  # (B, n, C)
 
-    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor | None = None) -> torch.Tensor:
+    def raw_batch_last(self, features: torch.Tensor, fractions: torch.Tensor | None = None, loads=None) -> torch.Tensor:
         """:meth:`raw` computed channels first and batch last, ``(C, n, B)``: every channel map is
         one GEMM over all points and designs, with no transpose of the ``(B, n, W)`` activations.
         The lift of [s, design] is the sum of its two parts (the design is constant along s)."""
         if self.config.mixing != "shared":
-            return super().raw_batch_last(features, fractions)
+            return super().raw_batch_last(features, fractions, loads)
         n = self.config.n_points
-        d = self.encode(features)  # (B, F)
+        d = self.encode(features, loads)  # (B, F)
         w_lift = self.lift.weight  # (W, 1 + F)
         x = (w_lift[:, :1, None] * (2.0 * self.grid - 1.0)[None, :, None]  # (W, n, 1)
              + torch.matmul(w_lift[:, 1:], d.T)[:, None, :] + self.lift.bias[:, None, None])  # (W, n, B)
@@ -249,11 +271,12 @@ class FNO(_OperatorBase):
         out = torch.matmul(self.project.weight, x.reshape(x.shape[0], -1)) + self.project.bias[:, None]
         return out.reshape(-1, n, x.shape[2])  # (C, n, B)
 
-    def forward(self, features: torch.Tensor):
-        return self.outputs(features, self.grid)
+    def forward(self, features: torch.Tensor, loads: torch.Tensor | None = None):
+        return self.outputs(features, self.grid, loads=loads)
 
-    def tendons(self, features: torch.Tensor, fractions: torch.Tensor | None = None, ref=None) -> torch.Tensor:
-        out = self.outputs(features, self.grid, ref)
+    def tendons(self, features: torch.Tensor, fractions: torch.Tensor | None = None, ref=None, loads=None
+                ) -> torch.Tensor:
+        out = self.outputs(features, self.grid, ref, loads)
         return out if self.kind == "tendons" else out[2]
 
     @property
@@ -261,13 +284,19 @@ class FNO(_OperatorBase):
         return self.grid
 
 
-#: name -> (class, kind, config class, paper parameter count)
-REGISTRY: dict[str, tuple[type[_OperatorBase], str, type, int]] = {
+#: name -> (class, kind, config class, paper parameter count or None)
+REGISTRY: dict[str, tuple[type[_OperatorBase], str, type, int | None]] = {
     "deeponet": (DeepONet, "tendons", DeepONetConfig, 219_904),
     "deeponet_pose": (DeepONet, "pose", DeepONetConfig, 205_668),
     "fno": (FNO, "tendons", FNOConfig, 168_844),
     "fno_pose": (FNO, "pose", FNOConfig, 168_457),
+    # ours: the pose operators that also take gravity and a tip wrench (not in the paper)
+    "deeponet_pose_loaded": (DeepONet, "pose", DeepONetConfig, None),
+    "fno_pose_loaded": (FNO, "pose", FNOConfig, None),
 }
+#: Config defaults of registered models beyond their config class's.
+_DEFAULTS: dict[str, dict] = {"deeponet_pose_loaded": {"loads": True, "reference": "linearized"},
+                              "fno_pose_loaded": {"loads": True, "reference": "linearized"}}
 
 
 def build_model(name: str, hyperparameters: dict | None = None) -> _OperatorBase:
@@ -275,7 +304,7 @@ def build_model(name: str, hyperparameters: dict | None = None) -> _OperatorBase
     if name not in REGISTRY:
         raise KeyError(f"unknown model {name!r}; known: {sorted(REGISTRY)}")
     cls, kind, config_cls, _ = REGISTRY[name]
-    return cls(kind, config_cls(**(hyperparameters or {})))
+    return cls(kind, config_cls(**(_DEFAULTS.get(name, {}) | (hyperparameters or {}))))
 
 
 def hyperparameters(model: _OperatorBase) -> dict:

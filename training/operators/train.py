@@ -106,23 +106,27 @@ def loss_fn(pred: torch.Tensor, truth: torch.Tensor, kind: str) -> torch.Tensor:
     raise ValueError(f"unknown loss {kind!r}")
 
 
-def _load_split(data: str | Path, split: str, n: int | None, device) -> tuple[torch.Tensor, torch.Tensor]:
+def _load_split(data: str | Path, split: str, n: int | None, device
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(features (B, 15), tendons (B, n, 4, 3), loads (B, 10))`` of a split; loads are zeros for a
+    dataset made without loads."""
     arrays = dataset.load(data, split)
-    feats, tendons = arrays["features"], arrays["tendons"]
+    feats, tendons, loads = arrays["features"], arrays["tendons"], dataset.load_matrix(arrays)
     if n is not None:
-        feats, tendons = feats[:n], tendons[:n]
-    return (torch.as_tensor(feats, dtype=torch.float32, device=device),
-            torch.as_tensor(tendons, dtype=torch.float32, device=device))
+        feats, tendons, loads = feats[:n], tendons[:n], loads[:n]
+    return tuple(torch.as_tensor(x, dtype=torch.float32, device=device) for x in (feats, tendons, loads))
 
 
-def _reference(model, features: torch.Tensor, fractions: torch.Tensor, chunk: int = 4096):
-    """The model's reference robot for every design (a fixed function of the design: computed once),
-    batch last (:class:`~training.operators.kinematics.ReferenceRobot`), or ``None`` for the undeformed robot."""
+def _reference(model, features: torch.Tensor, fractions: torch.Tensor, loads: torch.Tensor, chunk: int = 4096):
+    """The model's reference robot for every design (a fixed function of the design and its loads:
+    computed once), batch last (:class:`~training.operators.kinematics.ReferenceRobot`), or ``None``
+    for the undeformed robot."""
     if model.config.reference == "undeformed":
         return None
     points = getattr(model, "grid", fractions)  # FNOs answer on their own grid
     with torch.no_grad():
-        parts = [model.reference(features[i:i + chunk], points) for i in range(0, features.shape[0], chunk)]
+        parts = [model.reference(features[i:i + chunk], points, loads[i:i + chunk])
+                 for i in range(0, features.shape[0], chunk)]
     return type(parts[0])(*(torch.cat(field, dim=-1) for field in zip(*parts, strict=True)))
 
 
@@ -158,10 +162,10 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         hyper["dropout"] = cfg.dropout
     model = build_model(cfg.model, hyper).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.schedule.initial)
-    x_train, y_train = _load_split(data, "train", cfg.n_train, device)
-    x_mon, y_mon = _load_split(data, "test", monitor_designs, device)
+    x_train, y_train, l_train = _load_split(data, "train", cfg.n_train, device)
+    x_mon, y_mon, l_mon = _load_split(data, "test", monitor_designs, device)
     fractions = torch.linspace(0.0, 1.0, y_train.shape[1], device=device)
-    ref_train, ref_mon = _reference(model, x_train, fractions), _reference(model, x_mon, fractions)
+    ref_train, ref_mon = _reference(model, x_train, fractions, l_train), _reference(model, x_mon, fractions, l_mon)
 
     ckpt_path = out / "checkpoint.pt"
     start_epoch, elapsed, best, stale = 0, 0.0, float("inf"), 0
@@ -197,7 +201,7 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         for i in range(0, n, cfg.batch_size):
             idx = perm[i:i + cfg.batch_size]
             ref = None if ref_train is None else type(ref_train)(*(x[..., idx] for x in ref_train))
-            loss = loss_fn(model.tendons(x_train[idx], fractions, ref), y_train[idx], cfg.loss)
+            loss = loss_fn(model.tendons(x_train[idx], fractions, ref, l_train[idx]), y_train[idx], cfg.loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.clip_grad_norm is not None:
@@ -212,7 +216,8 @@ def train(cfg: TrainConfig, data: str | Path, out: str | Path, *, progress: bool
         if epoch % 10 == 0 or epoch == cfg.epochs:
             model.eval()
             with torch.no_grad():
-                record["monitor_rel_l2"] = float(relative_l2(model.tendons(x_mon, fractions, ref_mon), y_mon).mean())
+                record["monitor_rel_l2"] = float(relative_l2(model.tendons(x_mon, fractions, ref_mon, l_mon),
+                                                             y_mon).mean())
         log.write(json.dumps(record) + "\n")
         log.flush()
         if bar is not None:
