@@ -26,6 +26,7 @@ from tdcr.runtime import Surrogate
 class _Job:
     features: np.ndarray  # (b, F) raw SI designs
     fractions: np.ndarray  # (n,) fractions of L
+    loads: np.ndarray | None  # (b, 10) the loads matrix of a loaded operator
     pose: bool
     future: Future = field(default_factory=Future)
 
@@ -45,11 +46,21 @@ class Batcher:
         self._thread = threading.Thread(target=self._work, name=f"batcher-{model.name}", daemon=True)
         self._thread.start()
 
-    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True,
+    @property
+    def takes_loads(self) -> bool:
+        return self.model.takes_loads
+
+    @property
+    def load_ranges(self) -> dict | None:
+        return self.model.load_ranges
+
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, loads=None, pose: bool = True,
                 check: bool = False) -> dict[str, np.ndarray]:
         """As :meth:`Surrogate.predict`, run together with whatever else is queued (blocks the
         caller).  Its requests are validated already: ``check`` is accepted, and not run."""
-        job = _Job(np.asarray(features, dtype=np.float64), np.asarray(fractions, dtype=np.float64), pose)
+        features = np.asarray(features, dtype=np.float64)
+        job = _Job(features, np.asarray(fractions, dtype=np.float64), self.model.load_matrix(loads, len(features)),
+                   pose)
         with self._lock:
             inline = self._active == 0 and self._queue.empty()
             if inline:
@@ -107,11 +118,12 @@ class Batcher:
             self.on_run(sum(len(j.features) for j in jobs))
         try:
             if len(jobs) == 1:
-                jobs[0].future.set_result(self.model.predict(jobs[0].features, jobs[0].fractions, pose=jobs[0].pose,
-                                                                      check=False))
+                jobs[0].future.set_result(self.model.predict(jobs[0].features, jobs[0].fractions, loads=jobs[0].loads,
+                                                             pose=jobs[0].pose, check=False))
                 return
-            out = self.model.predict(np.concatenate([j.features for j in jobs]), jobs[0].fractions, pose=jobs[0].pose,
-                                     check=False)
+            loads = None if jobs[0].loads is None else np.concatenate([j.loads for j in jobs])
+            out = self.model.predict(np.concatenate([j.features for j in jobs]), jobs[0].fractions, loads=loads,
+                                     pose=jobs[0].pose, check=False)
         except Exception as exc:  # noqa: BLE001 - handed to the waiting requests, which report it
             for j in jobs:
                 if not j.future.done():

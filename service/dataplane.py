@@ -49,12 +49,13 @@ class DataPlane:
     def server_metadata() -> dict:
         return {"name": SERVER_NAME, "version": tdcr.__version__, "extensions": EXTENSIONS}
 
-    def model(self, name: str | None, *, kind: Kind | None = None, version: str | None = None) -> Model:
-        """The model ``name`` (None: the default of ``kind``); :class:`InferenceError` ``not_found``
-        else (``unavailable`` while the service starts)."""
+    def model(self, name: str | None, *, kind: Kind | None = None, version: str | None = None,
+              loads: bool = False) -> Model:
+        """The model ``name`` (None: the default of ``kind``, for designs with ``loads`` its loaded
+        default); :class:`InferenceError` ``not_found`` else (``unavailable`` while the service starts)."""
         if self.starting:
             raise InferenceError("unavailable", f"{STARTING}; retry shortly")
-        return self.repository.get(name, kind=kind, version=version)
+        return self.repository.get(name, kind=kind, version=version, loads=loads)
 
     def model_ready(self, name: str, version: str | None = None) -> bool:
         return self.model(name, version=version).ready()
@@ -75,11 +76,12 @@ class DataPlane:
         return self._record(model, response, started, protocol, endpoint)
 
     def infer_blocking(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,
-                       version: str | None = None, protocol: str, endpoint: str) -> InferenceResponse:
+                       version: str | None = None, loads: bool = False, protocol: str,
+                       endpoint: str) -> InferenceResponse:
         """As :meth:`infer`, on the calling worker thread, for a transport that is already on one
-        (``/predict`` validates its body there, which names the model); a model that answers only
-        asynchronously is ``not_found`` here."""
-        model = self.model(name, kind=kind, version=version)
+        (``/predict`` validates its body there, which names the model, and says whether it has
+        ``loads``); a model that answers only asynchronously is ``not_found`` here."""
+        model = self.model(name, kind=kind, version=version, loads=loads)
         if not model.blocking:
             raise InferenceError("not_found", f"model {model.name!r} is not served on this route")
         started = time.perf_counter()

@@ -167,9 +167,15 @@ class Model(ABC):
         """Release threads and processes (at shutdown)."""
 
 
+def loaded(kind: Kind) -> str:
+    """The key of a kind's default for designs with loads in :attr:`ModelRepository.defaults`."""
+    return f"{kind}+loads"
+
+
 @dataclass
 class ModelRepository:
-    """The served models by name, and the default model of each kind (``/predict`` names none)."""
+    """The served models by name, and the default model of each kind (``/predict`` names none);
+    ``defaults[loaded(kind)]``: the default for designs with loads (a loaded operator)."""
 
     models: dict[str, Model] = field(default_factory=dict)
     defaults: dict[str, str] = field(default_factory=dict)
@@ -180,11 +186,14 @@ class ModelRepository:
         if default or model.kind not in self.defaults:
             self.defaults[model.kind] = model.name
 
-    def get(self, name: str | None, *, kind: Kind | None = None, version: str | None = None) -> Model:
-        """The model ``name`` (None: the default of ``kind``), of ``kind`` when given, and of
-        ``version`` when given; :class:`InferenceError` ``not_found`` else."""
+    def get(self, name: str | None, *, kind: Kind | None = None, version: str | None = None,
+            loads: bool = False) -> Model:
+        """The model ``name`` (None: the default of ``kind``, or with ``loads`` its default for designs
+        with loads), of ``kind`` when given, and of ``version`` when given; :class:`InferenceError`
+        ``not_found`` else."""
         if name is None and kind is not None:
-            name = self.defaults.get(kind)
+            name = self.defaults.get(loaded(kind)) if loads else None
+            name = name or self.defaults.get(kind)
         model = self.models.get(name) if name is not None else None
         if model is None or kind is not None and model.kind != kind:
             available = sorted(self.names(kind))

@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from service.batching import Batcher
 from service.dataplane import DataPlane
 from service.metrics import Metrics
-from service.model import ModelRepository
+from service.model import ModelRepository, loaded
 from service.settings import Settings
 from service.solver import ExactModel, InverseModel
 from service.surrogate import SurrogateModel
@@ -86,6 +86,9 @@ def load_models(state: ServiceState) -> ModelRepository:
         if default not in repository.names("surrogate"):
             state.problems.append(f"default model {default!r} is not loaded")
         repository.defaults["surrogate"] = default
+    with_loads = best_model(state.manifest, loads=True)  # the default for designs with loads
+    if with_loads in repository.names("surrogate"):
+        repository.defaults[loaded("surrogate")] = with_loads
     return repository
 
 

@@ -10,15 +10,17 @@ from starlette.concurrency import run_in_threadpool
 
 from service.batching import Batcher
 from service.model import InferenceRequest, InferenceResponse, Model
-from service.oip import SURROGATE_INPUTS, SURROGATE_OUTPUTS
+from service.oip import LOAD_INPUTS, SURROGATE_INPUTS, SURROGATE_OUTPUTS
 from tdcr import engine
+from tdcr.checks import InvalidRequest, check_model_loads
 from tdcr.inverse import answer, model_forward
 from tdcr.runtime import Surrogate
 from tdcr.validation import InverseProblem, Limits
 
 
 class SurrogateModel(Model):
-    """One exported operator (``surrogate``, with its manifest entry) behind ``batcher``."""
+    """One exported operator (``surrogate``, with its manifest entry) behind ``batcher``; a loaded
+    operator also takes the OIP inputs ``gravity``, ``density``, ``tip_force`` and ``tip_moment``."""
 
     kind = "surrogate"
     platform = "onnxruntime_onnx"
@@ -29,13 +31,17 @@ class SurrogateModel(Model):
     def __init__(self, surrogate: Surrogate, *, limits: Limits, batcher: Batcher):
         self.name = surrogate.name
         self.surrogate, self.limits, self.batcher = surrogate, limits, batcher
+        if surrogate.takes_loads:
+            self.inputs = SURROGATE_INPUTS | LOAD_INPUTS
 
     def parameters(self) -> dict:
         """The manifest's sha256, architecture and kind; metrics and ranges as JSON text."""
         entry = self.surrogate.entry
         return {"sha256": entry["sha256"], "architecture": entry["architecture"], "kind": entry["kind"],
                 "metrics": orjson.dumps(entry.get("metrics")).decode(),
-                "ranges": orjson.dumps(entry.get("ranges")).decode()}
+                "ranges": orjson.dumps(entry.get("ranges")).decode()} | (
+                    {"load_ranges": orjson.dumps(entry.get("load_ranges")).decode()} if self.surrogate.takes_loads
+                    else {})
 
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         return await run_in_threadpool(self.infer_blocking, request)  # decode, run and encode in one thread hop
@@ -46,9 +52,17 @@ class SurrogateModel(Model):
         return InferenceResponse(request.codec.encode(decoded, prediction), prediction.n_designs)
 
     def inverse(self, problem: InverseProblem) -> list[dict]:
-        """Inverse kinematics with this operator (blocking: run it off the event loop)."""
+        """Inverse kinematics with this operator (blocking: run it off the event loop); the design's
+        loads (``problem.loads``) need a loaded operator (:class:`InvalidRequest` naming the field else)."""
+        if problem.loads is not None and not self.surrogate.takes_loads:
+            raise InvalidRequest([p._replace(loc=("design",) + p.loc[2:]) for p in
+                                  check_model_loads(problem.loads, np.zeros(1, dtype=int), model=self.name)])
+        row = None if problem.loads is None else problem.loads.matrix(1)
+
         def tip_pose(features: np.ndarray):
-            out = self.batcher.predict(features, np.ones(1), pose=True)  # validated; differences may leave bounds
+            loads = None if row is None else np.repeat(row, len(features), axis=0)
+            # validated; the differences may leave the bounds
+            out = self.batcher.predict(features, np.ones(1), loads=loads, pose=True)
             return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
 
         return answer(problem, model_forward(problem.design, tip_pose))

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from tdcr.design_space import FRACTION_ROUNDING, LOADS, N_TENDONS, TABLE_I, admissible_bounds
-from tdcr.designs import ExternalLoads, FeatureLayout
+from tdcr.designs import LOAD_COLUMNS, ExternalLoads, FeatureLayout
 
 #: Problems quoted in one message (the rest are counted).
 MAX_LISTED_PROBLEMS = 20
@@ -22,6 +22,8 @@ MAX_LISTED_PROBLEMS = 20
 MAX_QUOTED = 40
 #: What a design a surrogate cannot take should use instead.
 EXACT_ROUTES = "the exact solver takes it: tdcr solve, POST /exact or tdcr.solve"
+#: A loaded operator, named where a model that takes no loads is given some.
+LOADED_EXAMPLE = "fno_pose_loaded"
 
 
 class Problem(NamedTuple):
@@ -127,6 +129,43 @@ def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
         no_density = np.isnan(loads.density) & ~np.isnan(loads.gravity).any(axis=1)
         problems += [Problem(("designs", int(rows[b]), "density"), "gravity needs a density (kg/m^3)",
                              "missing_density") for b in np.nonzero(no_density)[0]]
+    return problems
+
+
+def checkable_loads(loads: ExternalLoads, n: int) -> ExternalLoads:
+    """Loads as the checks read them: arrays of ``n`` rows; a design without gravity (zero or
+    absent) has no weight, so its gravity and density count as absent (NaN)."""
+    def rows(values, shape):
+        return None if values is None else np.asarray(values, dtype=np.float64).reshape(n, *shape)
+
+    gravity, density = rows(loads.gravity, (3,)), rows(loads.density, ())
+    if gravity is not None and density is not None:
+        weightless = ~np.any(gravity != 0, axis=1)
+        gravity, density = gravity.copy(), density.copy()
+        gravity[weightless], density[weightless] = np.nan, np.nan
+    return ExternalLoads(gravity=gravity, density=density, tip_force=rows(loads.tip_force, (3,)),
+                         tip_moment=rows(loads.tip_moment, (3,)))
+
+
+def loaded_rows(loads: ExternalLoads, n: int) -> np.ndarray:
+    """Per design ``(n,)``: a weight (gravity and a density), a tip force or a tip moment, not zero."""
+    matrix = np.nan_to_num(loads.matrix(n))
+    weight = matrix[:, LOAD_COLUMNS["gravity"]] * matrix[:, LOAD_COLUMNS["density"]]
+    return np.any(weight != 0, axis=1) | np.any(matrix[:, LOAD_COLUMNS["tip_force"].start:] != 0, axis=1)
+
+
+def check_model_loads(loads: ExternalLoads | None, rows: np.ndarray, *, model: str) -> list[Problem]:
+    """Problems for an operator that takes no loads (``model``): one per design ``rows`` with a
+    load, naming its first load field."""
+    if loads is None:
+        return []
+    matrix = np.nan_to_num(loads.matrix(len(rows)))
+    problems = []
+    for b in np.nonzero(loaded_rows(loads, len(rows)))[0]:
+        field = next(name for name in ("gravity", "tip_force", "tip_moment") if np.any(matrix[b, LOAD_COLUMNS[name]]))
+        problems.append(Problem(("designs", int(rows[b]), field), f"model {model!r} takes no external loads: name a "
+                                f"loaded operator (model {LOADED_EXAMPLE!r}), or {EXACT_ROUTES}",
+                                "model_takes_no_loads"))
     return problems
 
 

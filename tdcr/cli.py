@@ -140,6 +140,9 @@ def _cmd_export(args) -> int:
     if meta_path is not None and meta_path.exists():
         full = json.loads(meta_path.read_text())
         meta = {k: full[k] for k in ("n", "seed", "n_train", "n_test", "points")}
+        if any((full.get("loads") or {}).get(k) not in (None, 0.0, "none") for k in ("gravity", "tip_force",
+                                                                                     "tip_moment")):
+            meta["loads"] = full["loads"]  # the load space (a loaded operator's load_ranges)
         meta["split_seed"] = full["seed"] + 1  # training.dataset.split_indices: its first n_test are the test set
     for run in args.runs:
         if not (Path(run) / "model.pt").exists():
@@ -258,7 +261,9 @@ def _cmd_predict(args) -> int:
         manifest = load_manifest(args.models_dir)
     except ManifestError as exc:
         raise UsageError(f"{args.models_dir}: {exc}") from None
-    name = args.model or request.model or best_model(manifest)  # the service's rule (service/state.py)
+    # the service's rule (service/state.py): designs with loads default to the best loaded operator
+    name = (args.model or request.model or (request.n_loaded and best_model(manifest, loads=True))
+            or best_model(manifest))
     if request.model is not None and args.model is not None and request.model != args.model:
         raise UsageError(f"{args.request} names the model {request.model!r}, --model {args.model!r}: give one")
     if name not in manifest.get("models", {}):
@@ -267,7 +272,10 @@ def _cmd_predict(args) -> int:
         model = Surrogate.load(args.models_dir, name, manifest=manifest)
     except ManifestError as exc:
         raise UsageError(f"{args.models_dir}: {exc}") from None
-    prediction = engine.predict(model, request, model=name)
+    try:
+        prediction = engine.predict(model, request, model=name)
+    except InvalidRequest as exc:
+        raise _invalid(args.request, exc) from None
     sys.stdout.buffer.write(engine.encode_json(prediction) + b"\n")
     return 0
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.designs import LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
 
 #: Tendons of the trained surrogates (the solver takes any number >= 1).
 N_TENDONS = 4
@@ -266,4 +266,33 @@ def range_warnings(features: np.ndarray) -> list[list[str]]:
         unit = TABLE_I[layout.parameters[j]].unit
         out[b].append(f"{layout.names[j]} = {features[b, j]:.6g} {unit} is outside the trained range "
                       f"[{low[j]:.6g}, {high[j]:.6g}]")
+    return out
+
+
+#: The load ranges a manifest records (:meth:`LoadSpace.ranges`): name -> (unit, how a design's
+#: value is read from its loads matrix ``(B, 10)``).
+_LOAD_MAGNITUDES = {"gravity": "m/s^2", "density": "kg/m^3", "tip_force": "N", "tip_moment": "N m"}
+#: Relative slack of the load-range checks (a |g| of 9.81 computed from its components).
+_LOAD_SLACK = 1e-6
+
+
+def load_warnings(loads: np.ndarray, ranges: dict[str, list[float]]) -> list[list[str]]:
+    """Per design, one line for each load outside the trained ``ranges`` (a manifest's
+    ``load_ranges``) of the loads matrix ``(B, 10)`` (:data:`tdcr.designs.LOAD_COLUMNS`): the
+    magnitudes |gravity|, |tip_force| and |tip_moment|, and the density of designs in gravity;
+    e.g. ``|tip_force| = 0.05 N is outside the trained range [0, 0.02]``."""
+    loads = np.asarray(loads, dtype=np.float64)
+    values = {name: np.linalg.norm(loads[:, LOAD_COLUMNS[name]], axis=1) for name in ("gravity", "tip_force",
+                                                                                     "tip_moment")}
+    values["density"] = np.where(values["gravity"] > 0, loads[:, LOAD_COLUMNS["density"]][:, 0], np.nan)
+    out: list[list[str]] = [[] for _ in range(len(loads))]
+    for name, unit in _LOAD_MAGNITUDES.items():
+        low, high = ranges[name]
+        slack = _LOAD_SLACK * max(abs(high), 1.0)
+        with np.errstate(invalid="ignore"):
+            bad = (values[name] < low - slack) | (values[name] > high + slack)
+        label = name if name == "density" else f"|{name}|"
+        for b in np.nonzero(bad)[0]:
+            out[b].append(f"{label} = {values[name][b]:.6g} {unit} is outside the trained range "
+                          f"[{low:.6g}, {high:.6g}]")
     return out

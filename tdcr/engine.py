@@ -20,8 +20,9 @@ from typing import Protocol
 import numpy as np
 import orjson
 
-from tdcr.design_space import range_warnings
-from tdcr.designs import L_COLUMN
+from tdcr.checks import check_model_loads
+from tdcr.design_space import load_warnings, range_warnings
+from tdcr.designs import L_COLUMN, N_LOAD_COLUMNS
 from tdcr.inverse import tip_by_differences
 from tdcr.schemas import RESPONSE_FORMAT_VERSION
 from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
@@ -34,9 +35,13 @@ QUERY_FIELDS = ("model", "points", "s", "arclength", "outputs")
 
 
 class Predictor(Protocol):
-    """What runs a surrogate: :meth:`tdcr.runtime.Surrogate.predict` or a batcher in front of it."""
+    """What runs a surrogate: :meth:`tdcr.runtime.Surrogate.predict` or a batcher in front of it;
+    ``takes_loads`` and ``load_ranges`` as :class:`tdcr.runtime.Surrogate`'s."""
 
-    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True,
+    takes_loads: bool
+    load_ranges: dict | None
+
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, loads=None, pose: bool = True,
                 check: bool = True) -> dict[str, np.ndarray]: ...
 
 
@@ -84,10 +89,16 @@ def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits)
 
 
 def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Prediction:
-    """A validated request on ``predictor`` (the surrogate ``model``); blocking."""
-    features = request.features
+    """A validated request on ``predictor`` (the surrogate ``model``); blocking.  A design with loads
+    for an operator that takes none is an :class:`InvalidRequest` naming its load field."""
+    features, loads = request.features, request.loads
+    if not predictor.takes_loads:
+        problems = check_model_loads(loads, np.arange(len(features)), model=model)
+        if problems:
+            raise InvalidRequest(problems)
+        loads = None
     with np.errstate(all="ignore"):  # overflow far outside the trained ranges is reported per design
-        out = predictor.predict(features, request.fractions, pose=request.pose, check=False)  # validated
+        out = predictor.predict(features, request.fractions, loads=loads, pose=request.pose, check=False)  # validated
     arrays = {k: out[k] for k in request.outputs}
     finite = np.ones(len(features), dtype=bool)
     for v in arrays.values():
@@ -104,8 +115,13 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Predi
 
         with np.errstate(all="ignore"):
             tip_jacobian = np.ascontiguousarray(np.nan_to_num(tip_by_differences(features, tip_pose)[2]))
+    warnings = range_warnings(features)
+    if predictor.takes_loads and predictor.load_ranges is not None:
+        matrix = np.zeros((len(features), N_LOAD_COLUMNS)) if loads is None else np.nan_to_num(
+            loads.matrix(len(features)))
+        warnings = [w + v for w, v in zip(warnings, load_warnings(matrix, predictor.load_ranges), strict=True)]
     return Prediction(model=model, fractions=request.fractions, arclength=arclength, arrays=arrays,
-                      warnings=range_warnings(features), finite=finite, tip_jacobian=tip_jacobian)
+                      warnings=warnings, finite=finite, tip_jacobian=tip_jacobian)
 
 
 def encode_json(prediction: Prediction) -> bytes:

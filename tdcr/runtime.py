@@ -21,6 +21,17 @@ from pathlib import Path
 
 import numpy as np
 
+from tdcr.checks import (
+    InvalidRequest,
+    check_fractions,
+    check_loads,
+    check_model_loads,
+    check_surrogate_features,
+    checkable_loads,
+    loaded_rows,
+    raise_problems,
+)
+from tdcr.designs import N_LOAD_COLUMNS, ExternalLoads
 from tdcr.physics.geometry import cubic_weights, orthonormalize, rigid_fit, tendon_offsets
 
 #: Manifest (and manifest entry) format this runtime reads; training/operators/export.py writes it.
@@ -30,10 +41,16 @@ MANIFEST_NAME = "manifest.json"
 DEFAULT_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 
 
-def best_model(manifest: dict) -> str | None:
-    """The default model, for the service and ``tdcr predict`` alike: the manifest model with the
-    lowest mean test relative l2 (the first by name if none has metrics)."""
-    models = manifest.get("models", {})
+def takes_loads(entry: dict) -> bool:
+    """Whether a manifest entry's model takes the loads input ``(B, 10)`` (a loaded operator)."""
+    return "loads" in entry.get("inputs", {})
+
+
+def best_model(manifest: dict, *, loads: bool = False) -> str | None:
+    """The default model, for the service and ``tdcr predict`` alike: of the manifest models that
+    take no loads (``loads``: of those that do), the one with the lowest mean test relative l2 (the
+    first by name if none has metrics); None if there is none."""
+    models = {k: v for k, v in manifest.get("models", {}).items() if takes_loads(v) == loads}
 
     def score(name):
         m = (models[name].get("metrics") or {}).get("test_relative_l2") or {}
@@ -114,6 +131,28 @@ class Surrogate:
         return cls.load(DEFAULT_MODELS_DIR, name, **options)
 
     @property
+    def takes_loads(self) -> bool:
+        """A loaded operator: its graph takes gravity, density and the tip wrench (``loads``)."""
+        return takes_loads(self.entry)
+
+    @property
+    def load_ranges(self) -> dict[str, list[float]] | None:
+        """The loads of its training data (:meth:`tdcr.design_space.LoadSpace.ranges`), or None."""
+        return self.entry.get("load_ranges")
+
+    def load_matrix(self, loads, n_designs: int) -> np.ndarray | None:
+        """``loads`` (:class:`ExternalLoads`, a ``(B, 10)`` matrix or None) as this graph's input:
+        the matrix for a loaded operator (zeros without loads), None for another; a ``ValueError``
+        when an operator that takes no loads is given some."""
+        if loads is not None and not isinstance(loads, ExternalLoads):
+            loads = ExternalLoads.from_matrix(np.asarray(loads, dtype=np.float64).reshape(n_designs, N_LOAD_COLUMNS))
+        if not self.takes_loads:
+            if loads is not None and loaded_rows(loads, n_designs).any():
+                raise InvalidRequest(check_model_loads(loads, np.arange(n_designs), model=self.name))
+            return None
+        return np.zeros((n_designs, N_LOAD_COLUMNS)) if loads is None else np.nan_to_num(loads.matrix(n_designs))
+
+    @property
     def grid(self) -> np.ndarray | None:
         g = self.entry.get("grid")
         return None if g is None else np.asarray(g)
@@ -129,14 +168,18 @@ class Surrogate:
             return [fn(rows) for rows in chunks]
         return list(self._pool.map(fn, chunks))
 
-    def run(self, features: np.ndarray, fractions: np.ndarray) -> dict[str, np.ndarray]:
-        """Raw graph outputs at ``fractions`` (DeepONet) or on the grid (FNO), float32, batch first.
+    def run(self, features: np.ndarray, fractions: np.ndarray, loads: np.ndarray | None = None
+            ) -> dict[str, np.ndarray]:
+        """Raw graph outputs at ``fractions`` (DeepONet) or on the grid (FNO), float32, batch first;
+        ``loads`` ``(B, 10)``: the loads input of a loaded operator (:meth:`load_matrix`).
 
         onnxruntime writes every chunk straight into its rows of preallocated outputs (I/O
         binding): no per-chunk output allocation and no concatenation.
         """
         features = np.ascontiguousarray(features, dtype=np.float32)
         fractions32 = np.ascontiguousarray(fractions, dtype=np.float32)
+        loads32 = None if not self.takes_loads else np.ascontiguousarray(
+            np.zeros((len(features), N_LOAD_COLUMNS)) if loads is None else loads, dtype=np.float32)
         n_points = len(fractions32) if self.grid is None else self.grid.size
         outputs = {name: np.empty((len(features), n_points, *shape[2:]), dtype=np.float32)
                    for name, shape in self.entry["outputs"].items()}
@@ -146,6 +189,8 @@ class Surrogate:
         def run_rows(rows: slice) -> None:
             binding = self.session.io_binding()
             binding.bind_cpu_input("design", features[rows])
+            if loads32 is not None:
+                binding.bind_cpu_input("loads", loads32[rows])
             if self.grid is None:
                 binding.bind_cpu_input("s", fractions32)
             for name, array in outputs.items():
@@ -156,9 +201,13 @@ class Surrogate:
         self._side_by_side(run_rows, len(features))
         return outputs
 
-    def predict(self, features: np.ndarray, fractions: np.ndarray, *, pose: bool = True,
-                check: bool = True) -> dict[str, np.ndarray]:
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, loads: ExternalLoads | np.ndarray | None = None,
+                pose: bool = True, check: bool = True) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
+
+        ``loads``: gravity and a tip wrench per design (:class:`tdcr.ExternalLoads`, base frame, SI;
+        or its ``(B, 10)`` matrix), for a loaded operator (:attr:`takes_loads`); another operator
+        refuses non-zero loads (``ValueError`` naming the field).
 
         Graph outputs stay float32 (the networks' precision); the pose fit of tendon models and
         the FNO interpolation compute in float64, in chunks side by side.
@@ -167,18 +216,23 @@ class Surrogate:
         interpolation of the pose).
 
         ``check``: the one validation path's checks first (:mod:`tdcr.checks`): ``(B, 15)`` designs
-        inside their admissible bounds, fractions in [0, 1]; a ``ValueError`` with the service's
-        words else.  The service's batcher, whose requests are validated already, skips them.
+        inside their admissible bounds, loads inside theirs, fractions in [0, 1]; a ``ValueError``
+        with the service's words else.  The service's batcher, whose requests are validated
+        already, skips them.
         """
         if check:
-            from tdcr.checks import check_fractions, check_surrogate_features, raise_problems
-
             problems = check_surrogate_features(features)
             fractions, more = check_fractions(fractions, name="fractions")
+            if loads is not None and not problems:
+                n = len(features)
+                as_loads = loads if isinstance(loads, ExternalLoads) else ExternalLoads.from_matrix(
+                    np.asarray(loads, dtype=np.float64).reshape(n, N_LOAD_COLUMNS))
+                more += check_loads(checkable_loads(as_loads, n), np.arange(n))
             raise_problems(problems + more)
         features = np.asarray(features, dtype=np.float64)
         fractions = np.asarray(fractions, dtype=np.float64)
-        raw = {k: v for k, v in self.run(features, fractions).items() if pose or k == "tendons"}
+        matrix = self.load_matrix(loads, len(features))
+        raw = {k: v for k, v in self.run(features, fractions, matrix).items() if pose or k == "tendons"}
         grid = self.grid
         on_grid = grid is None or (grid.size == fractions.size and np.allclose(grid, fractions, atol=1e-9))
         if on_grid and (not pose or "rotation" in raw):

@@ -57,27 +57,14 @@ class Tendon(BaseModel):
     tension: _number(TABLE_I["tension"]) = Field(description="tendon tension, N")  # type: ignore[valid-type]
 
 
-class SurrogateDesign(BaseModel):
-    """A TDCR design in SI units with the surrogates' 4 tendons (no external loads)."""
-
-    model_config = ConfigDict(extra="forbid")
-    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
-    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
-    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
-    tendons: list[Tendon] = Field(min_length=N_TENDONS, max_length=N_TENDONS)
+#: A gravity vector needs a density (JSON Schema of every design with loads).
+_GRAVITY_NEEDS_DENSITY = {"if": {"properties": {"gravity": {"type": "array"}}, "required": ["gravity"]},
+                          "then": {"properties": {"density": {"type": "number"}}, "required": ["density"]}}
 
 
-class Design(BaseModel):
-    """A TDCR design in SI units, with optional external loads for the physics solver (a gravity
-    vector needs a density)."""
+class _Loads(BaseModel):
+    """Optional external loads of a design, base frame, SI (a gravity vector needs a density)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={
-        "if": {"properties": {"gravity": {"type": "array"}}, "required": ["gravity"]},
-        "then": {"properties": {"density": {"type": "number"}}, "required": ["density"]}})
-    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
-    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
-    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
-    tendons: list[Tendon] = Field(min_length=1, max_length=MAX_TENDONS)
     gravity: _vector3(LOADS["gravity"]) | None = Field(  # type: ignore[valid-type]
         None, description="gravitational acceleration, base frame, m/s^2")
     density: _number(LOADS["density"]) | None = Field(  # type: ignore[valid-type]
@@ -85,6 +72,28 @@ class Design(BaseModel):
     tip_force: _vector3(LOADS["tip_force"]) | None = Field(None, description="tip force, base frame, N")  # type: ignore[valid-type]
     tip_moment: _vector3(LOADS["tip_moment"]) | None = Field(  # type: ignore[valid-type]
         None, description="tip moment, base frame, N m")
+
+
+class SurrogateDesign(_Loads):
+    """A TDCR design in SI units with the surrogates' 4 tendons; loads (gravity, tip wrench) only
+    for a loaded operator (``*_loaded``)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_GRAVITY_NEEDS_DENSITY)
+    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
+    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
+    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
+    tendons: list[Tendon] = Field(min_length=N_TENDONS, max_length=N_TENDONS)
+
+
+class Design(_Loads):
+    """A TDCR design in SI units, with optional external loads for the physics solver (a gravity
+    vector needs a density)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_GRAVITY_NEEDS_DENSITY)
+    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
+    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
+    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
+    tendons: list[Tendon] = Field(min_length=1, max_length=MAX_TENDONS)
 
 
 def _integral_float(value):
@@ -140,7 +149,9 @@ class PredictRequest(_Arclengths):
     model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S)
     designs: list[SurrogateDesign] = Field(min_length=1)
     model: str | None = Field(None, min_length=1, max_length=MAX_MODEL_NAME,
-                              description="deeponet, deeponet_pose, fno or fno_pose", examples=["deeponet"])
+                              description="deeponet, deeponet_pose, fno or fno_pose; for designs with loads "
+                                          "deeponet_pose_loaded or fno_pose_loaded (the default then)",
+                              examples=["deeponet"])
     jacobian: bool = Field(False, description="add tip_jacobian to each result (as for /exact), by central "
                                               "differences of the operator")
 
@@ -210,10 +221,11 @@ class TipTarget(BaseModel):
         json_schema_extra={"contains": {"not": {"const": 0}}})
 
 
-class InverseDesign(BaseModel):
-    """A design for inverse kinematics: tendon loads only (its tensions are the first start)."""
+class InverseDesign(_Loads):
+    """A design for inverse kinematics (its tensions are the first start); gravity and a tip wrench
+    only with a loaded operator."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_GRAVITY_NEEDS_DENSITY)
     E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
     r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
     L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]

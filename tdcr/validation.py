@@ -24,6 +24,7 @@ from pydantic import ValidationError
 
 from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's vocabulary
     EXACT_ROUTES,
+    LOADED_EXAMPLE,
     MAX_QUOTED,
     InvalidRequest,
     Problem,
@@ -97,6 +98,14 @@ class ShapeRequest:
         if len(self.groups) != 1:
             raise ValueError("the designs have different tendon counts")
         return self.groups[0].designs.features()
+
+    @property
+    def loads(self) -> ExternalLoads | None:
+        """The loads of a request whose designs share one tendon count (None: no design has any),
+        arrays of every design, zeros where absent."""
+        if len(self.groups) != 1:
+            raise ValueError("the designs have different tendon counts")
+        return self.groups[0].loads
 
     @property
     def n_loaded(self) -> int:
@@ -231,20 +240,14 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
                     outputs=wanted, jacobian=request.jacobian)
 
 
-#: The load fields of a design (the solver's; the operators take none).
-LOAD_FIELDS = ("gravity", "density", "tip_force", "tip_moment")
-
-
 def _what_to_do(problem: Problem, target: Target) -> Problem:
     """A schema problem of a surrogate request that the exact solver would take says so: a design
-    with another tendon count, or with loads (``EXACT_ROUTES``)."""
+    with another tendon count (``EXACT_ROUTES``)."""
     loc = problem.loc
     if target != "surrogate" or len(loc) < 3 or loc[0] != "designs":
         return problem
     if loc[2:] == ("tendons",) and problem.type in ("too_short", "too_long"):
         return problem._replace(msg=f"{problem.msg}: the operators take {N_TENDONS} tendons; {EXACT_ROUTES}")
-    if loc[2:] in tuple((f,) for f in LOAD_FIELDS) and problem.type == "extra_forbidden":
-        return problem._replace(msg=f"{problem.msg}: the operators take no external loads; {EXACT_ROUTES}")
     return problem
 
 
@@ -276,8 +279,9 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
                       loads: Mapping[str, np.ndarray] | None = None,
                       arclength: Sequence[float] | np.ndarray | None = None) -> ShapeRequest:
     """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body or OIP tensors) with arclengths and
-    options; for the solver, ``loads``: any of ``gravity`` ``(B, 3)`` m/s^2, ``density`` ``(B,)``
-    kg/m^3, ``tip_force`` ``(B, 3)`` N, ``tip_moment`` ``(B, 3)`` N m.
+    options; ``loads``: any of ``gravity`` ``(B, 3)`` m/s^2, ``density`` ``(B,)`` kg/m^3,
+    ``tip_force`` ``(B, 3)`` N, ``tip_moment`` ``(B, 3)`` N m (whether the model takes them is the
+    model's check: :func:`tdcr.checks.check_model_loads`).
 
     Raises :class:`InvalidRequest`.
     """
@@ -297,7 +301,7 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     wanted, more = check_outputs(outputs)
     problems += more + _check_model(model)
     group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features),
-                        loads=_loads_from_arrays(loads, len(features), target, problems))
+                        loads=_loads_from_arrays(loads, len(features), problems))
     return _checked([group], fractions, problems, model=model, outputs=wanted)
 
 
@@ -305,14 +309,11 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
 LOAD_SHAPES = {"gravity": (3,), "density": (), "tip_force": (3,), "tip_moment": (3,)}
 
 
-def _loads_from_arrays(loads: Mapping[str, np.ndarray] | None, n_designs: int, target: Target,
+def _loads_from_arrays(loads: Mapping[str, np.ndarray] | None, n_designs: int,
                        problems: list[Problem]) -> ExternalLoads | None:
     """:class:`ExternalLoads` from arrays by name (NaN gravity and density where absent, as from
     JSON), or None without loads; a wrong name, shape or row count is a problem."""
     if not loads:
-        return None
-    if target == "surrogate":
-        problems.append(Problem(tuple(loads)[:1], "the operators take no external loads; the solver does", "loads"))
         return None
     arrays = {}
     for name, values in loads.items():
@@ -341,6 +342,7 @@ class InverseProblem:
     model: str
     polish: bool
     tolerance: float
+    loads: ExternalLoads | None = None  #: gravity and tip wrench of the design (a loaded operator's)
 
     @property
     def n_targets(self) -> int:
@@ -348,20 +350,20 @@ class InverseProblem:
 
 
 def validate_inverse(body: bytes | str | dict) -> InverseProblem:
-    """A JSON ``InverseRequest``: structure (pydantic; the design has no load fields), then
-    :func:`check_inverse`.  Raises :class:`InvalidRequest`."""
+    """A JSON ``InverseRequest``: structure (pydantic), then :func:`check_inverse`.  Raises
+    :class:`InvalidRequest`."""
     try:
         request = (InverseRequest.model_validate(body) if isinstance(body, dict)
                    else InverseRequest.model_validate_json(body))
     except ValidationError as exc:
         raise InvalidRequest(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"])
                              for e in exc.errors(include_input=False, include_url=False)) from None
-    design = _group_from_json([request.design], np.zeros(1, dtype=int)).designs
+    group = _group_from_json([request.design], np.zeros(1, dtype=int))
     directions = np.array([np.full(3, np.nan) if t.direction is None else t.direction for t in request.targets],
                           dtype=np.float64)
-    return check_inverse(design, np.array([t.position for t in request.targets], dtype=np.float64), directions,
+    return check_inverse(group.designs, np.array([t.position for t in request.targets], dtype=np.float64), directions,
                          tension_max=request.tension_max, model=request.model, polish=request.polish,
-                         tolerance=request.tolerance)
+                         tolerance=request.tolerance, loads=group.loads)
 
 
 #: The defaults of an inverse request (``tdcr.schemas.InverseRequest``).
@@ -370,12 +372,25 @@ INVERSE_DEFAULTS = {name: InverseRequest.model_fields[name].default for name in 
 
 def check_inverse(design: DesignBatch, positions: np.ndarray, directions: np.ndarray, *, tension_max: float,
                   model: str = EXACT_MODEL, polish: bool = False,
-                  tolerance: float = INVERSE_DEFAULTS["tolerance"]) -> InverseProblem:
+                  tolerance: float = INVERSE_DEFAULTS["tolerance"],
+                  loads: ExternalLoads | None = None) -> InverseProblem:
     """The value checks of every inverse request (JSON or tensors): the design's values through the
     same checks as every design, 4 tendons for an operator, ``positions`` ``(T, 3)`` m finite,
-    ``directions`` ``(T, 3)`` (NaN rows: none) finite and non-zero, ``tension_max`` in (0, 1000] N.
+    ``directions`` ``(T, 3)`` (NaN rows: none) finite and non-zero, ``tension_max`` in (0, 1000] N;
+    ``loads`` (one row, NaN gravity and density where absent) inside their bounds, and only for an
+    operator (the exact model's Jacobian covers tendon loads) without ``polish``.
     Raises :class:`InvalidRequest`."""
     problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(design.features())]
+    if loads is not None:
+        problems += [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_loads(loads, np.zeros(1, int))]
+        loads = _zero_absent(loads)
+        if not _loaded(loads).any():
+            loads = None
+        elif model == EXACT_MODEL or polish:
+            field = "model" if model == EXACT_MODEL else "polish"
+            problems.append(Problem((field,), "the exact inverse kinematics covers tendon loads only: for a design "
+                                    f"with gravity or tip loads name a loaded operator (model {LOADED_EXAMPLE!r}) "
+                                    "without polish", "inverse_with_loads"))
     if model != EXACT_MODEL and design.n_tendons != N_TENDONS:
         problems.append(Problem(("design", "tendons"), f"the operators take {N_TENDONS} tendons, got "
                                                        f"{design.n_tendons}", "tendon_count"))
@@ -400,4 +415,4 @@ def check_inverse(design: DesignBatch, positions: np.ndarray, directions: np.nda
     if problems:
         raise InvalidRequest(problems)
     return InverseProblem(design=design, positions=positions, directions=directions, tension_max=float(tension_max),
-                          model=model, polish=polish, tolerance=float(tolerance))
+                          model=model, polish=polish, tolerance=float(tolerance), loads=loads)

@@ -29,7 +29,7 @@ def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[
     try:
         shapes = prepare_npy(body, params, limits=limits) if binary else prepare_json(body, limits=limits)
         answer = plane.infer_blocking(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)), kind="surrogate",
-                                      protocol=HTTP, endpoint="/predict")
+                                      loads=shapes.n_loaded > 0, protocol=HTTP, endpoint="/predict")
     except InvalidRequest as exc:
         raise from_invalid(exc, query=query) from None
     except InferenceError as exc:

@@ -487,7 +487,7 @@ def check_inputs(designs: DesignBatch, fractions: np.ndarray, loads: ExternalLoa
     and load inside its admissible bounds, the fractions in [0, 1] (clamped within rounding).
     Returns the fractions ``(n,)``; raises :class:`tdcr.checks.InvalidRequest` (a ``ValueError``)
     with the service's words, e.g. ``designs[0].tendons[1].tension: must be in [0, 1000] N, got -2``."""
-    from tdcr.checks import Problem, check_features, check_fractions, check_loads, raise_problems
+    from tdcr.checks import Problem, check_features, check_fractions, check_loads, checkable_loads, raise_problems
 
     problems = check_features(designs.features())
     clamped, more = check_fractions(fractions, name="fractions")
@@ -498,24 +498,9 @@ def check_inputs(designs: DesignBatch, fractions: np.ndarray, loads: ExternalLoa
             problems.append(Problem(("designs", 0, "gravity"), "needs a density (kg/m^3): give "
                                     "ExternalLoads(density=...)", "missing_density"))
         else:
-            problems += check_loads(_checkable(loads, designs.n_designs), rows)
+            problems += check_loads(checkable_loads(loads, designs.n_designs), rows)
     raise_problems(problems)
     return clamped
-
-
-def _checkable(loads: ExternalLoads, n: int) -> ExternalLoads:
-    """Loads as the checks read them: arrays of ``n`` rows; a design without gravity (zero or
-    absent) has no weight, so its gravity and density count as absent (NaN)."""
-    def rows(values, shape):
-        return None if values is None else np.asarray(values, dtype=np.float64).reshape(n, *shape)
-
-    gravity, density = rows(loads.gravity, (3,)), rows(loads.density, ())
-    if gravity is not None and density is not None:
-        weightless = ~np.any(gravity != 0, axis=1)
-        gravity, density = gravity.copy(), density.copy()
-        gravity[weightless], density[weightless] = np.nan, np.nan
-    return ExternalLoads(gravity=gravity, density=density, tip_force=rows(loads.tip_force, (3,)),
-                         tip_moment=rows(loads.tip_moment, (3,)))
 
 
 def body_strains(designs: DesignBatch, fractions: np.ndarray, *, options: SolverOptions | None = None

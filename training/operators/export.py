@@ -4,6 +4,8 @@ Graph inputs / outputs (float32, SI units):
 
 * DeepONet models: ``design`` (B, 15) and ``s`` (n,) fractions of L  ->  outputs at those s.
 * FNO models: ``design`` (B, 15)  ->  outputs on their fixed grid s_j = j / 41 (42 points).
+* Loaded operators also take ``loads`` (B, 10): gravity (3, m/s^2), density (kg/m^3), tip force
+  (3, N), tip moment (3, N m), base frame (:data:`tdcr.designs.LOAD_COLUMNS`).
 * Tendon models output ``tendons`` (B, n, 4, 3) m; pose models ``backbone`` (B, n, 3) m,
   ``rotation`` (B, n, 3, 3) and ``tendons`` (B, n, 4, 3) m.
 """
@@ -21,6 +23,7 @@ import onnx
 import torch
 
 from tdcr import design_space
+from tdcr.designs import N_LOAD_COLUMNS
 from tdcr.runtime import MANIFEST_FORMAT_VERSION, MANIFEST_NAME
 from training.operators.models import DeepONet, count_parameters
 from training.operators.train import load_trained
@@ -38,16 +41,29 @@ class _FixedGrid(torch.nn.Module):
         self.model = model
         self.channels_last = channels_last
 
-    def forward(self, design):
+    def forward(self, design, loads=None):
         if isinstance(self.model, DeepONet):
-            return self.model.outputs(design, self.model.reference_grid)
+            return self.model.outputs(design, self.model.reference_grid, loads=loads)
         if self.channels_last:
-            return self.model.heads(design, self.model.grid, self.model.raw(design))
-        return self.model(design)
+            return self.model.heads(design, self.model.grid, self.model.raw(design, loads=loads), loads=loads)
+        return self.model(design, loads)
+
+
+class _WithLoads(torch.nn.Module):
+    """A loaded DeepONet with its graph inputs in the order ``design``, ``s``, ``loads``."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, design, s, loads):
+        return self.model(design, s, loads)
 
 
 def io_names(model) -> tuple[list[str], list[str]]:
     inputs = ["design", "s"] if isinstance(model, DeepONet) else ["design"]
+    if model.config.loads:
+        inputs.append("loads")
     outputs = ["tendons"] if model.kind == "tendons" else ["backbone", "rotation", "tendons"]
     return inputs, outputs
 
@@ -75,6 +91,13 @@ def export_onnx(model, path: str | Path) -> None:
     path = Path(path)
     tmp = Path(str(path) + ".tmp")
     fixed = {"design": {0: "batch"}} | {name: {0: "batch"} for name in outputs}
+    if model.config.loads:  # a loaded operator: the loads ride along with the design
+        sample = design_space.TRAINING_LOADS.sample(2, seed=0).matrix(2)
+        loads = (torch.as_tensor(sample, dtype=torch.float32),)
+        fixed |= {"loads": {0: "batch"}}
+        with_s = _WithLoads(model)
+    else:
+        loads, with_s = (), model
     first, second = Path(str(path) + ".1.tmp"), Path(str(path) + ".2.tmp")
     try:
         if model.config.reference != "linearized":  # the paper preset: one graph
@@ -85,13 +108,16 @@ def export_onnx(model, path: str | Path) -> None:
                 _trace(_FixedGrid(model), (design,), tmp, inputs, outputs, fixed)
         elif isinstance(model, DeepONet):
             dyn = {"design": {0: "batch"}, "s": {0: "points"}} | {k: {0: "batch", 1: "points"} for k in outputs}
-            _trace(_FixedGrid(model), (design,), first, ["design"], outputs, fixed)
-            _trace(model, (design, torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS)), second, inputs, outputs, dyn)
+            dyn |= {"loads": {0: "batch"}} if loads else {}
+            grid_inputs = [n for n in inputs if n != "s"]
+            _trace(_FixedGrid(model), (design, *loads), first, grid_inputs, outputs, fixed)
+            _trace(with_s, (design, torch.linspace(0.0, 1.0, design_space.DEFAULT_POINTS), *loads), second, inputs,
+                   outputs, dyn)
             cond = _grid_condition(model.reference_grid.shape[0])
             onnx.save(_switch(onnx.load(str(first)), onnx.load(str(second)), cond, inputs), str(tmp))
         else:
-            _trace(_FixedGrid(model, channels_last=True), (design,), first, inputs, outputs, fixed)
-            _trace(_FixedGrid(model), (design,), second, inputs, outputs, fixed)
+            _trace(_FixedGrid(model, channels_last=True), (design, *loads), first, inputs, outputs, fixed)
+            _trace(_FixedGrid(model), (design, *loads), second, inputs, outputs, fixed)
             cond = _small_batch_condition(FNO_SMALL_BATCH)
             onnx.save(_switch(onnx.load(str(first)), onnx.load(str(second)), cond, inputs), str(tmp))
     finally:
@@ -204,7 +230,7 @@ def sha256(path: str | Path) -> str:
 def manifest_entry(model, record: dict, onnx_path: Path, *, metrics: dict | None, dataset_meta: dict | None) -> dict:
     inputs, outputs = io_names(model)
     n = "n" if isinstance(model, DeepONet) else model.config.n_points
-    shapes = {"design": ["B", design_space.N_FEATURES], "s": ["n"],
+    shapes = {"design": ["B", design_space.N_FEATURES], "s": ["n"], "loads": ["B", N_LOAD_COLUMNS],
               "tendons": ["B", n, design_space.N_TENDONS, 3], "backbone": ["B", n, 3], "rotation": ["B", n, 3, 3]}
     return {
         "format_version": MANIFEST_FORMAT_VERSION,
@@ -220,13 +246,24 @@ def manifest_entry(model, record: dict, onnx_path: Path, *, metrics: dict | None
         "inputs": {k: shapes[k] for k in inputs},
         "outputs": {k: shapes[k] for k in outputs},
         "units": {"design": "SI [E Pa, r m, L m, offsets m, pitches rad/m, tensions N]", "s": "fraction of L",
-                  "tendons": "m", "backbone": "m", "rotation": "1"},
+                  "tendons": "m", "backbone": "m", "rotation": "1"} | (
+                      {"loads": "SI, base frame [gravity (3) m/s^2, density kg/m^3, tip force (3) N, "
+                                "tip moment (3) N m]"} if model.config.loads else {}),
         "feature_names": design_space.feature_names(),
         "grid": None if isinstance(model, DeepONet) else np.linspace(0, 1, model.config.n_points).tolist(),
         "ranges": {k: [v.low, v.high] for k, v in design_space.TABLE_I.items()},
         "metrics": metrics,
         "opset": OPSET,
-    }
+    } | ({"load_ranges": _load_ranges(dataset_meta)} if model.config.loads else {})
+
+
+def _load_ranges(dataset_meta: dict | None) -> dict[str, list[float]]:
+    """The loads of a loaded operator's training data (``dataset_meta["loads"]``, a
+    :class:`~tdcr.design_space.LoadSpace`; :data:`~tdcr.design_space.TRAINING_LOADS` if unrecorded)."""
+    recorded = (dataset_meta or {}).get("loads")
+    space = design_space.TRAINING_LOADS if not recorded else design_space.LoadSpace(
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in recorded.items()})
+    return space.ranges()
 
 
 def export_run(run_dir: str | Path, models_dir: str | Path, *, dataset_meta: dict | None = None) -> dict:
