@@ -154,7 +154,16 @@ def _cmd_export(args) -> int:
 
 def _cmd_evaluate(args) -> int:
     from training import dataset
-    from training.operators.evaluate import evaluate, evaluate_ood, format_ood, format_table, held_out
+    from training.operators.evaluate import (
+        LOADED_REFERENCE,
+        evaluate,
+        evaluate_ood,
+        format_ood,
+        format_table,
+        held_out,
+        metrics_key,
+        row_label,
+    )
     from training.operators.export import update_manifest
 
     manifest_path = Path(args.models_dir) / "manifest.json"
@@ -179,7 +188,8 @@ def _cmd_evaluate(args) -> int:
     if not keep.any():
         raise UsageError(f"every test design of {args.data} is in a model's training set: generate another "
                          "dataset (e.g. another --seed) to evaluate on")
-    results = evaluate(args.models_dir, args.data, names, keep=keep)
+    results = evaluate(args.models_dir, args.data, names, keep=keep, exact_designs=args.exact_designs)
+    loaded_data = LOADED_REFERENCE in results
     ood = evaluate_ood(args.models_dir, names, n=args.ood) if args.ood else None
     print(format_table(results))
     if ood is not None:
@@ -193,9 +203,18 @@ def _cmd_evaluate(args) -> int:
     evaluated_on = {k: record.get(k) for k in ("n", "seed", "n_test")} | {"n_held_out": int(keep.sum())}
     for name in names:
         entry = manifest["models"][name]
-        entry["metrics"] = {"test_relative_l2": results[name], "baseline_relative_l2": results["undeformed baseline"],
-                            "linearized_reference_relative_l2": results["linearized reference"],
-                            "evaluated_on": evaluated_on}
+        key = metrics_key(entry, loaded_data)
+        metrics = dict(entry.get("metrics") or {}) if key != "test_relative_l2" else {}
+        metrics[key] = results[row_label(name, entry, loaded_data)]
+        if key == "test_relative_l2" and loaded_data:
+            metrics |= {"loaded_reference_relative_l2": results[LOADED_REFERENCE], "evaluated_on": evaluated_on}
+        elif key == "test_relative_l2":
+            metrics |= {"baseline_relative_l2": results["undeformed baseline"],
+                        "linearized_reference_relative_l2": results["linearized reference"],
+                        "evaluated_on": evaluated_on}
+        else:
+            metrics[key.replace("relative_l2", "evaluated_on")] = evaluated_on
+        entry["metrics"] = metrics
         if ood is not None:
             entry["metrics"]["ood_mean_relative_l2"] = {label: row[name] for label, row in ood.items()}
         update_manifest(Path(args.models_dir), entry)
@@ -426,12 +445,15 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "seed, size and split, so that evaluations can leave it out)")
     p.set_defaults(func=_cmd_export)
 
-    p = command("evaluate", "held-out relative l2 of exported models beside two physics baselines "
+    p = command("evaluate", "held-out relative l2 and tip error of exported models beside physics baselines "
                             "(the 'train' extra); the manifest changes only with --update-manifest")
     p.add_argument("--data", required=True, help="dataset directory from `tdcr generate` (its test split is used)")
     p.add_argument("--models-dir", **models_dir)
     p.add_argument("--models", nargs="*", default=None, help="models to evaluate (default: every manifest model)")
     p.add_argument("--ood", type=int, default=0, help="also the paper's OOD bins, with this many designs per bin")
+    p.add_argument("--exact-designs", type=int, default=200,
+                   help="on a dataset with loads: test designs on which the exact loaded solver is checked against "
+                        "a 10x finer step (0: none)")
     p.add_argument("--update-manifest", action="store_true",
                    help="write these metrics into the manifest (the service picks its default model by them)")
     p.set_defaults(func=_cmd_evaluate)
