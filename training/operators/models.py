@@ -48,7 +48,7 @@ class DeepONetConfig:
     inputs: str = "table"
     reference: str = "undeformed"
     loads: bool = False
-    load_iterations: int = 2
+    load_iterations: int = 4
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,7 @@ class FNOConfig:
     inputs: str = "table"
     reference: str = "undeformed"
     loads: bool = False
-    load_iterations: int = 2
+    load_iterations: int = 4
 
 
 class _OperatorBase(nn.Module):
