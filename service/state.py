@@ -50,6 +50,11 @@ class ServiceState:
         return self.repository.defaults.get("surrogate")
 
     @property
+    def default_loaded_model(self) -> str | None:
+        """The default for designs with loads (a loaded operator; None if none is served)."""
+        return self.repository.defaults.get(loaded("surrogate"))
+
+    @property
     def surrogates(self) -> list[str]:
         return sorted(self.repository.names("surrogate"))
 

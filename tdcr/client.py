@@ -30,17 +30,23 @@ class TDCRError(RuntimeError):
         self.status, self.message = status, message
 
 
-def _request(features: np.ndarray, *, model: str | None, points: int | None, s, arclength, outputs) -> dict:
+def _request(features: np.ndarray, *, model: str | None, points: int | None, s, arclength, outputs,
+             loads=None) -> dict:
     """The ``/predict`` call of a binary request, after the one validation path's checks (nothing
     is sent for a bad one; the same words as the service's 422: :class:`tdcr.checks.InvalidRequest`,
-    a ``ValueError``)."""
-    from tdcr.checks import check_fractions, check_surrogate_features, raise_problems
+    a ``ValueError``).  With ``loads`` (:class:`tdcr.ExternalLoads`) the body is ``(B, 25)``:
+    each design followed by its loads matrix row."""
+    from tdcr.checks import check_fractions, check_loads, check_surrogate_features, checkable_loads, raise_problems
 
     problems = check_surrogate_features(features)
     if s is not None:
         problems += check_fractions(s)[1]
+    body = np.asarray(features, dtype=np.float64)
+    if loads is not None and not problems:
+        problems += check_loads(checkable_loads(loads, len(body)), np.arange(len(body)))
+        body = np.concatenate([body, np.nan_to_num(loads.matrix(len(body)))], axis=1)
     raise_problems(problems)
-    return {"content": _npy(np.asarray(features)), "params": _params(model, points, s, arclength, outputs),
+    return {"content": _npy(body), "params": _params(model, points, s, arclength, outputs),
             "headers": {"content-type": NPY, "accept": NPZ}}
 
 
@@ -91,17 +97,19 @@ class Client:
     def close(self) -> None:
         self._http.close()
 
-    def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = DEFAULT_POINTS, s=None,
-                arclength=None, outputs=None) -> dict:
+    def predict(self, features: np.ndarray, *, loads=None, model: str | None = None,
+                points: int | None = DEFAULT_POINTS, s=None, arclength=None, outputs=None) -> dict:
         """Binary request: SI designs ``(B, 15)`` -> arrays ``s`` ``(B, n)`` (fractions of L),
         ``arclength`` ``(B, n)`` m, backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons
         ``(B, n, 4, 3)`` m, in_distribution and finite ``(B,)``.
 
         The arclengths: ``points`` equispaced on [0, L], or ``s`` (fractions of L), or ``arclength``
         (m, for designs of one length).  ``outputs``: e.g. ``["tendons"]`` to receive (and compute)
-        only those arrays.  Bad designs raise ``ValueError`` before anything is sent.
+        only those arrays.  ``loads``: gravity and tip wrench per design (:class:`tdcr.ExternalLoads`,
+        base frame), for a loaded operator (the default one when ``model`` is None).  Bad designs
+        raise ``ValueError`` before anything is sent.
         """
-        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs)
+        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads)
         return _decode(self._http.post("/predict", **call))
 
     def predict_json(self, request: dict) -> dict:
@@ -127,10 +135,10 @@ class AsyncClient:
     async def aclose(self) -> None:
         await self._http.aclose()
 
-    async def predict(self, features: np.ndarray, *, model: str | None = None, points: int | None = DEFAULT_POINTS,
-                      s=None, arclength=None, outputs=None) -> dict:
+    async def predict(self, features: np.ndarray, *, loads=None, model: str | None = None,
+                      points: int | None = DEFAULT_POINTS, s=None, arclength=None, outputs=None) -> dict:
         """As :meth:`Client.predict`."""
-        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs)
+        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads)
         return _decode(await self._http.post("/predict", **call))
 
     async def predict_json(self, request: dict) -> dict:

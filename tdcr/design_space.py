@@ -82,12 +82,14 @@ OOD_BINS: tuple[tuple[float, float], ...] = ((-0.05, 0.0), (0.0, 0.05), (0.05, 0
 
 def describe() -> dict:
     """The design space as JSON-ready data: per parameter its unit, Table I range and admissible
-    bounds; the loads' admissible bounds; the number of tendons and the feature order."""
+    bounds; the loads' admissible bounds and the loaded operators' trained range (``trained``:
+    |gravity|, density, |tip_force|, |tip_moment|); the number of tendons and the feature order."""
     def bounds(b) -> dict:
         return {"admissible": list(b.admissible), "exclusive_min": b.exclusive_min, "unit": b.unit}
 
+    trained = TRAINING_LOADS.ranges()
     return {"parameters": {k: bounds(p) | {"table_i": [p.low, p.high]} for k, p in TABLE_I.items()},
-            "loads": {k: bounds(b) for k, b in LOADS.items()},
+            "loads": {k: bounds(b) | {"trained": trained[k]} for k, b in LOADS.items()},
             "n_tendons": N_TENDONS, "feature_order": feature_names(), "default_points": DEFAULT_POINTS}
 
 

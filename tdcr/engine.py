@@ -21,8 +21,8 @@ import numpy as np
 import orjson
 
 from tdcr.checks import check_model_loads
-from tdcr.design_space import load_warnings, range_warnings
-from tdcr.designs import L_COLUMN, N_LOAD_COLUMNS
+from tdcr.design_space import N_FEATURES, load_warnings, range_warnings
+from tdcr.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
 from tdcr.inverse import tip_by_differences
 from tdcr.schemas import RESPONSE_FORMAT_VERSION
 from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
@@ -73,7 +73,9 @@ def prepare_json(body: bytes | str | dict, *, limits: Limits) -> ShapeRequest:
 
 
 def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits) -> ShapeRequest:
-    """A ``.npy`` body of raw SI designs ``(B, 15)`` and the query ``params`` (name -> values)."""
+    """A ``.npy`` body of raw SI designs ``(B, 15)``, or ``(B, 25)``: each design followed by its
+    loads (:data:`tdcr.designs.LOAD_COLUMNS`: gravity, density, tip force, tip moment; for a loaded
+    operator), and the query ``params`` (name -> values)."""
     problems = [Problem((k,), "may be given once", "repeated") for k in ("model", "points", "outputs")
                 if len(params.get(k, [])) > 1]
     points = _query_int(params, "points", problems)
@@ -82,10 +84,15 @@ def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits)
     if problems:
         raise InvalidRequest(problems)
     features = read_npy(body)
+    loads = None
+    if features.ndim == 2 and features.shape[1] == N_FEATURES + N_LOAD_COLUMNS:  # designs, then their loads
+        features, matrix = features[:, :N_FEATURES], np.asarray(features[:, N_FEATURES:], dtype=np.float64)
+        as_loads = ExternalLoads.from_matrix(matrix)
+        loads = {name: getattr(as_loads, name) for name in LOAD_COLUMNS}
     outputs = params.get("outputs")
     return validate_features(features, target="surrogate", points=points, s=s, arclength=arclength,
                              model=(params.get("model") or [None])[0],
-                             outputs=None if outputs is None else outputs[0].split(","), limits=limits)
+                             outputs=None if outputs is None else outputs[0].split(","), limits=limits, loads=loads)
 
 
 def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Prediction:

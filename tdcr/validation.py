@@ -32,6 +32,7 @@ from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's voc
     check_features,
     check_fractions,
     check_loads,
+    checkable_loads,
     format_location,
     quote,
 )
@@ -326,8 +327,10 @@ def _loads_from_arrays(loads: Mapping[str, np.ndarray] | None, n_designs: int,
         else:
             arrays[name] = values
     nan3, zero3 = np.full((n_designs, 3), np.nan), np.zeros((n_designs, 3))
-    return ExternalLoads(gravity=arrays.get("gravity", nan3), density=arrays.get("density", np.full(n_designs, np.nan)),
-                         tip_force=arrays.get("tip_force", zero3), tip_moment=arrays.get("tip_moment", zero3))
+    given = ExternalLoads(gravity=arrays.get("gravity", nan3),
+                          density=arrays.get("density", np.full(n_designs, np.nan)),
+                          tip_force=arrays.get("tip_force", zero3), tip_moment=arrays.get("tip_moment", zero3))
+    return checkable_loads(given, n_designs)  # a row without gravity has no weight: its density is not checked
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""GET /models: the manifest (names, metrics, ranges, inputs and outputs) and the default model."""
+"""GET /models: the manifest (names, metrics, ranges, inputs and outputs), the default model and the
+default for designs with loads (a loaded operator)."""
 
 from __future__ import annotations
 
@@ -11,5 +12,5 @@ router = APIRouter(tags=["models"])
 
 @router.get("/models", summary="The model manifest")
 def models(state: State) -> dict:
-    return {"default_model": state.default_model, "loaded": state.surrogates,
-            "models": state.manifest.get("models", {})}
+    return {"default_model": state.default_model, "default_loaded_model": state.default_loaded_model,
+            "loaded": state.surrogates, "models": state.manifest.get("models", {})}

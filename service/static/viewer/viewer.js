@@ -10,7 +10,10 @@
   const TENDON = ["offset", "pitch", "tension"];
   // parameter -> [factor from SI, unit shown, decimals]
   const DISPLAY = { E: [1e-9, "GPa", 2], r: [1e3, "mm", 3], L: [1e3, "mm", 1], offset: [1e3, "mm", 2],
-                    pitch: [1, "rad/m", 2], tension: [1, "N", 2] };
+                    pitch: [1, "rad/m", 2], tension: [1, "N", 2], density: [1, "kg/m³", 0],
+                    tip_force: [1e3, "mN", 2] };
+  const GRAVITY = 9.81;  // m/s^2
+  const AXES = ["x", "y", "z"];
   const el = (id) => document.getElementById(id);
   const body = document.body;
 
@@ -20,11 +23,13 @@
   let timer = null;
   let view = null;           // three.js state
   let drawnOnce = false;
+  let manifest = null;       // GET /models
   body.dataset.updates = "0";
 
   // -- the design --------------------------------------------------------------------------
 
   function tableRange(param) {
+    if (param in space.loads) return loadRange(param);
     const p = space.parameters[param];
     const [lo, hi] = p.table_i;
     if (!el("beyond").checked) return [lo, hi];
@@ -32,6 +37,15 @@
     const width = hi - lo;
     const low = Math.max(alo, lo - width);
     return [p.exclusive_min && low === alo ? alo + width / SLIDER_STEPS : low, Math.min(ahi, hi + width)];
+  }
+
+  function loadRange(param) {  // the loaded operators' training loads; a tip force per component in [-|F|, |F|]
+    const load = space.loads[param];
+    const [lo, hi] = param === "density" ? load.trained : [-load.trained[1], load.trained[1]];
+    if (!el("beyond").checked) return [lo, hi];
+    const [alo, ahi] = load.admissible;
+    const width = hi - lo;
+    return [Math.max(param === "density" ? alo + width / SLIDER_STEPS : alo, lo - width), Math.min(ahi, hi + width)];
   }
 
   function setRange(slider, lo, hi) {
@@ -85,6 +99,32 @@
       TENDON.forEach((p) => addSlider(fs, `${p}_${i}`, p, p, start[p]));
       tendons.append(fs);
     }
+    const loads = el("loads");
+    addSlider(loads, "density", "density", "density", 7800);
+    AXES.forEach((axis) => addSlider(loads, `tip_force_${axis}`, "tip_force", `tip F${axis}`, 0));
+  }
+
+  function currentLoads() {  // the design's load fields (none when zero)
+    const fields = {};
+    const gravity = el("gravity").value;
+    if (gravity !== "none") {
+      fields.gravity = gravity.split(",").map((v) => GRAVITY * Number(v));
+      fields.density = Number(sliders.density.input.value);
+    }
+    const force = AXES.map((axis) => Number(sliders[`tip_force_${axis}`].input.value));
+    if (force.some((v) => v !== 0)) fields.tip_force = force;
+    return fields;
+  }
+
+  function takesLoads(name) { return "loads" in ((manifest.models[name] || {}).inputs || {}); }
+
+  function operatorFor(loaded) {  // a loaded operator for a design with loads
+    const select = el("model");
+    if (loaded && !takesLoads(select.value) && manifest.default_loaded_model) {
+      select.value = manifest.default_loaded_model;
+      el("message").textContent = `The design has loads: switched to the loaded operator ${select.value}.`;
+    }
+    return select.value;
   }
 
   function currentDesign() {
@@ -93,7 +133,7 @@
     for (let i = 0; i < space.n_tendons; i++) {
       design.tendons.push({ offset: value(`offset_${i}`), pitch: value(`pitch_${i}`), tension: value(`tension_${i}`) });
     }
-    return design;
+    return Object.assign(design, currentLoads());
   }
 
   function applyDesign(design) {
@@ -151,13 +191,14 @@
     const mine = ++sequence;
     const design = currentDesign();
     const points = space.default_points;
+    const model = operatorFor(Object.keys(design).some((k) => k in space.loads));
     try {
       const [predicted, exact] = await Promise.all([
-        post("/predict", { model: el("model").value, designs: [design], points }),
+        post("/predict", { model, designs: [design], points }),
         post("/exact", { designs: [design], points }),
       ]);
       if (mine !== sequence) return;  // a newer design is on its way
-      el("message").textContent = "";
+      if (!el("message").textContent.startsWith("The design has loads")) el("message").textContent = "";
       draw(design, predicted.result, exact.result);
       showNumbers(predicted, exact);
       body.dataset.design = JSON.stringify(design);
@@ -313,7 +354,7 @@
       const [designSpace, models] = await Promise.all([fetch("/design-space"), fetch("/models")]);
       if (!designSpace.ok || !models.ok) throw new Error("the service did not answer /design-space or /models");
       space = await designSpace.json();
-      const manifest = await models.json();
+      manifest = await models.json();
       const select = el("model");
       for (const name of manifest.loaded) {
         const option = document.createElement("option");
@@ -323,7 +364,8 @@
       }
       buildControls();
       setupView();
-      select.addEventListener("change", () => schedule(0));
+      select.addEventListener("change", () => { el("message").textContent = ""; schedule(0); });
+      el("gravity").addEventListener("change", () => schedule(0));
       el("beyond").addEventListener("change", () => { updateRanges(); schedule(0); });
       el("reset").addEventListener("click", () => { fit(currentDesign()); view.render(); });
       el("apply").addEventListener("click", () => {
