@@ -20,6 +20,8 @@ TINY = {
     "deeponet_pose": {"branch_width": 16, "trunk_width": 16, "p": 8},
     "fno": {"width": 16},
     "fno_pose": {"width": 16},
+    "deeponet_pose_loaded": {"branch_width": 16, "trunk_width": 16, "p": 8},
+    "fno_pose_loaded": {"width": 16},
 }
 
 

@@ -17,7 +17,7 @@ from tdcr.physics import solve  # noqa: E402
 from tdcr.physics.geometry import cubic_weights, rigid_fit, tendon_offsets  # noqa: E402
 from tdcr.runtime import MANIFEST_FORMAT_VERSION, ManifestError, Surrogate  # noqa: E402
 from training.operators.layers import SpectralConv1d, gram_schmidt  # noqa: E402
-from training.operators.models import REGISTRY, build_model, count_parameters  # noqa: E402
+from training.operators.models import LOADED, REGISTRY, TENDON_ONLY, build_model, count_parameters  # noqa: E402
 from training.operators.train import Schedule, make_config, train  # noqa: E402
 
 
@@ -63,7 +63,7 @@ def test_schedule_warms_up_and_anneals():
 def test_zero_network_output_is_the_undeformed_robot(tiny_hyperparameters):
     feats = torch.as_tensor(design_space.sample_designs(4, seed=0).features(), dtype=torch.float32)
     fractions = torch.linspace(0, 1, 42)
-    for name in REGISTRY:
+    for name in TENDON_ONLY:  # (the loaded operators need the linearised reference)
         model = build_model(name, tiny_hyperparameters[name])
         out = torch.zeros(4, 42, model.out_channels)
         heads = model.heads(feats, fractions, out)
@@ -125,6 +125,7 @@ def test_onnx_matches_torch(tiny_models, name):
     root, models = tiny_models
     model, _ = load_trained(root / name / "model.pt")
     feats = design_space.sample_designs(64, seed=11).features()
+    loads = design_space.BENCHMARK_LOADS.sample(64, seed=11).matrix(64) if name in LOADED else None
     surrogate = Surrogate.load(models, name)
     deeponet = model.__class__.__name__ == "DeepONet"
     # DeepONet graphs switch (ONNX If) between the grid and the partial-step branch: test both,
@@ -134,10 +135,12 @@ def test_onnx_matches_torch(tiny_models, name):
     names = ["tendons"] if model.kind == "tendons" else ["backbone", "rotation", "tendons"]
     # FNO graphs switch between a small-batch and a large-batch layout: 3 and 64 designs test both
     for fractions, batch in [(fractions, batch) for fractions in sigmas for batch in (3, 64)]:
-        raw = surrogate.run(feats[:batch], fractions)
+        given = None if loads is None else loads[:batch]
+        raw = surrogate.run(feats[:batch], fractions, given)
         with torch.no_grad():
             x = torch.as_tensor(feats[:batch], dtype=torch.float32)
-            ref = model(x, torch.as_tensor(fractions, dtype=torch.float32)) if deeponet else model(x)
+            lx = None if given is None else torch.as_tensor(given, dtype=torch.float32)
+            ref = model(x, torch.as_tensor(fractions, dtype=torch.float32), lx) if deeponet else model(x, lx)
         ref = ref if isinstance(ref, tuple) else (ref,)
         for got, want in zip([raw[k] for k in names], ref, strict=True):
             assert got.shape == want.shape
@@ -208,7 +211,8 @@ def test_batch_last_network_equals_the_channels_last_one(tiny_hyperparameters, n
     hyper = dict(tiny_hyperparameters[name], inputs="physics", reference="linearized")
     model = build_model(name, hyper).double().eval()
     feats = torch.as_tensor(design_space.sample_designs(5, seed=3).features())
+    loads = torch.as_tensor(design_space.BENCHMARK_LOADS.sample(5, seed=3).matrix(5)) if name in LOADED else None
     fractions = torch.linspace(0, 1, 42, dtype=torch.float64)
     with torch.no_grad():
-        torch.testing.assert_close(model.raw_batch_last(feats, fractions), model.raw(feats, fractions).permute(2, 1, 0),
-                                   atol=1e-12, rtol=1e-10)
+        torch.testing.assert_close(model.raw_batch_last(feats, fractions, loads),
+                                   model.raw(feats, fractions, loads).permute(2, 1, 0), atol=1e-12, rtol=1e-10)

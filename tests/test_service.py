@@ -35,7 +35,8 @@ def server(tiny_models):
 def test_health_ready_models(server):
     assert httpx.get(server.url + "/healthz").json() == {"status": "alive"}
     ready = httpx.get(server.url + "/readyz").json()
-    assert ready["ready"] and sorted(ready["models"]) == ["deeponet", "deeponet_pose", "fno", "fno_pose"]
+    assert ready["ready"] and sorted(ready["models"]) == ["deeponet", "deeponet_pose", "deeponet_pose_loaded", "fno",
+                                                          "fno_pose", "fno_pose_loaded"]
     models = httpx.get(server.url + "/models").json()
     assert set(models["models"]) == set(ready["models"])
     assert models["models"]["fno"]["inputs"]["design"] == ["B", 15]

@@ -297,6 +297,9 @@ REGISTRY: dict[str, tuple[type[_OperatorBase], str, type, int | None]] = {
 #: Config defaults of registered models beyond their config class's.
 _DEFAULTS: dict[str, dict] = {"deeponet_pose_loaded": {"loads": True, "reference": "linearized"},
                               "fno_pose_loaded": {"loads": True, "reference": "linearized"}}
+#: The operators that take gravity and a tip wrench (``loads`` ``(B, 10)``), and those that do not.
+LOADED = tuple(name for name in REGISTRY if _DEFAULTS.get(name, {}).get("loads"))
+TENDON_ONLY = tuple(name for name in REGISTRY if name not in LOADED)
 
 
 def build_model(name: str, hyperparameters: dict | None = None) -> _OperatorBase:
