@@ -2,13 +2,18 @@
 
     python benchmarks/frontier.py [--designs 2000] [--big 80000]
 
-Methods: the exact solver (as shipped: the compiled kernel, tendon loads, step control), the linearized reference (the
-strains of the undeformed tendon tangents, the operators' reference robot), and each of the four
-operators in onnxruntime.  Accuracy on ``--designs`` unseen Table I designs (seed 4242; the training
-sets used other seeds): relative l2 of the tendon paths (``tdcr.metrics.relative_l2``) against the
-exact solver at a 10x finer step (so the exact solver's own discretisation error is shown too):
-mean, p99 and max.  Speed: designs/s at batches of 1, 1,000 and ``--big`` (all cores: the solvers
-through ``solve(..., workers=0)``, onnxruntime with one chunk per core), 42 points.
+Methods: the exact solver (as shipped: the compiled kernel, tendon loads, step control), the
+linearized reference (the strains of the undeformed tendon tangents, the operators' reference
+robot), and each of the four operators in onnxruntime.  Accuracy on ``--designs`` unseen Table I
+designs (seed 4242; the training sets used other seeds): relative l2 of the tendon paths
+(``tdcr.metrics.relative_l2``) against the exact solver at a 10x finer step (so the exact solver's
+own discretisation error is shown too): mean, p99 and max.  Speed: designs/s at batches of 1,
+1,000 and ``--big`` (all cores: the solvers through ``solve(..., workers=0)``, onnxruntime with
+one chunk per core), 42 points.
+
+A second table does the same in gravity and under tip loads (``tdcr.design_space.BENCHMARK_LOADS``):
+the exact loaded solver, the operators that take no loads (the error of ignoring them) and the
+loaded operators, at batches of 1 and 1,000.
 """
 
 from __future__ import annotations
@@ -29,11 +34,12 @@ from tdcr.runtime import Surrogate
 S42 = np.linspace(0.0, 1.0, 42)
 OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose")
 FINE = SolverOptions(max_step=SolverOptions().max_step / 10)
+FINE_LOADS = SolverOptions(max_step_loads=SolverOptions().max_step_loads / 10)
 LINEARIZED = SolverOptions(linearized=True)
 
 
 def rate(run, designs, reps: int) -> float:
-    """Designs per second of ``run(features)`` (after one warm-up call)."""
+    """Designs per second of ``run(designs)`` (features, or rows of them; after one warm-up call)."""
     run(designs)
     started = time.perf_counter()
     for _ in range(reps):
@@ -79,6 +85,43 @@ def main() -> None:
           f"{args.big:,} |\n|---|---:|---:|---:|---:|---:|---:|")
     for name, mean, p99, worst, s1, s1000, sbig in rows:
         print(f"| {name} | {mean:.2e} | {p99:.2e} | {worst:.2e} | {s1:,.0f} | {s1000:,.0f} | {sbig:,.0f} |")
+    loaded_frontier(args.designs)
+
+
+def loaded_frontier(n: int) -> None:
+    """The frontier in gravity and under tip loads: ``n`` held-out designs (seed 4242) with
+    :data:`~tdcr.design_space.BENCHMARK_LOADS`, truth at a 10x finer step; designs/s at batches
+    of 1 and 1,000."""
+    from tdcr.designs import DesignBatch, ExternalLoads
+    from tdcr.runtime import load_manifest
+
+    designs = design_space.sample_designs(n, seed=4242)
+    loads = design_space.BENCHMARK_LOADS.sample(n, seed=4242)
+    truth = solve(designs, S42, loads=loads, options=FINE_LOADS, workers=0)
+    ok = truth.converged
+    features, matrix = designs.features(), loads.matrix(n)
+    manifest = load_manifest(ROOT / "models")
+    methods = {"exact loaded solver": lambda rows: solve(DesignBatch.from_features(features[rows]), S42,
+                                                         loads=ExternalLoads.from_matrix(matrix[rows]),
+                                                         workers=0).tendons}
+    for name, entry in sorted(manifest["models"].items()):
+        model = Surrogate.load(ROOT / "models", name, manifest=manifest)
+        if "loads" in entry["inputs"]:
+            methods[name] = lambda rows, model=model: model.predict(features[rows], S42, loads=matrix[rows],
+                                                                    pose=False)["tendons"]
+        else:
+            methods[f"{name} (loads ignored)"] = lambda rows, model=model: model.predict(
+                features[rows], S42, pose=False)["tendons"]
+    print(f"\nin gravity and under tip loads: {ok.sum()} of {n} held-out designs, truth the exact loaded solver at a "
+          "10x finer step\n\n| method | mean rel. l2 | p99 | max | designs/s, batch 1 | batch 1,000 |\n"
+          "|---|---:|---:|---:|---:|---:|")
+    every, one, thousand = np.arange(n), np.arange(1), np.arange(min(n, 1000))
+    for name, run in methods.items():
+        err = relative_l2(run(every)[ok], truth.tendons[ok])
+        s1 = rate(run, one, 50 if "exact" in name else 500)
+        s1000 = rate(run, thousand, 1 if "exact" in name else 3)
+        print(f"| {name} | {err.mean():.2e} | {np.percentile(err, 99):.2e} | {err.max():.2e} | {s1:,.0f} | "
+              f"{s1000:,.0f} |", flush=True)
 
 
 if __name__ == "__main__":
