@@ -132,6 +132,24 @@ def test_the_page_in_a_real_browser(server, tmp_path):
             assert shown == pytest.approx(expected, rel=1e-3)
             assert expected > 0
 
+            # gravity and a tip force: a loaded operator over the exact loaded shape
+            before = int(_attr(page, "updates"))
+            page.select_option("#gravity", "0,0,-1")
+            page.focus("#p-tip_force_x")
+            page.keyboard.press("End")  # +0.02 N along x
+            _wait(lambda: json.loads(_attr(page, "design") or "{}").get("tip_force", [0])[0] == 0.02
+                  and int(_attr(page, "updates")) > before)
+            design = json.loads(_attr(page, "design"))
+            assert design["gravity"] == [0, 0, -9.81] and design["density"] == 7800
+            loaded = page.eval_on_selector("#model", "select => select.value")
+            assert loaded == httpx.get(server.url + "/models").json()["default_loaded_model"]
+            predicted = httpx.post(server.url + "/predict", json={"model": loaded, "designs": [design]}).json()
+            exact = httpx.post(server.url + "/exact", json={"designs": [design]}, timeout=60).json()
+            expected = relative_l2(np.array(predicted["results"][0]["tendons"])[None],
+                                   np.array(exact["results"][0]["tendons"])[None])[0]
+            assert float(_attr(page, "error")) == pytest.approx(expected, rel=1e-9)
+            assert "loaded operator" in page.inner_text("#message")
+
             drawn, total = page.evaluate(DRAWN_PIXELS)
             assert drawn > 0.005 * total, (drawn, total)  # not blank
             page.click("#reset")
