@@ -241,7 +241,7 @@ def _cmd_study(args) -> int:
     budget = studies.BUDGETS[args.budget]
     data = Path(args.data or f"data/study-{budget.name}")
     ctx = studies.Context(data=data, runs=Path(args.runs), out=Path(args.out), budget=budget, presets=presets,
-                          models=tuple(_model_names(args.models)), workers=args.workers,
+                          models=tuple(_model_names(args.models or list(studies.MODEL_NAMES))), workers=args.workers,
                           stop_at=None if args.hours is None else time.time() + 3600.0 * args.hours,
                           models_dir=Path(args.models_dir),
                           progress=(lambda _msg: None) if args.quiet else (lambda msg: print(msg, flush=True)))
@@ -262,7 +262,7 @@ def _cmd_params(args) -> int:
     for name, (_, _, _, paper) in REGISTRY.items():
         ours = count_parameters(build_model(name))
         tuned = count_parameters(build_model(name, {"inputs": "physics"}))
-        print(f"| {name} | {paper:,} | {ours:,} | {tuned:,} |")
+        print(f"| {name} | {'-' if paper is None else f'{paper:,}'} | {ours:,} | {tuned:,} |")
     return 0
 
 

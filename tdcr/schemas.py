@@ -144,9 +144,10 @@ class SolveRequest(_Arclengths):
 
 
 class PredictRequest(_Arclengths):
-    """Designs, arclengths and the surrogate to use (default: the most accurate in the manifest)."""
+    """Designs, arclengths and the surrogate to use (default: the most accurate in the manifest; for
+    designs with loads, the most accurate loaded operator)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S)
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S | _JACOBIAN_WITHOUT_LOADS)
     designs: list[SurrogateDesign] = Field(min_length=1)
     model: str | None = Field(None, min_length=1, max_length=MAX_MODEL_NAME,
                               description="deeponet, deeponet_pose, fno or fno_pose; for designs with loads "
@@ -235,10 +236,16 @@ class InverseDesign(_Loads):
 class InverseRequest(BaseModel):
     """One design and the targets of a path, in order (an operator takes 4 tendons)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={
-        "if": {"properties": {"model": {"not": {"const": EXACT_MODEL}}}, "required": ["model"]},
-        "then": {"properties": {"design": {"properties": {"tendons": {"minItems": N_TENDONS,
-                                                                      "maxItems": N_TENDONS}}}}}})
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"allOf": [
+        {"if": {"properties": {"model": {"not": {"const": EXACT_MODEL}}}, "required": ["model"]},
+         "then": {"properties": {"design": {"properties": {"tendons": {"minItems": N_TENDONS,
+                                                                       "maxItems": N_TENDONS}}}}}},
+        # a design with loads: an operator (the exact inverse covers tendon loads only), no polish
+        {"if": {"properties": {"design": {"anyOf": [{"properties": {k: {"type": "array"}}, "required": [k]}
+                                                    for k in ("gravity", "tip_force", "tip_moment")]}},
+                "required": ["design"]},
+         "then": {"properties": {"model": {"not": {"const": EXACT_MODEL}}, "polish": {"const": False}},
+                  "required": ["model"]}}]})
     design: InverseDesign
     targets: list[TipTarget] = Field(min_length=1, max_length=MAX_TARGETS)
     tension_max: float = Field(5.0, gt=0.0, le=TABLE_I["tension"].admissible[1], description="upper bound of "

@@ -380,16 +380,15 @@ def check_inverse(design: DesignBatch, positions: np.ndarray, directions: np.nda
     """The value checks of every inverse request (JSON or tensors): the design's values through the
     same checks as every design, 4 tendons for an operator, ``positions`` ``(T, 3)`` m finite,
     ``directions`` ``(T, 3)`` (NaN rows: none) finite and non-zero, ``tension_max`` in (0, 1000] N;
-    ``loads`` (one row, NaN gravity and density where absent) inside their bounds, and only for an
-    operator (the exact model's Jacobian covers tendon loads) without ``polish``.
+    ``loads`` (one row, NaN gravity and density where absent; None: no load field) inside their
+    bounds, and only for an operator (the exact model's Jacobian covers tendon loads) without
+    ``polish``.
     Raises :class:`InvalidRequest`."""
     problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(design.features())]
-    if loads is not None:
+    if loads is not None:  # any load field given
         problems += [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_loads(loads, np.zeros(1, int))]
         loads = _zero_absent(loads)
-        if not _loaded(loads).any():
-            loads = None
-        elif model == EXACT_MODEL or polish:
+        if model == EXACT_MODEL or polish:
             field = "model" if model == EXACT_MODEL else "polish"
             problems.append(Problem((field,), "the exact inverse kinematics covers tendon loads only: for a design "
                                     f"with gravity or tip loads name a loaded operator (model {LOADED_EXAMPLE!r}) "

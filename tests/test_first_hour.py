@@ -137,12 +137,17 @@ def test_the_python_api_refuses_what_the_service_refuses_in_the_same_words(tiny_
 
 def test_a_design_an_operator_cannot_take_is_sent_to_the_solver(server, example_request):
     design = example_request["designs"][0]
-    for other in ({**design, "tendons": design["tendons"][:3]}, {**design, "gravity": [0, 0, -9.81]}):
-        r = httpx.post(server.url + "/predict", json={"designs": [other]}, timeout=60)
+    three = {**design, "tendons": design["tendons"][:3]}
+    loaded = {**design, "gravity": [0, 0, -9.81], "density": 7800.0}
+    for other, model in ((three, None), (loaded, "fno")):  # 3 tendons; loads for an operator that takes none
+        r = httpx.post(server.url + "/predict", json={"designs": [other], "model": model}, timeout=60)
         assert r.status_code == 422
         assert "the exact solver takes it: tdcr solve, POST /exact or tdcr.solve" in r.json()["message"]
-        assert httpx.post(server.url + "/exact", json={"designs": [other | {"density": 7800.0}]},
-                          timeout=60).status_code == 200
+        assert httpx.post(server.url + "/exact", json={"designs": [other]}, timeout=60).status_code == 200
+    # with loads and no model named: the loaded operator
+    r = httpx.post(server.url + "/predict", json={"designs": [loaded]}, timeout=60)
+    assert r.status_code == 200
+    assert r.json()["model"] == httpx.get(server.url + "/models").json()["default_loaded_model"]
 
 
 # -- 6. one behaviour ----------------------------------------------------------------------------

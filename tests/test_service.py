@@ -114,8 +114,8 @@ BAD = [
     (lambda ex: {**ex, "model": ""}, 422, "model: String should have at least 1 character"),
     (lambda ex: {"designs": [ex["designs"][0]] * 3001}, 413, "3001 designs exceed the limit of 3000"),
     (lambda ex: {"designs": [ex["designs"][0]] * 1000, "points": 1000}, 413, "exceed the budget of"),
-    (lambda ex: {"designs": [{**ex["designs"][0], "tip_force": [0, 0, 1]}]}, 422,
-     "designs[0].tip_force: Extra inputs are not permitted"),
+    (lambda ex: {"designs": [{**ex["designs"][0], "tip_force": [0, 0, 1]}], "model": "fno"}, 422,
+     "designs[0].tip_force: model 'fno' takes no external loads"),
     (lambda ex: {"designs": [{**ex["designs"][0], "E": True}]}, 422, "designs[0].E: Input should be a valid number"),
 ]
 
