@@ -140,7 +140,7 @@ def test_the_page_in_a_real_browser(server, tmp_path):
             _wait(lambda: json.loads(_attr(page, "design") or "{}").get("tip_force", [0])[0] == 0.02
                   and int(_attr(page, "updates")) > before)
             design = json.loads(_attr(page, "design"))
-            assert design["gravity"] == [0, 0, -9.81] and design["density"] == 7800
+            assert design["gravity"] == [0, 0, -9.81] and abs(design["density"] - 7800) < 5  # a slider step
             loaded = page.eval_on_selector("#model", "select => select.value")
             assert loaded == httpx.get(server.url + "/models").json()["default_loaded_model"]
             predicted = httpx.post(server.url + "/predict", json={"model": loaded, "designs": [design]}).json()
