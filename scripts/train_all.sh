@@ -4,6 +4,8 @@
 # (the FNOs for 40 minutes, then the DeepONets for 30), export them to models/ and evaluate them
 # on the held-out 20 %.
 #
+# The loaded operators (gravity and a tip wrench): scripts/train_loaded.sh.
+#
 # The paper's hyperparameters instead, kept apart from the shipped models:
 #   PRESET=paper RUNS=runs/paper MODELS=runs/paper/models bash scripts/train_all.sh
 set -euo pipefail
