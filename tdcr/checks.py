@@ -147,9 +147,10 @@ def checkable_loads(loads: ExternalLoads, n: int) -> ExternalLoads:
                          tip_moment=rows(loads.tip_moment, (3,)))
 
 
-def loaded_rows(loads: ExternalLoads, n: int) -> np.ndarray:
-    """Per design ``(n,)``: a weight (gravity and a density), a tip force or a tip moment, not zero."""
-    matrix = np.nan_to_num(loads.matrix(n))
+def loaded_rows(matrix: np.ndarray) -> np.ndarray:
+    """Per design of a loads matrix ``(B, 10)`` (:meth:`ExternalLoads.matrix`, NaN read as 0): a
+    weight (gravity and a density), a tip force or a tip moment that is not zero, ``(B,)``."""
+    matrix = np.nan_to_num(matrix)
     weight = matrix[:, LOAD_COLUMNS["gravity"]] * matrix[:, LOAD_COLUMNS["density"]]
     return np.any(weight != 0, axis=1) | np.any(matrix[:, LOAD_COLUMNS["tip_force"].start:] != 0, axis=1)
 
@@ -161,7 +162,7 @@ def check_model_loads(loads: ExternalLoads | None, rows: np.ndarray, *, model: s
         return []
     matrix = np.nan_to_num(loads.matrix(len(rows)))
     problems = []
-    for b in np.nonzero(loaded_rows(loads, len(rows)))[0]:
+    for b in np.nonzero(loaded_rows(matrix))[0]:
         field = next(name for name in ("gravity", "tip_force", "tip_moment") if np.any(matrix[b, LOAD_COLUMNS[name]]))
         problems.append(Problem(("designs", int(rows[b]), field), f"model {model!r} takes no external loads: name a "
                                 f"loaded operator (model {LOADED_EXAMPLE!r}), or {EXACT_ROUTES}",

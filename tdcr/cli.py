@@ -133,6 +133,7 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_export(args) -> int:
+    from tdcr.design_space import LoadSpace
     from training.operators.export import export_run
 
     meta_path = Path(args.data) / "metadata.json" if args.data else None
@@ -140,8 +141,7 @@ def _cmd_export(args) -> int:
     if meta_path is not None and meta_path.exists():
         full = json.loads(meta_path.read_text())
         meta = {k: full[k] for k in ("n", "seed", "n_train", "n_test", "points")}
-        if any((full.get("loads") or {}).get(k) not in (None, 0.0, "none") for k in ("gravity", "tip_force",
-                                                                                     "tip_moment")):
+        if full.get("loads") and not LoadSpace.from_record(full["loads"]).is_zero():
             meta["loads"] = full["loads"]  # the load space (a loaded operator's load_ranges)
         meta["split_seed"] = full["seed"] + 1  # training.dataset.split_indices: its first n_test are the test set
     for run in args.runs:

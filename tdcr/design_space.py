@@ -185,6 +185,11 @@ class LoadSpace:
             raise ValueError(f"gravity: 'none', 'sphere' or 'X,Y,Z' in m/s^2, got {self.gravity!r}")
         return vector
 
+    @classmethod
+    def from_record(cls, record: dict) -> LoadSpace:
+        """The space a dataset's ``metadata.json`` records (its ``loads``: JSON lists for tuples)."""
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in record.items()})
+
     def is_zero(self) -> bool:
         return self.gravity == "none" and self.tip_force == 0.0 and self.tip_moment == 0.0
 

@@ -104,8 +104,9 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Predi
         if problems:
             raise InvalidRequest(problems)
         loads = None
+    matrix = None if loads is None else np.nan_to_num(loads.matrix(len(features)))  # (B, 10), the graph's input
     with np.errstate(all="ignore"):  # overflow far outside the trained ranges is reported per design
-        out = predictor.predict(features, request.fractions, loads=loads, pose=request.pose, check=False)  # validated
+        out = predictor.predict(features, request.fractions, loads=matrix, pose=request.pose, check=False)  # validated
     arrays = {k: out[k] for k in request.outputs}
     finite = np.ones(len(features), dtype=bool)
     for v in arrays.values():
@@ -124,9 +125,8 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Predi
             tip_jacobian = np.ascontiguousarray(np.nan_to_num(tip_by_differences(features, tip_pose)[2]))
     warnings = range_warnings(features)
     if predictor.takes_loads and predictor.load_ranges is not None:
-        matrix = np.zeros((len(features), N_LOAD_COLUMNS)) if loads is None else np.nan_to_num(
-            loads.matrix(len(features)))
-        warnings = [w + v for w, v in zip(warnings, load_warnings(matrix, predictor.load_ranges), strict=True)]
+        given = np.zeros((len(features), N_LOAD_COLUMNS)) if matrix is None else matrix
+        warnings = [w + v for w, v in zip(warnings, load_warnings(given, predictor.load_ranges), strict=True)]
     return Prediction(model=model, fractions=request.fractions, arclength=arclength, arrays=arrays,
                       warnings=warnings, finite=finite, tip_jacobian=tip_jacobian)
 

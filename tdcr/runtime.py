@@ -59,6 +59,12 @@ def best_model(manifest: dict, *, loads: bool = False) -> str | None:
     return min(sorted(models), key=score) if models else None
 
 
+def _as_matrix(loads: ExternalLoads | np.ndarray, n_designs: int) -> np.ndarray:
+    """Loads as the ``(B, 10)`` float64 matrix of the graphs' input, absent values 0."""
+    matrix = loads.matrix(n_designs) if isinstance(loads, ExternalLoads) else np.asarray(loads, dtype=np.float64)
+    return np.nan_to_num(matrix.reshape(n_designs, N_LOAD_COLUMNS))
+
+
 class ManifestError(ValueError):
     """A models directory whose manifest is missing, unreadable, of another format, or lacks a model."""
 
@@ -144,13 +150,13 @@ class Surrogate:
         """``loads`` (:class:`ExternalLoads`, a ``(B, 10)`` matrix or None) as this graph's input:
         the matrix for a loaded operator (zeros without loads), None for another; a ``ValueError``
         when an operator that takes no loads is given some."""
-        if loads is not None and not isinstance(loads, ExternalLoads):
-            loads = ExternalLoads.from_matrix(np.asarray(loads, dtype=np.float64).reshape(n_designs, N_LOAD_COLUMNS))
+        matrix = None if loads is None else _as_matrix(loads, n_designs)
         if not self.takes_loads:
-            if loads is not None and loaded_rows(loads, n_designs).any():
-                raise InvalidRequest(check_model_loads(loads, np.arange(n_designs), model=self.name))
+            if matrix is not None and loaded_rows(matrix).any():
+                raise InvalidRequest(check_model_loads(ExternalLoads.from_matrix(matrix), np.arange(n_designs),
+                                                       model=self.name))
             return None
-        return np.zeros((n_designs, N_LOAD_COLUMNS)) if loads is None else np.nan_to_num(loads.matrix(n_designs))
+        return np.zeros((n_designs, N_LOAD_COLUMNS)) if matrix is None else matrix
 
     @property
     def grid(self) -> np.ndarray | None:
@@ -225,9 +231,8 @@ class Surrogate:
             fractions, more = check_fractions(fractions, name="fractions")
             if loads is not None and not problems:
                 n = len(features)
-                as_loads = loads if isinstance(loads, ExternalLoads) else ExternalLoads.from_matrix(
-                    np.asarray(loads, dtype=np.float64).reshape(n, N_LOAD_COLUMNS))
-                more += check_loads(checkable_loads(as_loads, n), np.arange(n))
+                loads = _as_matrix(loads, n)
+                more += check_loads(checkable_loads(ExternalLoads.from_matrix(loads), n), np.arange(n))
             raise_problems(problems + more)
         features = np.asarray(features, dtype=np.float64)
         fractions = np.asarray(fractions, dtype=np.float64)

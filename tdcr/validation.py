@@ -34,6 +34,7 @@ from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's voc
     check_loads,
     checkable_loads,
     format_location,
+    loaded_rows,
     quote,
 )
 from tdcr.design_space import (
@@ -208,8 +209,8 @@ def _zero_absent(loads: ExternalLoads) -> ExternalLoads:
 
 
 def _loaded(loads: ExternalLoads) -> np.ndarray:
-    """Per design ``(b,)``: any non-zero gravity, tip force or tip moment (after the checks)."""
-    return np.any(np.concatenate([loads.gravity, loads.tip_force, loads.tip_moment], axis=1) != 0, axis=1)
+    """Per design ``(b,)``: a load that is not zero (:func:`tdcr.checks.loaded_rows`; after the checks)."""
+    return loaded_rows(loads.matrix(len(loads.tip_force)))
 
 
 # -- entry points ------------------------------------------------------------------------------

@@ -261,8 +261,7 @@ def _load_ranges(dataset_meta: dict | None) -> dict[str, list[float]]:
     """The loads of a loaded operator's training data (``dataset_meta["loads"]``, a
     :class:`~tdcr.design_space.LoadSpace`; :data:`~tdcr.design_space.TRAINING_LOADS` if unrecorded)."""
     recorded = (dataset_meta or {}).get("loads")
-    space = design_space.TRAINING_LOADS if not recorded else design_space.LoadSpace(
-        **{k: tuple(v) if isinstance(v, list) else v for k, v in recorded.items()})
+    space = design_space.LoadSpace.from_record(recorded) if recorded else design_space.TRAINING_LOADS
     return space.ranges()
 
 

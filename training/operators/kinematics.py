@@ -143,6 +143,20 @@ class ReferenceRobot(NamedTuple):
         return tendon_positions(self.backbone, self.rotation, (self.rho_x, self.rho_y))
 
 
+def _grid_prior(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Tensor):
+    """On the uniform ``grid`` ``(K + 1,)``: the tendon angles' sines and cosines at the nodes
+    ``(N_t, K + 1, B)`` each and at the step midpoints ``(N_t, K, B)`` each (by angle addition:
+    phi(s + h/2) = phi(s) + q h / 2), and the first-order strains there (:func:`strain_prior`),
+    ``(6, K + 1, B)`` and ``(6, K, B)``."""
+    t = base_angle.shape[0]
+    sin, cos = _grid_trig(features, grid, base_angle)
+    half_turn = features.T[3 + t:3 + 2 * t, None, :] * (0.5 * features[:, 2] * (grid[1] - grid[0]))  # (N_t, 1, B)
+    sin_h, cos_h = torch.sin(half_turn), torch.cos(half_turn)
+    mid_trig = (sin[:, :-1] * cos_h + cos[:, :-1] * sin_h, cos[:, :-1] * cos_h - sin[:, :-1] * sin_h)
+    return ((sin, cos), mid_trig, strain_prior(features, grid, base_angle, (sin, cos)),
+            strain_prior(features, grid[:-1], base_angle, mid_trig))
+
+
 def linearized_reference(features: torch.Tensor, grid: torch.Tensor, base_angle: torch.Tensor,
                          fractions: torch.Tensor | None = None) -> ReferenceRobot:
     """The reference robot on the uniform ``grid`` ``(K + 1,)``, or at any ``fractions`` ``(m,)`` by one
@@ -151,14 +165,7 @@ def linearized_reference(features: torch.Tensor, grid: torch.Tensor, base_angle:
     The sines and cosines of the tendon angles at the grid nodes give the strains there, at the
     midpoints (by angle addition) and the tendon offsets.
     """
-    t = base_angle.shape[0]
-    sin, cos = _grid_trig(features, grid, base_angle)  # (N_t, K + 1, B)
-    half_turn = features.T[3 + t:3 + 2 * t, None, :] * (0.5 * features[:, 2] * (grid[1] - grid[0]))  # (N_t, 1, B)
-    sin_h, cos_h = torch.sin(half_turn), torch.cos(half_turn)
-    # midpoints by angle addition: phi(s + h/2) = phi(s) + q h / 2
-    mid_trig = (sin[:, :-1] * cos_h + cos[:, :-1] * sin_h, cos[:, :-1] * cos_h - sin[:, :-1] * sin_h)
-    xi_nodes = strain_prior(features, grid, base_angle, (sin, cos))  # (6, K + 1, B)
-    xi_mid = strain_prior(features, grid[:-1], base_angle, mid_trig)
+    (sin, cos), _, xi_nodes, xi_mid = _grid_prior(features, grid, base_angle)
     backbone, rotation = magnus_kinematics(xi_nodes, xi_mid, features[:, 2] * (grid[1] - grid[0]))
     if fractions is None:
         return ReferenceRobot(backbone, rotation, *_offsets(features, (sin, cos)))
@@ -457,16 +464,11 @@ def loaded_reference(features: torch.Tensor, loads: torch.Tensor, grid: torch.Te
     On the uniform ``grid`` ``(K + 1,)``, or at any ``fractions`` ``(m,)`` by one partial Magnus
     step from the grid point below, with the iterations' strain corrections interpolated linearly.
     """
-    sin, cos = _grid_trig(features, grid, base_angle)
-    t = base_angle.shape[0]
-    half_turn = features.T[3 + t:3 + 2 * t, None, :] * (0.5 * features[:, 2] * (grid[1] - grid[0]))
-    sin_h, cos_h = torch.sin(half_turn), torch.cos(half_turn)
-    mid_trig = (sin[:, :-1] * cos_h + cos[:, :-1] * sin_h, cos[:, :-1] * cos_h - sin[:, :-1] * sin_h)
-    prior_nodes = strain_prior(features, grid, base_angle, (sin, cos))  # (6, K + 1, B)
-    xi_nodes, xi_mid = prior_nodes, strain_prior(features, grid[:-1], base_angle, mid_trig)
+    (sin, cos), mid_trig, prior_nodes, xi_mid = _grid_prior(features, grid, base_angle)
+    xi_nodes = prior_nodes
     step = features[:, 2] * (grid[1] - grid[0])
     backbone, rotation = magnus_kinematics(xi_nodes, xi_mid, step)
-    relax = _stiffening(features, t)
+    relax = _stiffening(features, base_angle.shape[0])
     for _ in range(iterations):
         extra = load_strains(features, loads, backbone, rotation, grid)
         xi_nodes = xi_nodes + (tendon_strains(features, (sin, cos), xi_nodes) + extra - xi_nodes) / relax
