@@ -93,6 +93,9 @@ class DataPlane:
                 endpoint: str) -> InferenceResponse:
         self.metrics.latency.labels(protocol, endpoint, model.name).observe(time.perf_counter() - started)
         self.metrics.designs.labels(protocol, endpoint, model.name).inc(response.count)
+        if response.guarded:
+            self.metrics.guarded.labels(model.name).inc(response.guarded)
+            self.metrics.fallback.labels(model.name).inc(response.exact)
         return response
 
     def close(self) -> None:

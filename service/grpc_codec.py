@@ -14,9 +14,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.model import VERSION, InferenceError, ModelSpec, Tensors
-from service.oip import DATATYPES, InferRequest, OipCodec, OutputTensors, check_input, check_request
+from service.oip import (
+    DATATYPES,
+    InferRequest,
+    OipCodec,
+    OutputTensors,
+    check_input,
+    check_request,
+    tolerance_parameter,
+)
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 
+#: The ``InferParameter`` fields that hold a number.
+NUMBER_PARAMETERS = ("double_param", "int64_param", "uint64_param")
 #: The typed-contents field of each datatype.
 CONTENTS = {"BOOL": "bool_contents", "INT32": "int_contents", "INT64": "int64_contents",
             "UINT8": "uint_contents", "FP32": "fp32_contents", "FP64": "fp64_contents"}
@@ -48,7 +58,13 @@ def decode(request: pb.ModelInferRequest, *, inputs: Tensors, outputs: Tensors,
         arrays[name] = array.reshape(shape)
     asked = [(o.name, bool(raw)) for o in request.outputs] or [(n, bool(raw)) for n in outputs]
     wanted = check_request(arrays, asked, outputs=outputs, required=required)
-    return InferRequest(inputs=arrays, outputs=wanted, id=request.id[:64] or None)
+    tolerance = None
+    if "tolerance" in request.parameters:
+        parameter = request.parameters["tolerance"]
+        choice = parameter.WhichOneof("parameter_choice")
+        value = getattr(parameter, choice) if choice in NUMBER_PARAMETERS else str(getattr(parameter, choice, ""))
+        tolerance = tolerance_parameter(value)
+    return InferRequest(inputs=arrays, outputs=wanted, id=request.id[:64] or None, tolerance=tolerance)
 
 
 def encode(model: str, tensors: OutputTensors, *, raw: bool,

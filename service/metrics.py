@@ -20,6 +20,8 @@ class Metrics:
     designs: Counter
     errors: Counter
     batch: Histogram
+    guarded: Counter
+    fallback: Counter
 
     @classmethod
     def create(cls) -> Metrics:
@@ -33,6 +35,11 @@ class Metrics:
                               buckets=_LATENCY_BUCKETS, registry=reg),
             designs=Counter("tdcr_designs", "designs answered", ["protocol", "endpoint", "model"], registry=reg),
             errors=Counter("tdcr_errors", "error responses by kind", ["protocol", "endpoint", "kind"], registry=reg),
+            guarded=Counter("tdcr_guarded_designs", "surrogate designs asked with a tolerance", ["model"],
+                            registry=reg),
+            fallback=Counter("tdcr_fallback_designs", "of those, designs the exact solver answered (their error "
+                             "bound exceeded the tolerance); the share that fell back is fallback / guarded",
+                             ["model"], registry=reg),
             batch=Histogram("tdcr_graph_run_designs", "designs per onnxruntime run (dynamic batching)", ["model"],
                             buckets=(1, 2, 4, 8, 16, 32, 64, 256, 1024, 4096, 16384, 65536), registry=reg),
         )

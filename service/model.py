@@ -92,10 +92,14 @@ class InferenceRequest:
 
 @dataclass(frozen=True)
 class InferenceResponse:
-    """What a model answers: the codec's encoding of its answer, and the designs (or targets) answered."""
+    """What a model answers: the codec's encoding of its answer, the designs (or targets) answered,
+    and of a surrogate's designs those asked with a tolerance (``guarded``) and those of them the
+    exact solver answered (``exact``)."""
 
     body: Any
     count: int
+    guarded: int = 0
+    exact: int = 0
 
 
 @dataclass(frozen=True)

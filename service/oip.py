@@ -10,7 +10,10 @@ Models and their tensors:
   in the README's feature order) and optionally ``s`` FP64 ``[-1]`` (arclength fractions of L;
   default the 42-point grid) or ``arclength`` FP64 ``[-1]`` (m, for designs of one length);
   outputs (metres) ``backbone`` FP32 ``[-1, n, 3]``, ``rotation`` FP32 ``[-1, n, 3, 3]``,
-  ``tendons`` FP32 ``[-1, n, 4, 3]``, ``in_distribution`` BOOL ``[-1]``;
+  ``tendons`` FP32 ``[-1, n, 4, 3]``, ``in_distribution`` BOOL ``[-1]``, ``error_bound`` FP32
+  ``[-1]`` (the calibrated 99 % bound of each answer's relative l2 error; -1: none) and ``source``
+  INT32 ``[-1]`` (0: the surrogate answered, 1: the exact solver); the request parameter
+  ``tolerance`` (a number, relative l2) sends the designs whose bound exceeds it to the exact solver;
 * ``exact`` (the solver): also the inputs ``gravity`` ``[-1, 3]``, ``density`` ``[-1]``,
   ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``, and the outputs ``converged`` BOOL,
   ``residual`` FP64, ``status`` INT32 (an index into ``tdcr.physics.STATUS``) and
@@ -58,13 +61,19 @@ SURROGATE_INPUTS = {"design": TensorSpec("FP64", (-1, N_FEATURES)), "s": TensorS
                     "arclength": TensorSpec("FP64", (-1,))}
 SURROGATE_OUTPUTS = {"backbone": TensorSpec("FP32", (-1, -1, 3)), "rotation": TensorSpec("FP32", (-1, -1, 3, 3)),
                      "tendons": TensorSpec("FP32", (-1, -1, N_TENDONS, 3)),
-                     "in_distribution": TensorSpec("BOOL", (-1,))}
+                     "in_distribution": TensorSpec("BOOL", (-1,)), "error_bound": TensorSpec("FP32", (-1,)),
+                     "source": TensorSpec("INT32", (-1,))}
+#: The outputs only a surrogate gives (not the solver).
+GUARD_OUTPUTS = ("error_bound", "source")
+#: The value of ``error_bound`` for a design without a finite bound (OIP JSON has no infinity).
+NO_BOUND = -1.0
 #: The solver's extra tensors.
 LOAD_INPUTS = {"gravity": TensorSpec("FP64", (-1, 3)), "density": TensorSpec("FP64", (-1,)),
                "tip_force": TensorSpec("FP64", (-1, 3)), "tip_moment": TensorSpec("FP64", (-1, 3))}
 EXACT_INPUTS = SURROGATE_INPUTS | LOAD_INPUTS
-EXACT_OUTPUTS = SURROGATE_OUTPUTS | {"converged": TensorSpec("BOOL", (-1,)), "residual": TensorSpec("FP64", (-1,)),
-                                     "status": TensorSpec("INT32", (-1,)), "error_estimate": TensorSpec("FP64", (-1,))}
+EXACT_OUTPUTS = {k: v for k, v in SURROGATE_OUTPUTS.items() if k not in GUARD_OUTPUTS} | {
+    "converged": TensorSpec("BOOL", (-1,)), "residual": TensorSpec("FP64", (-1,)),
+    "status": TensorSpec("INT32", (-1,)), "error_estimate": TensorSpec("FP64", (-1,))}
 #: Inverse kinematics (/inverse with the exact model): one design, the targets of a path.
 INVERSE_INPUTS = {"design": TensorSpec("FP64", (1, N_FEATURES)), "position": TensorSpec("FP64", (-1, 3)),
                   "direction": TensorSpec("FP64", (-1, 3)), "tension_max": TensorSpec("FP64", (1,))}
@@ -114,11 +123,22 @@ class OipErrorBody(BaseModel):
 
 @dataclass(frozen=True)
 class InferRequest:
-    """A decoded inference request: input arrays by name, the outputs wanted (name -> binary/raw)."""
+    """A decoded inference request: input arrays by name, the outputs wanted (name -> binary/raw),
+    the id and the ``tolerance`` parameter (None: none)."""
 
     inputs: dict[str, np.ndarray]
     outputs: dict[str, bool]
     id: str | None
+    tolerance: float | None = None
+
+
+def tolerance_parameter(value) -> float | None:
+    """The request parameter ``tolerance`` (a number; None: absent); :class:`InferenceError` else."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InferenceError("invalid", f"parameter 'tolerance' must be a number (relative l2), got {quote(value)}")
+    return float(value)
 
 
 def check_input(name, datatype, shape, *, inputs: Tensors, seen: Mapping[str, np.ndarray]) -> tuple[np.dtype, int]:
@@ -204,7 +224,10 @@ def decode(body: bytes, header_length: str | None, *, inputs: Tensors, outputs: 
              for spec in request.get("outputs") or [{"name": n} for n in outputs]]
     wanted = check_request(arrays, asked, outputs=outputs, required=required)
     request_id = request.get("id")
-    return InferRequest(inputs=arrays, outputs=wanted, id=None if request_id is None else str(request_id)[:64])
+    parameters = request.get("parameters") or {}
+    tolerance = tolerance_parameter(parameters.get("tolerance") if isinstance(parameters, dict) else None)
+    return InferRequest(inputs=arrays, outputs=wanted, id=None if request_id is None else str(request_id)[:64],
+                        tolerance=tolerance)
 
 
 def encode(model: str, tensors: OutputTensors, binary: Mapping[str, bool],
@@ -253,6 +276,9 @@ class OipCodec:
     def decode(self, payload, spec: ModelSpec) -> Decoded:
         request = self.wire_decode(payload, spec)
         inputs = request.inputs
+        if request.tolerance is not None and spec.kind != "surrogate":
+            raise InferenceError("invalid", f"parameter 'tolerance' applies to the operators, not to {spec.name!r} "
+                                            "(the exact solver's error is below 1e-6 already)")
         try:
             if spec.kind == "inverse":
                 task = _inverse_problem(inputs)
@@ -260,10 +286,12 @@ class OipCodec:
                 wanted = [n for n in request.outputs if n in OUTPUTS]
                 task = validate_features(inputs["design"], target="surrogate" if spec.kind == "surrogate" else "solver",
                                          model=spec.name, s=inputs.get("s"), arclength=inputs.get("arclength"),
-                                         outputs=wanted or ["tendons"],
+                                         outputs=wanted or ["tendons"], tolerance=request.tolerance,
                                          limits=spec.limits, loads={n: inputs[n] for n in LOAD_INPUTS if n in inputs})
         except InvalidRequest as exc:
             inputs_named = "input 'design' or 's'" if spec.kind == "surrogate" else "inputs"
+            if [p.loc for p in exc.problems] == [("tolerance",)]:
+                inputs_named = "parameter"
             raise InferenceError("too_large" if exc.too_large else "invalid", f"{inputs_named}: {exc.message}",
                                  tuple(exc.problems)) from None
         return Decoded(task=task, request=request, model=spec.name)
@@ -289,8 +317,10 @@ def _inverse_problem(inputs: Mapping[str, np.ndarray]):
 def answer_tensors(decoded: Decoded, answer) -> OutputTensors:
     """Every output tensor of a model's answer (name -> (datatype, array))."""
     if isinstance(answer, Prediction):
-        return {"in_distribution": ("BOOL", np.array([not w for w in answer.warnings]))} | {
-            k: ("FP32", v) for k, v in answer.arrays.items()}
+        bounds = answer.bounds
+        return {"in_distribution": ("BOOL", np.array([not w for w in answer.warnings])),
+                "error_bound": ("FP32", np.where(np.isfinite(bounds), bounds, NO_BOUND)),
+                "source": ("INT32", answer.sources)} | {k: ("FP32", v) for k, v in answer.arrays.items()}
     if isinstance(answer, ExactAnswer):
         g = answer.arrays()
         return {"backbone": ("FP32", g.backbone), "rotation": ("FP32", g.rotation), "tendons": ("FP32", g.tendons),

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 
+import anyio.from_thread
 import orjson
 from starlette.concurrency import run_in_threadpool
 
@@ -20,10 +21,10 @@ from service.model import InferenceError, InferenceRequest, InferenceResponse, I
 from service.oip import EXACT_INPUTS, EXACT_OUTPUTS, INVERSE_INPUTS, INVERSE_OUTPUTS, INVERSE_STATUS
 from service.settings import Settings
 from service.solver_pool import SolverPool, WorkerDied
-from tdcr.exact import TooMuchWork, WorkBudget, admit, solve_request
+from tdcr.exact import ExactAnswer, TooMuchWork, WorkBudget, admit, solve_request
 from tdcr.inverse import answer_exact
 from tdcr.schemas import EXACT_MODEL
-from tdcr.validation import InvalidRequest
+from tdcr.validation import InvalidRequest, ShapeRequest
 
 log = logging.getLogger("tdcr.service")
 #: The inverse-kinematics model's name.
@@ -38,6 +39,13 @@ def exact_job(codec, payload, spec: ModelSpec, budget: WorkBudget) -> tuple[obje
     admit(decoded.task, budget)
     solved = solve_request(decoded.task)
     return codec.encode(decoded, solved), solved.n_designs
+
+
+def solve_job(request: ShapeRequest, budget: WorkBudget) -> ExactAnswer:
+    """A validated request's exact answer, in a solver process: admit, solve (the designs a
+    surrogate's tolerance sends to the solver)."""
+    admit(request, budget)
+    return solve_request(request)
 
 
 class ExactModel(Model):
@@ -99,6 +107,11 @@ class ExactModel(Model):
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         body, count = await self.run(exact_job, request.codec, request.payload, self.spec, self.budget)
         return InferenceResponse(body, count)
+
+    def solve_from_thread(self, request: ShapeRequest) -> ExactAnswer:
+        """``request`` solved in a solver process, within a slot, its admission and the deadline, for
+        a worker thread of the event loop (a surrogate keeping a tolerance); blocks that thread."""
+        return anyio.from_thread.run(self.run, solve_job, request, self.budget)
 
     def close(self) -> None:
         if self.pool is not None:

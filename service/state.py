@@ -86,6 +86,7 @@ def load_models(state: ServiceState) -> ModelRepository:
         batcher = Batcher(surrogate, max_designs=settings.batch_max_designs,
                           on_run=state.metrics.batch.labels(name).observe)
         repository.register(SurrogateModel(surrogate, limits=limits, batcher=batcher))
+    guard(repository, exact, state.problems)
     default = settings.default_model or best_model(state.manifest)
     if default is not None:
         if default not in repository.names("surrogate"):
@@ -95,6 +96,20 @@ def load_models(state: ServiceState) -> ModelRepository:
     if with_loads in repository.names("surrogate"):
         repository.defaults[loaded("surrogate")] = with_loads
     return repository
+
+
+def guard(repository: ModelRepository, exact: ExactModel, problems: list[str]) -> None:
+    """Give every calibrated operator its error bound and the exact solver behind its tolerance;
+    an operator whose score needs a companion that is not served stays unguarded (a problem)."""
+    for model in list(repository):
+        if not isinstance(model, SurrogateModel) or model.surrogate.calibration is None:
+            continue
+        name = model.surrogate.calibration.companion
+        companion = None if name is None else repository.models.get(name)
+        if name is not None and not isinstance(companion, SurrogateModel):
+            problems.append(f"model {model.name}: its error bound needs the operator {name!r}, which is not loaded")
+            continue
+        model.guard_with(companion, exact.solve_from_thread)
 
 
 async def start(state: ServiceState, *, before_ready=None) -> None:

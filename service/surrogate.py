@@ -31,8 +31,16 @@ class SurrogateModel(Model):
     def __init__(self, surrogate: Surrogate, *, limits: Limits, batcher: Batcher):
         self.name = surrogate.name
         self.surrogate, self.limits, self.batcher = surrogate, limits, batcher
+        #: its error bound and the exact solver behind its tolerance (:meth:`guard_with`); None: uncalibrated
+        self.guard: engine.Guard | None = None
         if surrogate.takes_loads:
             self.inputs = SURROGATE_INPUTS | LOAD_INPUTS
+
+    def guard_with(self, companion: SurrogateModel | None, exact) -> None:
+        """Bound its answers (its calibration, scored against the served ``companion``) and keep
+        tolerances with ``exact`` (a sub-request -> :class:`tdcr.exact.ExactAnswer`, blocking)."""
+        self.guard = engine.Guard(calibration=self.surrogate.calibration,
+                                  companion=None if companion is None else companion.batcher, exact=exact)
 
     def parameters(self) -> dict:
         """The manifest's sha256, architecture and kind; metrics and ranges as JSON text."""
@@ -41,15 +49,18 @@ class SurrogateModel(Model):
                 "metrics": orjson.dumps(entry.get("metrics")).decode(),
                 "ranges": orjson.dumps(entry.get("ranges")).decode()} | (
                     {"load_ranges": orjson.dumps(entry.get("load_ranges")).decode()} if self.surrogate.takes_loads
-                    else {})
+                    else {}) | (
+                    {"calibration": orjson.dumps(entry["calibration"]).decode()} if "calibration" in entry else {})
 
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         return await run_in_threadpool(self.infer_blocking, request)  # decode, run and encode in one thread hop
 
     def infer_blocking(self, request: InferenceRequest) -> InferenceResponse:
         decoded = request.codec.decode(request.payload, self.spec)
-        prediction = engine.predict(self.batcher, decoded.task, model=self.name)
-        return InferenceResponse(request.codec.encode(decoded, prediction), prediction.n_designs)
+        prediction = engine.predict(self.batcher, decoded.task, model=self.name, guard_with=self.guard)
+        guarded = prediction.n_designs if decoded.task.tolerance is not None else 0
+        return InferenceResponse(request.codec.encode(decoded, prediction), prediction.n_designs, guarded=guarded,
+                                 exact=prediction.n_exact)
 
     def inverse(self, problem: InverseProblem) -> list[dict]:
         """Inverse kinematics with this operator (blocking: run it off the event loop); the design's

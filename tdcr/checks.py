@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from tdcr.bounds import EXACT_TOLERANCE
 from tdcr.design_space import FRACTION_ROUNDING, LOADS, N_TENDONS, TABLE_I, admissible_bounds
 from tdcr.designs import LOAD_COLUMNS, ExternalLoads, FeatureLayout
 
@@ -168,6 +169,19 @@ def check_model_loads(loads: ExternalLoads | None, rows: np.ndarray, *, model: s
                                 f"loaded operator (model {LOADED_EXAMPLE!r}), or {EXACT_ROUTES}",
                                 "model_takes_no_loads"))
     return problems
+
+
+def check_tolerance(tolerance: float | None, *, name: str = "tolerance") -> list[Problem]:
+    """The problem with a ``tolerance`` (relative l2; None: none): it must be a number of at least
+    :data:`tdcr.bounds.EXACT_TOLERANCE`, what the exact solver itself guarantees."""
+    if tolerance is None:
+        return []
+    number = isinstance(tolerance, (int, float, np.floating)) and not isinstance(tolerance, bool)
+    if not number or not np.isfinite(tolerance) or tolerance < EXACT_TOLERANCE:
+        shown = tolerance if number else type(tolerance).__name__
+        return [Problem((name,), f"must be a relative l2 error of at least {EXACT_TOLERANCE:g} (what the exact "
+                        f"solver guarantees), got {shown}", "greater_than_equal")]
+    return []
 
 
 def check_fractions(fractions: Sequence[float] | np.ndarray, *, name: str = "s") -> tuple[np.ndarray | None,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -222,6 +223,31 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_calibrate(args) -> int:
+    from tdcr.runtime import ManifestError, load_manifest
+    from training.operators.calibrate import SCORES, calibrate
+    from training.operators.export import update_manifest
+
+    try:
+        manifest = load_manifest(args.models_dir)
+    except ManifestError as exc:
+        raise UsageError(str(exc)) from None
+    names = args.models or sorted(n for n in manifest["models"] if n in SCORES)
+    unknown = [n for n in names if n not in manifest["models"] or n not in SCORES]
+    if unknown:
+        raise UsageError(f"no manifest model or no measured score for {unknown}; calibrated: {sorted(SCORES)}")
+    missing = sorted({c for n in names if (c := SCORES[n].companion) and c not in manifest["models"]})
+    if missing:
+        raise UsageError(f"the scores need the companion operators {missing}, not in the manifest")
+    records = calibrate(args.models_dir, manifest, names, designs=args.designs, seed=args.seed)
+    for name, record in records.items():
+        update_manifest(Path(args.models_dir), manifest["models"][name] | {"calibration": record})
+        q = record["quantiles"]
+        print(f"{name}: score {record['companion'] or record['score']}, {record['calibration_set']['converged']} "
+              f"designs, quantiles {min(q):.3g}..{max(q):.3g}")
+    return 0
+
+
 def _cmd_study(args) -> int:
     import time
 
@@ -271,11 +297,20 @@ def _cmd_predict(args) -> int:
     from tdcr.runtime import ManifestError, Surrogate, best_model, load_manifest
     from tdcr.validation import InvalidRequest
 
+    from tdcr.checks import check_tolerance
+
     text = _read_text(args.request)
     try:
         request = engine.prepare_json(text, limits=_unlimited())
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
+    if args.tolerance is not None:
+        problems = check_tolerance(args.tolerance)
+        if problems:
+            raise UsageError(f"--tolerance: {problems[0].msg}")
+        if request.jacobian:
+            raise UsageError("--tolerance: the tip Jacobian is the operator's own: ask for it without a tolerance")
+        request = dataclasses.replace(request, tolerance=args.tolerance)
     try:
         manifest = load_manifest(args.models_dir)
     except ManifestError as exc:
@@ -292,7 +327,7 @@ def _cmd_predict(args) -> int:
     except ManifestError as exc:
         raise UsageError(f"{args.models_dir}: {exc}") from None
     try:
-        prediction = engine.predict(model, request, model=name)
+        prediction = engine.predict(model, request, model=name, guard_with=engine.local_guard(model))
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
     sys.stdout.buffer.write(engine.encode_json(prediction) + b"\n")
@@ -379,6 +414,7 @@ class FORMATTER(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from tdcr.bounds import CALIBRATION_DESIGNS, CALIBRATION_SEED
     from tdcr.runtime import DEFAULT_MODELS_DIR
 
     parser = argparse.ArgumentParser(prog="tdcr", description=__doc__, formatter_class=FORMATTER)
@@ -458,6 +494,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write these metrics into the manifest (the service picks its default model by them)")
     p.set_defaults(func=_cmd_evaluate)
 
+    p = command("calibrate", "calibrate the operators' 99 % error bounds on fresh exact solutions (split "
+                             "conformal, Mondrian bins; the 'train' extra) and write them into the manifest")
+    p.add_argument("--models-dir", **models_dir)
+    p.add_argument("--models", nargs="*", default=None, help="operators (default: every one with a measured score)")
+    p.add_argument("--designs", type=int, default=CALIBRATION_DESIGNS,
+                   help="calibration designs per group (load-free, loaded)")
+    p.add_argument("--seed", type=int, default=CALIBRATION_SEED, help="seed of the calibration designs and loads")
+    p.set_defaults(func=_cmd_calibrate)
+
     p = command("study", "run (or resume) one of the paper's studies; JSON lines + PNG under --out")
     p.add_argument("name", help="n-sweep, dropout, seeds, ood, timing, worst, or all (in that order)")
     p.add_argument("--budget", default="full", help="full (docs/report.md) or tiny (seconds; the tests')")
@@ -482,6 +527,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None, help="the operator (default: the request's \"model\", else the "
                                                  "manifest's most accurate, as the service chooses)")
     p.add_argument("--models-dir", **models_dir)
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="relative l2 error an answer may have: designs whose calibrated error bound exceeds it are "
+                        "solved exactly (each result's source says which); overrides the request's \"tolerance\"")
     p.set_defaults(func=_cmd_predict)
 
     p = command("serve", "run the HTTP and gRPC service (the 'serve' extra; settings from TDCR_* variables)")

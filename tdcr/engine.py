@@ -13,17 +13,20 @@ from __future__ import annotations
 
 import io
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 import orjson
 
+from tdcr.bounds import EXACT, SOURCES, Calibration, guard
 from tdcr.checks import check_model_loads
 from tdcr.design_space import N_FEATURES, load_warnings, range_warnings
 from tdcr.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
+from tdcr.exact import ExactAnswer
 from tdcr.inverse import tip_by_differences
+from tdcr.runtime import error_bound, on_grid_tendons
 from tdcr.schemas import RESPONSE_FORMAT_VERSION
 from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
 
@@ -31,7 +34,7 @@ from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote
 NPY = "application/x-npy"
 NPZ = "application/x-npz"
 #: Query parameters of a ``.npy`` request.
-QUERY_FIELDS = ("model", "points", "s", "arclength", "outputs")
+QUERY_FIELDS = ("model", "points", "s", "arclength", "outputs", "tolerance")
 
 
 class Predictor(Protocol):
@@ -43,6 +46,30 @@ class Predictor(Protocol):
 
     def predict(self, features: np.ndarray, fractions: np.ndarray, *, loads=None, pose: bool = True,
                 check: bool = True) -> dict[str, np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class Guard:
+    """What bounds an operator's answers and keeps a request's tolerance: its ``calibration``
+    (:class:`tdcr.bounds.Calibration`), the ``companion`` predictor its score needs (None: none),
+    and ``exact``: the exact solver's answer (:class:`tdcr.exact.ExactAnswer`) to a sub-request of
+    the designs that fall back (:meth:`tdcr.validation.ShapeRequest.take`), with whatever admission
+    and deadline the caller keeps."""
+
+    calibration: Calibration
+    companion: Predictor | None
+    exact: Callable[[ShapeRequest], ExactAnswer]
+
+
+def local_guard(surrogate) -> Guard | None:
+    """The :class:`Guard` of a loaded :class:`tdcr.runtime.Surrogate` in this process (``tdcr
+    predict``): its calibration, its companion and the exact solver here, unlimited; None if it is
+    not calibrated."""
+    if surrogate.calibration is None:
+        return None
+    from tdcr.exact import solve_request
+
+    return Guard(calibration=surrogate.calibration, companion=surrogate.companion(), exact=solve_request)
 
 
 @dataclass(frozen=True)
@@ -61,10 +88,27 @@ class Prediction:
     warnings: list[list[str]]
     finite: np.ndarray  # (B,) the answer is finite (else its rows are zeros)
     tip_jacobian: np.ndarray | None = None  # (B, 6, N_t) with "jacobian": true, by central differences
+    error_bound: np.ndarray | None = None  # (B,) calibrated 99 % bound of the relative l2 error; inf: none
+    source: np.ndarray | None = None  # (B,) int32: 0 the surrogate answered, 1 the exact solver
 
     @property
     def n_designs(self) -> int:
         return len(self.warnings)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """``error_bound``, ``inf`` (none) for every design of a model without a calibration."""
+        return np.full(self.n_designs, np.inf) if self.error_bound is None else self.error_bound
+
+    @property
+    def sources(self) -> np.ndarray:
+        """``source``, 0 (the surrogate) for every design when no tolerance was kept."""
+        return np.zeros(self.n_designs, dtype=np.int32) if self.source is None else self.source
+
+    @property
+    def n_exact(self) -> int:
+        """Designs the exact solver answered."""
+        return int((self.sources == EXACT).sum())
 
 
 def prepare_json(body: bytes | str | dict, *, limits: Limits) -> ShapeRequest:
@@ -76,9 +120,10 @@ def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits)
     """A ``.npy`` body of raw SI designs ``(B, 15)``, or ``(B, 25)``: each design followed by its
     loads (:data:`tdcr.designs.LOAD_COLUMNS`: gravity, density, tip force, tip moment; for a loaded
     operator), and the query ``params`` (name -> values)."""
-    problems = [Problem((k,), "may be given once", "repeated") for k in ("model", "points", "outputs")
+    problems = [Problem((k,), "may be given once", "repeated") for k in ("model", "points", "outputs", "tolerance")
                 if len(params.get(k, [])) > 1]
     points = _query_int(params, "points", problems)
+    tolerance = (_query_floats(params, "tolerance", problems) or [None])[0]
     s = _query_floats(params, "s", problems)
     arclength = _query_floats(params, "arclength", problems)
     if problems:
@@ -92,13 +137,22 @@ def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits)
     outputs = params.get("outputs")
     return validate_features(features, target="surrogate", points=points, s=s, arclength=arclength,
                              model=(params.get("model") or [None])[0],
-                             outputs=None if outputs is None else outputs[0].split(","), limits=limits, loads=loads)
+                             outputs=None if outputs is None else outputs[0].split(","), limits=limits, loads=loads,
+                             tolerance=tolerance)
 
 
-def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Prediction:
+def predict(predictor: Predictor, request: ShapeRequest, *, model: str, guard_with: Guard | None = None
+            ) -> Prediction:
     """A validated request on ``predictor`` (the surrogate ``model``); blocking.  A design with loads
-    for an operator that takes none is an :class:`InvalidRequest` naming its load field."""
+    for an operator that takes none is an :class:`InvalidRequest` naming its load field.
+
+    ``guard_with``: the model's :class:`Guard`: every answer gets its ``error_bound``, and with the
+    request's ``tolerance`` the designs whose bound exceeds it are the exact solver's (``source``).
+    A tolerance for a model without one is an :class:`InvalidRequest` naming ``tolerance``."""
     features, loads = request.features, request.loads
+    if request.tolerance is not None and guard_with is None:
+        raise InvalidRequest([Problem(("tolerance",), f"model {model!r} has no calibrated error bound to keep it "
+                                      "with (`tdcr calibrate`); send the designs to /exact", "tolerance_uncalibrated")])
     if not predictor.takes_loads:
         problems = check_model_loads(loads, np.arange(len(features)), model=model)
         if problems:
@@ -114,6 +168,18 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Predi
     if not finite.all():
         arrays = {k: np.where(finite.reshape(-1, *[1] * (v.ndim - 1)), v, 0).astype(v.dtype)
                   for k, v in arrays.items()}
+    bounds = source = None
+    if guard_with is not None:
+        given = np.zeros((len(features), N_LOAD_COLUMNS)) if matrix is None else matrix
+        with np.errstate(all="ignore"):
+            bounds = error_bound(guard_with.calibration, features, given if predictor.takes_loads else None,
+                                 tendons=on_grid_tendons(out, request.fractions), own=predictor.predict,
+                                 companion=guard_with.companion)
+        bounds = np.where(finite, bounds, np.inf)
+        arrays, kept = guard(arrays, bounds, tolerance=request.tolerance,
+                             exact=lambda rows: exact_arrays(guard_with.exact(request.take(rows))))
+        bounds, source = kept.error_bound, kept.source if request.tolerance is not None else None
+        finite = finite | (kept.source == EXACT)
     arclength = features[:, L_COLUMN, None] * request.fractions[None, :]
     tip_jacobian = None
     if request.jacobian:
@@ -128,17 +194,28 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str) -> Predi
         given = np.zeros((len(features), N_LOAD_COLUMNS)) if matrix is None else matrix
         warnings = [w + v for w, v in zip(warnings, load_warnings(given, predictor.load_ranges), strict=True)]
     return Prediction(model=model, fractions=request.fractions, arclength=arclength, arrays=arrays,
-                      warnings=warnings, finite=finite, tip_jacobian=tip_jacobian)
+                      warnings=warnings, finite=finite, tip_jacobian=tip_jacobian, error_bound=bounds, source=source)
+
+
+def exact_arrays(answer: ExactAnswer) -> dict[str, np.ndarray]:
+    """The solver's backbone, rotation and tendons ``(m, n, ...)`` and ``converged`` ``(m,)`` of an
+    answer whose designs share one tendon count, in request order."""
+    g = answer.arrays()
+    return {"backbone": g.backbone, "rotation": g.rotation, "tendons": g.tendons, "converged": g.converged}
 
 
 def encode_json(prediction: Prediction) -> bytes:
     """``PredictResponse`` JSON (format :data:`tdcr.schemas.RESPONSE_FORMAT_VERSION`): per design s
-    (fractions of L), arclength (m), backbone, rotation, tendons, in_distribution, warnings."""
+    (fractions of L), arclength (m), backbone, rotation, tendons, in_distribution, warnings, finite,
+    error_bound (null: none) and source."""
     arrays = {k: np.ascontiguousarray(v) for k, v in prediction.arrays.items()}  # orjson: C order only
     fractions, arclength = np.ascontiguousarray(prediction.fractions), np.ascontiguousarray(prediction.arclength)
     finite = prediction.finite.tolist()
+    bounds = [b if np.isfinite(b) else None for b in prediction.bounds.tolist()]
+    sources = [SOURCES[k] for k in prediction.sources.tolist()]
     results = [{"s": fractions, "arclength": arclength[j], **{k: v[j] for k, v in arrays.items()},
-                "in_distribution": not w, "warnings": w, "finite": finite[j]}
+                "in_distribution": not w, "warnings": w, "finite": finite[j], "error_bound": bounds[j],
+                "source": sources[j]}
                for j, w in enumerate(prediction.warnings)]
     if prediction.tip_jacobian is not None:
         for result, jacobian in zip(results, prediction.tip_jacobian, strict=True):
@@ -149,13 +226,14 @@ def encode_json(prediction: Prediction) -> bytes:
 
 def encode_npz(prediction: Prediction) -> bytes:
     """An uncompressed ``.npz`` (what ``np.savez`` writes; floats as float32) of s ``(B, n)``
-    (fractions of L), arclength ``(B, n)`` m, the wanted arrays and in_distribution ``(B,)``, each
+    (fractions of L), arclength ``(B, n)`` m, the wanted arrays, in_distribution, finite,
+    error_bound (float32, inf: none) and source (int32: 0 surrogate, 1 exact), each ``(B,)``, each
     member written in one piece: 19-30 ms against 32 ms for ``np.savez``'s chunked writes of an
     8192-design answer."""
     s = np.broadcast_to(prediction.fractions, prediction.arclength.shape)
     arrays = {"s": s, "arclength": prediction.arclength,
               "in_distribution": np.array([not w for w in prediction.warnings]),
-              "finite": prediction.finite}
+              "finite": prediction.finite, "error_bound": prediction.bounds, "source": prediction.sources}
     arrays |= prediction.arrays
     if prediction.tip_jacobian is not None:
         arrays["tip_jacobian"] = prediction.tip_jacobian

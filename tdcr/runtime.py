@@ -21,17 +21,25 @@ from pathlib import Path
 
 import numpy as np
 
+from tdcr.bounds import (
+    Calibration,
+    CalibrationError,
+    calibration_grid,
+    disagreement,
+    guard,
+)
 from tdcr.checks import (
     InvalidRequest,
     check_fractions,
     check_loads,
     check_model_loads,
     check_surrogate_features,
+    check_tolerance,
     checkable_loads,
     loaded_rows,
     raise_problems,
 )
-from tdcr.designs import N_LOAD_COLUMNS, ExternalLoads
+from tdcr.designs import N_LOAD_COLUMNS, DesignBatch, ExternalLoads
 from tdcr.physics.geometry import cubic_weights, orthonormalize, rigid_fit, tendon_offsets
 
 #: Manifest (and manifest entry) format this runtime reads; training/operators/export.py writes it.
@@ -63,6 +71,59 @@ def _as_matrix(loads: ExternalLoads | np.ndarray, n_designs: int) -> np.ndarray:
     """Loads as the ``(B, 10)`` float64 matrix of the graphs' input, absent values 0."""
     matrix = loads.matrix(n_designs) if isinstance(loads, ExternalLoads) else np.asarray(loads, dtype=np.float64)
     return np.nan_to_num(matrix.reshape(n_designs, N_LOAD_COLUMNS))
+
+
+def _calibration(manifest: dict, entry: dict) -> Calibration | None:
+    """An entry's calibration, checked (its sha256; its companion's sha256 against the manifest)."""
+    record = entry.get("calibration")
+    if record is None:
+        return None
+    try:
+        calibration = Calibration.from_record(record, load_ranges=entry.get("load_ranges"))
+    except CalibrationError as exc:
+        raise ManifestError(f"{entry['name']}: {exc}") from None
+    companion = calibration.companion
+    if companion is not None and manifest["models"].get(companion, {}).get("sha256") != record["companion_sha256"]:
+        raise ManifestError(f"{entry['name']}: its error bound was calibrated against another {companion!r}; "
+                            "recalibrate (`tdcr calibrate`)")
+    return calibration
+
+
+def on_grid_tendons(out: dict[str, np.ndarray], fractions: np.ndarray) -> np.ndarray | None:
+    """``out["tendons"]`` if ``fractions`` are the calibration grid, else None."""
+    grid = calibration_grid()
+    same = fractions.size == grid.size and np.allclose(fractions, grid, atol=1e-9)
+    return out["tendons"] if same else None
+
+
+def error_bound(calibration: Calibration, features: np.ndarray, loads: np.ndarray | None, *,
+                tendons: np.ndarray | None, own, companion) -> np.ndarray:
+    """The bound ``(B,)`` of an operator's answers (:meth:`Calibration.bound`): its score from
+    ``tendons`` on the calibration grid (computed by ``own(features, grid, loads=, pose=False,
+    check=False)`` when None) and the ``companion``'s (a predictor of the same signature).  The one
+    computation of a bound, for :meth:`Surrogate.error_bound` and the engine alike."""
+    score = None
+    if calibration.companion is not None:
+        grid = calibration_grid()
+        if tendons is None:
+            tendons = own(features, grid, loads=loads, pose=False, check=False)["tendons"]
+        theirs = companion.predict(features, grid, loads=loads if companion.takes_loads else None, pose=False,
+                                   check=False)["tendons"]
+        with np.errstate(all="ignore"):
+            score = disagreement(tendons, theirs)
+    return calibration.bound(features, score, loads)
+
+
+def solve_rows(features: np.ndarray, fractions: np.ndarray, loads: np.ndarray | None, *,
+               pose: bool = True) -> dict[str, np.ndarray]:
+    """The exact solver's tendons ``(m, n, 4, 3)`` (with ``pose``: backbone and rotation too) of
+    ``features`` ``(m, 15)`` under ``loads`` ``(m, 10)`` (None: none), and ``converged`` ``(m,)``."""
+    from tdcr.physics import solve
+
+    external = None if loads is None or not loaded_rows(loads).any() else ExternalLoads.from_matrix(loads)
+    sol = solve(DesignBatch.from_features(features), fractions, loads=external)
+    out = {"tendons": sol.tendons} | ({"backbone": sol.backbone, "rotation": sol.rotation} if pose else {})
+    return out | {"converged": sol.converged}
 
 
 class ManifestError(ValueError):
@@ -108,7 +169,12 @@ class Surrogate:
     entry: dict
     session: object
     chunk: int = 512
+    #: where it was loaded from (its companion, the score of its error bound, is loaded from there)
+    models_dir: Path | None = None
+    #: its calibrated error bound (None: not calibrated)
+    calibration: Calibration | None = None
     _pool: ThreadPoolExecutor | None = field(default=None, repr=False)
+    _companion: Surrogate | None = field(default=None, repr=False)
 
     @classmethod
     def load(cls, models_dir: str | Path, name: str, *, threads: int = 0, verify: bool = True,
@@ -126,9 +192,11 @@ class Surrogate:
         path = models_dir / entry["file"]
         if verify and hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
             raise ManifestError(f"{entry['file']}: sha256 does not match the manifest")
+        calibration = _calibration(manifest, entry)
         workers = threads or os.cpu_count() or 1
         pool = ThreadPoolExecutor(workers, thread_name_prefix=f"onnx-{name}") if workers > 1 else None
-        return cls(name=name, entry=entry, session=_session(path), chunk=chunk, _pool=pool)
+        return cls(name=name, entry=entry, session=_session(path), chunk=chunk, models_dir=models_dir,
+                   calibration=calibration, _pool=pool)
 
     @classmethod
     def shipped(cls, name: str, **options) -> Surrogate:
@@ -157,6 +225,28 @@ class Surrogate:
                                                        model=self.name))
             return None
         return np.zeros((n_designs, N_LOAD_COLUMNS)) if matrix is None else matrix
+
+    def companion(self) -> Surrogate | None:
+        """The operator whose disagreement scores this one's error (loaded once, from
+        :attr:`models_dir`, sharing nothing); None when the bound needs none."""
+        name = None if self.calibration is None else self.calibration.companion
+        if name is None:
+            return None
+        if self._companion is None:
+            self._companion = Surrogate.load(self.models_dir, name, chunk=self.chunk)
+        return self._companion
+
+    def error_bound(self, features: np.ndarray, *, loads: ExternalLoads | np.ndarray | None = None,
+                    tendons: np.ndarray | None = None) -> np.ndarray:
+        """The calibrated 99 % bound ``(B,)`` of the relative l2 error of each design's tendon
+        positions (:mod:`tdcr.bounds`; ``inf`` outside the calibrated region); ``tendons``: this
+        operator's answer ``(B, 42, 4, 3)`` on the calibration grid if already computed.  A
+        ``ValueError`` if the model is not calibrated.  Designs are not checked here."""
+        if self.calibration is None:
+            raise ValueError(f"model {self.name!r} has no calibrated error bound (run `tdcr calibrate`)")
+        matrix = self.load_matrix(loads, len(features))
+        return error_bound(self.calibration, np.asarray(features, dtype=np.float64), matrix, tendons=tendons,
+                           own=self.predict, companion=self.companion())
 
     @property
     def grid(self) -> np.ndarray | None:
@@ -208,8 +298,14 @@ class Surrogate:
         return outputs
 
     def predict(self, features: np.ndarray, fractions: np.ndarray, *, loads: ExternalLoads | np.ndarray | None = None,
-                pose: bool = True, check: bool = True) -> dict[str, np.ndarray]:
+                pose: bool = True, check: bool = True, bound: bool = False,
+                tolerance: float | None = None) -> dict[str, np.ndarray]:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
+
+        ``bound``: add ``error_bound`` ``(B,)`` (:meth:`error_bound`).  ``tolerance`` (relative l2,
+        at least :data:`tdcr.bounds.EXACT_TOLERANCE`): designs whose bound exceeds it, or is not
+        finite, are answered by the exact solver (:func:`tdcr.physics.solve`, float64), in order;
+        adds ``error_bound`` and ``source`` ``(B,)`` (0: surrogate, 1: exact).
 
         ``loads``: gravity and a tip wrench per design (:class:`tdcr.ExternalLoads`, base frame, SI;
         or its ``(B, 10)`` matrix), for a loaded operator (:attr:`takes_loads`); another operator
@@ -233,10 +329,21 @@ class Surrogate:
                 n = len(features)
                 loads = _as_matrix(loads, n)
                 more += check_loads(checkable_loads(ExternalLoads.from_matrix(loads), n), np.arange(n))
+            more += check_tolerance(tolerance)
             raise_problems(problems + more)
         features = np.asarray(features, dtype=np.float64)
         fractions = np.asarray(fractions, dtype=np.float64)
         matrix = self.load_matrix(loads, len(features))
+        if bound or tolerance is not None:
+            out = self.predict(features, fractions, loads=matrix, pose=pose, check=False)
+            bounds = self.error_bound(features, loads=matrix, tendons=on_grid_tendons(out, fractions))
+
+            def exact(rows: np.ndarray) -> dict[str, np.ndarray]:
+                return solve_rows(features[rows], fractions, None if matrix is None else matrix[rows], pose=pose)
+
+            out, guarded = guard(out, bounds, tolerance=tolerance, exact=exact)
+            return out | {"error_bound": guarded.error_bound} | (
+                {"source": guarded.source} if tolerance is not None else {})
         raw = {k: v for k, v in self.run(features, fractions, matrix).items() if pose or k == "tendons"}
         grid = self.grid
         on_grid = grid is None or (grid.size == fractions.size and np.allclose(grid, fractions, atol=1e-9))

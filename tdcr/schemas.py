@@ -11,10 +11,11 @@ density in kg/m^3, tip force in N, tip moment in N m, arclengths ``s`` as fracti
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
+from tdcr.bounds import EXACT_TOLERANCE
 from tdcr.design_space import DEFAULT_POINTS, FRACTION_ROUNDING, LOADS, MAX_POINTS, MAX_TENDONS, N_TENDONS, TABLE_I
 
 #: Longest model name a request may carry.
@@ -143,11 +144,17 @@ class SolveRequest(_Arclengths):
     jacobian: bool = _JACOBIAN
 
 
+#: JSON schema: a tolerance is kept without the operator's tip Jacobian.
+_TOLERANCE_WITHOUT_JACOBIAN = {"not": {"properties": {"jacobian": {"const": True}, "tolerance": {"type": "number"}},
+                                       "required": ["jacobian", "tolerance"]}}
+
+
 class PredictRequest(_Arclengths):
     """Designs, arclengths and the surrogate to use (default: the most accurate in the manifest; for
     designs with loads, the most accurate loaded operator)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S | _JACOBIAN_WITHOUT_LOADS)
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S | _JACOBIAN_WITHOUT_LOADS | {
+        "allOf": [_TOLERANCE_WITHOUT_JACOBIAN]})
     designs: list[SurrogateDesign] = Field(min_length=1)
     model: str | None = Field(None, min_length=1, max_length=MAX_MODEL_NAME,
                               description="deeponet, deeponet_pose, fno or fno_pose; for designs with loads "
@@ -155,6 +162,11 @@ class PredictRequest(_Arclengths):
                               examples=["deeponet"])
     jacobian: bool = Field(False, description="add tip_jacobian to each result (as for /exact), by central "
                                               "differences of the operator")
+    tolerance: float | None = Field(None, ge=EXACT_TOLERANCE, allow_inf_nan=False, description=(
+        "relative l2 error of the tendon positions a surrogate answer may have: designs whose calibrated 99 % "
+        "error_bound exceeds it (or that have none: outside the calibrated region) are answered by the exact "
+        f"solver, in order (each result's source says which); at least {EXACT_TOLERANCE:g}, what the exact "
+        "solver guarantees"), examples=[0.001])
 
 
 class ExactRequest(SolveRequest):
@@ -176,6 +188,11 @@ class PredictedShape(BaseModel):
     tip_jacobian: list[list[float]] | None = Field(None, description="(6, N_t) with jacobian: true")
     finite: bool = Field(True, description="the surrogate's answer is finite; when false (far outside the "
                                            "trained ranges) the arrays hold zeros and must not be used")
+    error_bound: float | None = Field(None, description=(
+        "calibrated 99 % upper bound of this answer's relative l2 error of the tendon positions (42 equispaced "
+        f"arclengths); null: none (outside the calibrated region); {EXACT_TOLERANCE:g} for an exact answer"))
+    source: Literal["surrogate", "exact"] = Field("surrogate", description="who answered: the surrogate, or the "
+                                                  "exact solver (the bound exceeded the request's tolerance)")
 
 
 class PredictResponse(BaseModel):

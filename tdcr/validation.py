@@ -32,6 +32,7 @@ from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's voc
     check_features,
     check_fractions,
     check_loads,
+    check_tolerance,
     checkable_loads,
     format_location,
     loaded_rows,
@@ -81,7 +82,9 @@ class ShapeRequest:
 
     ``groups``: the designs by tendon count (one group for surrogate requests); ``fractions``:
     arclengths ``(n,)`` as fractions of L; ``model``: the surrogate named (None: the default);
-    ``outputs``: the arrays wanted; ``jacobian``: add each tip's Jacobian to the tensions.
+    ``outputs``: the arrays wanted; ``jacobian``: add each tip's Jacobian to the tensions;
+    ``tolerance``: the relative l2 error a surrogate answer may have (the exact solver answers the
+    designs whose calibrated bound exceeds it; None: every design from the surrogate).
     """
 
     groups: tuple[DesignGroup, ...]
@@ -89,6 +92,7 @@ class ShapeRequest:
     model: str | None = None
     outputs: tuple[str, ...] = OUTPUTS
     jacobian: bool = False
+    tolerance: float | None = None  #: relative l2: designs whose error bound exceeds it are solved exactly
 
     @property
     def n_designs(self) -> int:
@@ -118,6 +122,19 @@ class ShapeRequest:
     def pose(self) -> bool:
         """Whether backbone or rotation are wanted (tendon models then fit a pose)."""
         return self.outputs != ("tendons",)
+
+    def take(self, rows: np.ndarray) -> ShapeRequest:
+        """The designs ``rows`` ``(m,)`` of a request whose designs share one tendon count, as a
+        request of their own (the same arclengths and outputs; no Jacobian, no tolerance): what the
+        exact solver answers when a tolerance sends them to it."""
+        if len(self.groups) != 1:
+            raise ValueError("the designs have different tendon counts")
+        group = self.groups[0]
+        loads = None if group.loads is None else group.loads.take(rows)
+        if loads is not None and not _loaded(loads).any():
+            loads = None  # tendon loads only: the solver needs no shooting
+        return ShapeRequest(groups=(DesignGroup(rows=np.arange(len(rows)), designs=group.designs.take(rows),
+                                                loads=loads),), fractions=self.fractions, outputs=self.outputs)
 
 
 # -- value checks ------------------------------------------------------------------------------
@@ -184,8 +201,13 @@ def _check_sizes(n_designs: int, n_points: int, limits: Limits) -> None:
 
 
 def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: list[Problem], *,
-             model: str | None, outputs: tuple[str, ...], jacobian: bool = False) -> ShapeRequest:
+             model: str | None, outputs: tuple[str, ...], jacobian: bool = False,
+             tolerance: float | None = None) -> ShapeRequest:
     """Every value check of every entry point; raises :class:`InvalidRequest` naming each field."""
+    problems = problems + check_tolerance(tolerance)
+    if tolerance is not None and jacobian:
+        problems.append(Problem(("tolerance",), "the tip Jacobian is the operator's own: ask for it without a "
+                                "tolerance, or from /exact", "tolerance_with_jacobian"))
     value_problems = []
     for g in groups:  # (the surrogates' 4 tendons and no loads are structure: checked by the schema or shape)
         value_problems += check_features(g.designs.features(), g.rows)
@@ -200,7 +222,8 @@ def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: 
     if problems:
         raise InvalidRequest(problems)
     groups = [g if g.loads is None else replace(g, loads=_zero_absent(g.loads)) for g in groups]
-    return ShapeRequest(groups=tuple(groups), fractions=fractions, model=model, outputs=outputs, jacobian=jacobian)
+    return ShapeRequest(groups=tuple(groups), fractions=fractions, model=model, outputs=outputs, jacobian=jacobian,
+                        tolerance=None if tolerance is None else float(tolerance))
 
 
 def _zero_absent(loads: ExternalLoads) -> ExternalLoads:
@@ -239,7 +262,7 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     groups = [_group_from_json([request.designs[i] for i in rows], np.asarray(rows))
               for rows in by_count.values()]
     return _checked(groups, fractions, problems, model=getattr(request, "model", None),
-                    outputs=wanted, jacobian=request.jacobian)
+                    outputs=wanted, jacobian=request.jacobian, tolerance=getattr(request, "tolerance", None))
 
 
 def _what_to_do(problem: Problem, target: Target) -> Problem:
@@ -279,11 +302,12 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
                       s: Sequence[float] | np.ndarray | None = None, model: str | None = None,
                       outputs: Iterable[str] | None = None, limits: Limits = Limits(),
                       loads: Mapping[str, np.ndarray] | None = None,
-                      arclength: Sequence[float] | np.ndarray | None = None) -> ShapeRequest:
+                      arclength: Sequence[float] | np.ndarray | None = None,
+                      tolerance: float | None = None) -> ShapeRequest:
     """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body or OIP tensors) with arclengths and
     options; ``loads``: any of ``gravity`` ``(B, 3)`` m/s^2, ``density`` ``(B,)`` kg/m^3,
     ``tip_force`` ``(B, 3)`` N, ``tip_moment`` ``(B, 3)`` N m (whether the model takes them is the
-    model's check: :func:`tdcr.checks.check_model_loads`).
+    model's check: :func:`tdcr.checks.check_model_loads`); ``tolerance``: as :class:`ShapeRequest`'s.
 
     Raises :class:`InvalidRequest`.
     """
@@ -304,7 +328,11 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     problems += more + _check_model(model)
     group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features),
                         loads=_loads_from_arrays(loads, len(features), problems))
-    return _checked([group], fractions, problems, model=model, outputs=wanted)
+    if tolerance is not None and target != "surrogate":
+        problems.append(Problem(("tolerance",), "applies to surrogate answers only (the exact solver's error is "
+                                "below 1e-6 already)", "tolerance_exact"))
+        tolerance = None
+    return _checked([group], fractions, problems, model=model, outputs=wanted, tolerance=tolerance)
 
 
 #: The external loads' arrays and their trailing shapes.

@@ -282,8 +282,10 @@ def update_manifest(models_dir: Path, entry: dict) -> None:
     empty = {"format_version": MANIFEST_FORMAT_VERSION, "models": {}}
     manifest = json.loads(path.read_text()) if path.exists() else empty
     old = manifest["models"].get(entry["name"], {})
-    if entry.get("metrics") is None and old.get("sha256") == entry["sha256"]:
-        entry["metrics"] = old.get("metrics")
+    if old.get("sha256") == entry["sha256"]:  # the same graph: its metrics and calibration still hold
+        for key in ("metrics", "calibration"):
+            if entry.get(key) is None and old.get(key) is not None:
+                entry[key] = old[key]
     manifest["models"][entry["name"]] = entry
     tmp = path.with_name("manifest.json.tmp")
     tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True))

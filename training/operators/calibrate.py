@@ -1,0 +1,152 @@
+"""Split-conformal calibration of the exported operators' error bounds (:mod:`tdcr.bounds`).
+
+    tdcr calibrate --models-dir models [--designs 20000] [--seed 25]
+
+For each operator: ``designs`` fresh Table I designs (seed ``seed``; the training data used seeds 0
+and 24, the benchmarks 26 and up), in the loaded operators' trained load space
+(:data:`tdcr.design_space.TRAINING_LOADS`) for a loaded operator; the exact solver's tendon paths
+on the calibration grid as the truth; the operator's relative l2 error, its score and its bending
+angle bin; per bin, ``crepes``' normalised conformal regressor (residual = error, sigma = score +
+floor) gives the ``level`` quantile.  The record goes into the manifest entry
+(:meth:`tdcr.bounds.Calibration.sealed`).
+
+The score of each operator is chosen by measurement (``benchmarks/error_bound_probe.py``, and
+docs/results.md, "Error bounds"): :data:`SCORES`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tdcr import design_space
+from tdcr.bounds import (
+    CALIBRATION_DESIGNS,
+    CALIBRATION_FORMAT,
+    CALIBRATION_POINTS,
+    CALIBRATION_SEED,
+    Calibration,
+    bending_angle,
+    calibration_grid,
+)
+from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.metrics import relative_l2
+from tdcr.physics import solve
+from tdcr.runtime import Surrogate, takes_loads
+
+#: Confidence of the bounds.
+LEVEL = 0.99
+#: Mondrian bins: quantiles of the calibration set's bending angle.
+N_BINS = 10
+#: Added to every score: a bound is never zero.
+SCORE_FLOOR = 1e-6
+
+
+@dataclass(frozen=True)
+class Score:
+    """How an operator's difficulty score is computed: ``kind`` ``"disagreement"`` with the
+    operator ``companion``, or ``"bins"`` (no score: the bin's quantile)."""
+
+    kind: str
+    companion: str | None = None
+
+
+#: The measured choice per shipped operator (benchmarks/error_bound_probe.py): for the others, the
+#: disagreement with the loaded DeepONet, near-exact on load-free designs too (1.6e-5; log-log
+#: correlation with the error 1.000, the least fallback); for the loaded DeepONet, the fastest graph,
+#: no score (a second graph would cost 4x its time, and at tolerance 0.01 nothing falls back anyway).
+SCORES: dict[str, Score] = {
+    "deeponet": Score("disagreement", "deeponet_pose_loaded"),
+    "deeponet_pose": Score("disagreement", "deeponet_pose_loaded"),
+    "fno": Score("disagreement", "deeponet_pose_loaded"),
+    "fno_pose": Score("disagreement", "deeponet_pose_loaded"),
+    "deeponet_pose_loaded": Score("bins"),
+    "fno_pose_loaded": Score("disagreement", "deeponet_pose_loaded"),
+}
+
+
+@dataclass(frozen=True)
+class Measured:
+    """Held-out designs and their truth: ``features`` ``(B, 15)``, ``loads`` ``(B, 10)`` (zeros:
+    none), ``truth`` tendon paths ``(B, 42, 4, 3)`` m (converged designs only), and each operator's
+    tendon paths on the grid, ``paths[name]`` ``(B, 42, 4, 3)``."""
+
+    features: np.ndarray
+    loads: np.ndarray
+    truth: np.ndarray
+    paths: dict[str, np.ndarray]
+
+    def error(self, name: str) -> np.ndarray:
+        return relative_l2(self.paths[name], self.truth)
+
+    def score(self, name: str, score: Score) -> np.ndarray | None:
+        if score.kind == "bins":
+            return None
+        return relative_l2(self.paths[name], self.paths[score.companion])
+
+
+def measure(models_dir: str | Path, names: list[str], designs: DesignBatch, loads: ExternalLoads | None) -> Measured:
+    """The exact solver's and the operators ``names``' tendon paths of ``designs`` under ``loads``
+    on the calibration grid (designs the solver does not converge on are left out)."""
+    grid = calibration_grid()
+    truth = solve(designs, grid, loads=loads, workers=0)
+    ok = np.nonzero(truth.converged)[0]
+    features = designs.features()[ok]
+    matrix = np.zeros((len(ok), 10)) if loads is None else np.nan_to_num(loads.matrix(len(designs))[ok])
+    paths = {}
+    for name in names:
+        op = Surrogate.load(models_dir, name, verify=False)
+        paths[name] = op.predict(features, grid, loads=matrix if op.takes_loads else None, pose=False,
+                                 check=False)["tendons"]
+    return Measured(features=features, loads=matrix, truth=truth.tendons[ok], paths=paths)
+
+
+def fit(error: np.ndarray, score: np.ndarray | None, theta: np.ndarray, *, level: float = LEVEL,
+        n_bins: int = N_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """Mondrian split-conformal quantiles: bin ``edges`` ``(n_bins + 1,)`` of the bending angles
+    ``theta`` ``(B,)`` (their quantiles, outermost min and max) and per bin the ``level`` quantile
+    ``(n_bins,)`` of error / (score + floor), by ``crepes.ConformalRegressor`` (residuals >= 0, so
+    its interval's upper end is the bound)."""
+    from crepes import ConformalRegressor
+
+    edges = np.quantile(theta, np.linspace(0.0, 1.0, n_bins + 1))
+    bins = np.clip(np.searchsorted(edges, theta, side="right") - 1, 0, n_bins - 1)
+    sigmas = np.ones_like(error) if score is None else score + SCORE_FLOOR
+    regressor = ConformalRegressor().fit(residuals=error, sigmas=sigmas, bins=bins)
+    upper = regressor.predict_int(np.zeros(n_bins), sigmas=np.ones(n_bins), bins=np.arange(n_bins),
+                                  confidence=level)[:, 1]
+    return edges, upper
+
+
+def calibrate(models_dir: str | Path, manifest: dict, names: list[str], *, designs: int = CALIBRATION_DESIGNS,
+              seed: int = CALIBRATION_SEED,
+              scores: dict[str, Score] | None = None) -> dict[str, dict]:
+    """The calibration record (:class:`tdcr.bounds.Calibration`, sealed) of each operator of
+    ``names``; the load-free operators share one calibration set, the loaded ones another."""
+    scores = SCORES if scores is None else scores
+    records = {}
+    for loaded in (False, True):
+        group = [n for n in names if takes_loads(manifest["models"][n]) == loaded]
+        if not group:
+            continue
+        companions = sorted({s.companion for n in group if (s := scores[n]).companion})
+        space = design_space.TRAINING_LOADS if loaded else None
+        sample = design_space.sample_designs(designs, seed=seed)
+        loads = None if space is None else space.sample(designs, seed=seed)
+        measured = measure(models_dir, sorted(set(group) | set(companions)), sample, loads)
+        theta = bending_angle(measured.features)
+        for name in group:
+            score = scores[name]
+            edges, quantiles = fit(measured.error(name), measured.score(name, score), theta)
+            companion = score.companion
+            records[name] = Calibration.sealed({
+                "format": CALIBRATION_FORMAT, "level": LEVEL, "score": score.kind, "companion": companion,
+                "companion_sha256": None if companion is None else manifest["models"][companion]["sha256"],
+                "floor": SCORE_FLOOR, "bins": "bending_angle", "edges": edges.tolist(), "quantiles": quantiles.tolist(),
+                "points": CALIBRATION_POINTS,
+                "calibration_set": {"designs": int(designs), "converged": int(len(theta)), "seed": int(seed),
+                                    "design_space": "table_i",
+                                    "loads": None if space is None else asdict(space)}})
+    return records
