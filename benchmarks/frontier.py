@@ -9,7 +9,10 @@ designs (seed 4242; the training sets used other seeds): relative l2 of the tend
 (``tdcr.metrics.relative_l2``) against the exact solver at a 10x finer step (so the exact solver's
 own discretisation error is shown too): mean, p99 and max.  Speed: designs/s at batches of 1,
 1,000 and ``--big`` (all cores: the solvers through ``solve(..., workers=0)``, onnxruntime with
-one chunk per core), 42 points.
+one chunk per core), 42 points.  Guarded rows: an operator keeping a ``tolerance`` of 0.01 or
+0.001 (its calibrated error bound computed for every design, and the designs whose bound exceeds
+the tolerance answered by the exact solver in the same call: ``Surrogate.predict(...,
+tolerance=...)``).
 
 A second table does the same in gravity and under tip loads (``tdcr.design_space.BENCHMARK_LOADS``):
 the exact loaded solver, the operators that take no loads (the error of ignoring them) and the
@@ -33,6 +36,8 @@ from tdcr.runtime import Surrogate
 
 S42 = np.linspace(0.0, 1.0, 42)
 OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose")
+#: The tolerances of the guarded rows (relative l2).
+TOLERANCES = (0.01, 0.001)
 FINE = SolverOptions(max_step=SolverOptions().max_step / 10)
 FINE_LOADS = SolverOptions(max_step_loads=SolverOptions().max_step_loads / 10)
 LINEARIZED = SolverOptions(linearized=True)
@@ -69,6 +74,9 @@ def main() -> None:
     for name in OPERATORS:
         model = Surrogate.load(ROOT / "models", name)
         methods[name] = lambda features, model=model: model.predict(features, S42, pose=False)["tendons"]
+        for tolerance in TOLERANCES:
+            methods[f"{name}, tolerance {tolerance:g}"] = lambda features, model=model, tolerance=tolerance: (
+                model.predict(features, S42, pose=False, tolerance=tolerance)["tendons"])
 
     features = held_out.features()
     batches = {1: features[:1], 1000: features[:1000]}
@@ -109,6 +117,9 @@ def loaded_frontier(n: int) -> None:
         if "loads" in entry["inputs"]:
             methods[name] = lambda rows, model=model: model.predict(features[rows], S42, loads=matrix[rows],
                                                                     pose=False)["tendons"]
+            for tolerance in TOLERANCES:
+                methods[f"{name}, tolerance {tolerance:g}"] = lambda rows, model=model, tolerance=tolerance: (
+                    model.predict(features[rows], S42, loads=matrix[rows], pose=False, tolerance=tolerance)["tendons"])
         else:
             methods[f"{name} (loads ignored)"] = lambda rows, model=model: model.predict(
                 features[rows], S42, pose=False)["tendons"]

@@ -22,7 +22,7 @@ from service.oip import EXACT_INPUTS, EXACT_OUTPUTS, INVERSE_INPUTS, INVERSE_OUT
 from service.settings import Settings
 from service.solver_pool import SolverPool, WorkerDied
 from tdcr.exact import ExactAnswer, TooMuchWork, WorkBudget, admit, solve_request
-from tdcr.inverse import answer_exact
+from tdcr.inverse import answer_exact, finish
 from tdcr.schemas import EXACT_MODEL
 from tdcr.validation import InvalidRequest, ShapeRequest
 
@@ -121,7 +121,8 @@ class ExactModel(Model):
 class InverseModel(Model):
     """Inverse kinematics (tdcr/inverse.py): the tensions that reach each target.  A request names
     its forward model: ``exact`` runs in the exact model's solver processes; an operator runs in a
-    worker thread, and ``polish`` finishes its answers with exact steps there."""
+    worker thread, and its answers are then finished there (:func:`tdcr.inverse.finish`: checked in
+    exact physics, a target they miss finished by exact steps; with ``polish`` every target)."""
 
     name = INVERSE_MODEL
     kind = "inverse"
@@ -144,13 +145,11 @@ class InverseModel(Model):
         codec = request.codec
         decoded = await run_in_threadpool(codec.decode, request.payload, self.spec)
         problem = decoded.task
-        starts = None
-        if problem.model != EXACT_MODEL:
+        settings = self.exact.settings
+        limits = {"max_seconds": self.exact.budget.max_seconds, "seconds_per_design": settings.exact_seconds_per_design}
+        if problem.model == EXACT_MODEL:
+            results = await self.exact.run(answer_exact, problem, **limits)
+        else:  # the operator's answers, then exact physics keeps the tolerance (or polishes each)
             results = await run_in_threadpool(self.operators(problem.model).inverse, problem)
-            starts = [r["tensions"] for r in results]
-        if problem.model == EXACT_MODEL or problem.polish:
-            settings = self.exact.settings
-            results = await self.exact.run(answer_exact, problem, starts=starts,
-                                           max_seconds=self.exact.budget.max_seconds,
-                                           seconds_per_design=settings.exact_seconds_per_design)
+            results = await self.exact.run(finish, problem, results, **limits)
         return InferenceResponse(codec.encode(decoded, InverseAnswer(problem.model, results)), problem.n_targets)

@@ -11,9 +11,11 @@ conformal, Mondrian (per-bin) upper bound on the relative l2 error of a design's
   a ``companion`` operator's (both on the grid); or ``"bins"``: 1 (the bound is the bin's quantile);
 * bins ``k``: intervals of the linearised bending angle :func:`bending_angle` between the
   calibration set's deciles (``edges`` ``(K + 1,)``, outermost: its min and max);
-* ``q_k``: in bin k, the ceil((n_k + 1) level)-th smallest error / (score + floor) ratio of the
-  calibration designs (exact solutions held out from training and testing), by ``crepes``
-  (training/operators/calibrate.py).
+* ``q_k``: in bin k, the k-th smallest error / (score + floor) ratio of the n_k calibration
+  designs (exact solutions held out from training and testing), by ``crepes``
+  (training/operators/calibrate.py), at the least rank k whose coverage Beta(k, n_k + 1 - k) is at
+  least ``level`` with probability 1 - ``delta`` (training-conditional split conformal; plain
+  split conformal takes k = ceil((n_k + 1) level), ``level`` on average over calibration sets).
 
 A design outside the calibrated region (a range warning of the design or its loads, or a bending
 angle outside ``edges``) gets no finite bound (``inf``).  The calibration record is covered by its
@@ -38,7 +40,7 @@ CALIBRATION_FORMAT = 1
 #: Arclength fractions of the calibrated error, equispaced on [0, 1] (the paper's grid).
 CALIBRATION_POINTS = 42
 #: Calibration designs per group (load-free, loaded) and their seed (training used seeds 0 and 24).
-CALIBRATION_DESIGNS, CALIBRATION_SEED = 20_000, 25
+CALIBRATION_DESIGNS, CALIBRATION_SEED = 40_000, 25
 #: The least tolerance a request may ask for: what the exact solver itself guarantees (relative l2).
 EXACT_TOLERANCE = 1e-6
 #: Where each design's answer came from (``source``; OIP output INT32 codes in this order).
@@ -73,7 +75,7 @@ def _digest(record: dict) -> str:
 @dataclass(frozen=True)
 class Calibration:
     """A model's calibrated error bound (see the module docstring); ``record``: the manifest's dict
-    (``format``, ``level``, ``score``, ``companion``, ``companion_sha256``, ``floor``, ``edges``,
+    (``format``, ``level``, ``delta``, ``score``, ``companion``, ``companion_sha256``, ``floor``, ``edges``,
     ``quantiles``, ``points``, ``calibration_set`` {``designs``, ``seed``, ``loads``}, ``sha256``).
     ``load_ranges``: the model's trained loads (None: it takes none)."""
 
@@ -139,8 +141,14 @@ class Calibration:
 
 def disagreement(tendons: np.ndarray, companion_tendons: np.ndarray) -> np.ndarray:
     """The score of ``"disagreement"``: relative l2 distance ``(B,)`` between two operators'
-    tendon positions ``(B, n, 4, 3)`` (the companion's as the reference)."""
-    return relative_l2(tendons, companion_tendons)
+    tendon positions ``(B, n, 4, 3)`` (the companion's as the reference): :func:`relative_l2`,
+    differences in the graphs' float32 and sums in float64 (8x faster than converting first)."""
+    mine, theirs = (np.asarray(a).reshape(len(a), -1) for a in (tendons, companion_tendons))
+    if mine.dtype != theirs.dtype:
+        return relative_l2(tendons, companion_tendons)
+    difference = mine - theirs
+    return np.sqrt(np.einsum("bi,bi->b", difference, difference, dtype=np.float64)
+                   / np.einsum("bi,bi->b", theirs, theirs, dtype=np.float64))
 
 
 @dataclass(frozen=True)

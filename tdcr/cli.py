@@ -47,7 +47,7 @@ def _cmd_solve(args) -> int:
 def _cmd_inverse(args) -> int:
     import numpy as np
 
-    from tdcr.inverse import answer, exact_forward, model_forward
+    from tdcr.inverse import answer, answer_exact, finish, model_forward
     from tdcr.runtime import ManifestError, Surrogate
     from tdcr.schemas import EXACT_MODEL
     from tdcr.validation import InvalidRequest, validate_inverse
@@ -57,7 +57,7 @@ def _cmd_inverse(args) -> int:
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
     if problem.model == EXACT_MODEL:
-        results = answer(problem, exact_forward(problem.design))
+        results = answer_exact(problem)
     else:
         try:
             model = Surrogate.load(args.models_dir, problem.model)
@@ -68,10 +68,7 @@ def _cmd_inverse(args) -> int:
             out = model.predict(features, np.ones(1), pose=True, check=False)  # differences may leave the bounds
             return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
 
-        results = answer(problem, model_forward(problem.design, tip_pose))
-        if problem.polish:
-            starts = np.array([r["tensions"] for r in results])
-            results = answer(problem, exact_forward(problem.design), starts=starts)
+        results = finish(problem, answer(problem, model_forward(problem.design, tip_pose)))
     json.dump({"model": problem.model, "results": results}, sys.stdout)
     sys.stdout.write("\n")
     return 0
@@ -294,10 +291,9 @@ def _cmd_params(args) -> int:
 
 def _cmd_predict(args) -> int:
     from tdcr import engine
+    from tdcr.checks import check_tolerance
     from tdcr.runtime import ManifestError, Surrogate, best_model, load_manifest
     from tdcr.validation import InvalidRequest
-
-    from tdcr.checks import check_tolerance
 
     text = _read_text(args.request)
     try:

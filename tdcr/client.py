@@ -31,14 +31,21 @@ class TDCRError(RuntimeError):
 
 
 def _request(features: np.ndarray, *, model: str | None, points: int | None, s, arclength, outputs,
-             loads=None) -> dict:
+             loads=None, tolerance: float | None = None) -> dict:
     """The ``/predict`` call of a binary request, after the one validation path's checks (nothing
     is sent for a bad one; the same words as the service's 422: :class:`tdcr.checks.InvalidRequest`,
     a ``ValueError``).  With ``loads`` (:class:`tdcr.ExternalLoads`) the body is ``(B, 25)``:
     each design followed by its loads matrix row."""
-    from tdcr.checks import check_fractions, check_loads, check_surrogate_features, checkable_loads, raise_problems
+    from tdcr.checks import (
+        check_fractions,
+        check_loads,
+        check_surrogate_features,
+        check_tolerance,
+        checkable_loads,
+        raise_problems,
+    )
 
-    problems = check_surrogate_features(features)
+    problems = check_surrogate_features(features) + check_tolerance(tolerance)
     if s is not None:
         problems += check_fractions(s)[1]
     body = np.asarray(features, dtype=np.float64)
@@ -46,8 +53,9 @@ def _request(features: np.ndarray, *, model: str | None, points: int | None, s, 
         problems += check_loads(checkable_loads(loads, len(body)), np.arange(len(body)))
         body = np.concatenate([body, np.nan_to_num(loads.matrix(len(body)))], axis=1)
     raise_problems(problems)
-    return {"content": _npy(body), "params": _params(model, points, s, arclength, outputs),
-            "headers": {"content-type": NPY, "accept": NPZ}}
+    params = _params(model, points, s, arclength, outputs) + ([] if tolerance is None else [("tolerance",
+                                                                                                repr(tolerance))])
+    return {"content": _npy(body), "params": params, "headers": {"content-type": NPY, "accept": NPZ}}
 
 
 def _npy(features: np.ndarray) -> bytes:
@@ -98,10 +106,13 @@ class Client:
         self._http.close()
 
     def predict(self, features: np.ndarray, *, loads=None, model: str | None = None,
-                points: int | None = DEFAULT_POINTS, s=None, arclength=None, outputs=None) -> dict:
+                points: int | None = DEFAULT_POINTS, s=None, arclength=None, outputs=None,
+                tolerance: float | None = None) -> dict:
         """Binary request: SI designs ``(B, 15)`` -> arrays ``s`` ``(B, n)`` (fractions of L),
         ``arclength`` ``(B, n)`` m, backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)``, tendons
-        ``(B, n, 4, 3)`` m, in_distribution and finite ``(B,)``.
+        ``(B, n, 4, 3)`` m, in_distribution, finite, error_bound (the calibrated 99 % bound of
+        each answer's relative l2 error, inf: none) and source (0: surrogate, 1: exact) ``(B,)``.
+        ``tolerance``: the designs whose bound exceeds it are answered by the exact solver.
 
         The arclengths: ``points`` equispaced on [0, L], or ``s`` (fractions of L), or ``arclength``
         (m, for designs of one length).  ``outputs``: e.g. ``["tendons"]`` to receive (and compute)
@@ -109,7 +120,8 @@ class Client:
         base frame), for a loaded operator (the default one when ``model`` is None).  Bad designs
         raise ``ValueError`` before anything is sent.
         """
-        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads)
+        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads,
+                        tolerance=tolerance)
         return _decode(self._http.post("/predict", **call))
 
     def predict_json(self, request: dict) -> dict:
@@ -136,9 +148,11 @@ class AsyncClient:
         await self._http.aclose()
 
     async def predict(self, features: np.ndarray, *, loads=None, model: str | None = None,
-                      points: int | None = DEFAULT_POINTS, s=None, arclength=None, outputs=None) -> dict:
+                      points: int | None = DEFAULT_POINTS, s=None, arclength=None, outputs=None,
+                      tolerance: float | None = None) -> dict:
         """As :meth:`Client.predict`."""
-        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads)
+        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads,
+                        tolerance=tolerance)
         return _decode(await self._http.post("/predict", **call))
 
     async def predict_json(self, request: dict) -> dict:

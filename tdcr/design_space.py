@@ -130,6 +130,19 @@ def sample_ood_designs(n: int, bin_range: tuple[float, float], *, seed: int, n_t
     return DesignBatch.from_features(high * (1.0 + p))
 
 
+def sample_outside_designs(n: int, *, widen: float = 0.2, seed: int, n_tendons: int = N_TENDONS) -> DesignBatch:
+    """Designs with every parameter outside Table I in a random direction: below ``low`` or above
+    ``high`` by a fraction uniform in (0, ``widen``] of the range's width (above where below would
+    leave the admissible bounds, e.g. a negative tension)."""
+    rng = np.random.default_rng([seed, 0x0D])
+    low, high = feature_bounds(n_tendons)
+    admissible_low = admissible_bounds(n_tendons)[0]
+    step = (high - low) * rng.uniform(0.0, widen, size=(n, low.size))
+    step = np.where(step > 0, step, widen * (high - low))  # uniform in (0, widen]
+    below = (rng.random((n, low.size)) < 0.5) & (low - step > admissible_low)
+    return DesignBatch.from_features(np.where(below, low - step, high + step))
+
+
 @dataclass(frozen=True)
 class LoadSpace:
     """A space of external loads to sample (all off by default; SI units).

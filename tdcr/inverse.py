@@ -31,7 +31,7 @@ import numpy as np
 
 from tdcr.designs import DesignBatch
 from tdcr.exact import NOT_FINITE_RESIDUAL
-from tdcr.physics import TipSolver
+from tdcr.physics import TipSolver, solve
 from tdcr.validation import InverseProblem
 
 #: Relative weight of |tau|^2 (to the Jacobian's scale) in the least-norm steps.
@@ -331,14 +331,76 @@ def answer(problem: InverseProblem, forward: Forward, *, starts: np.ndarray | No
 EVALUATIONS_PER_TARGET = 20
 
 
+def _admit(problem: InverseProblem, max_seconds: float | None, seconds_per_design: float, *,
+           evaluations: int = EVALUATIONS_PER_TARGET) -> None:
+    """:class:`tdcr.exact.TooMuchWork` if ``evaluations`` exact evaluations per target would take
+    over ``max_seconds``."""
+    from tdcr.exact import TooMuchWork
+
+    estimate = problem.n_targets * evaluations * 4 * seconds_per_design  # ~4 ms per evaluation
+    if max_seconds is not None and estimate > max_seconds:
+        raise TooMuchWork(estimate, max_seconds)
+
+
 def answer_exact(problem: InverseProblem, *, starts: np.ndarray | None = None, max_seconds: float | None = None,
                  seconds_per_design: float = 1e-3) -> list[dict]:
     """A validated inverse problem with the exact model, admitted by its estimated work (run in a
-    solver process); ``starts`` ``(T, N_t)``: polish these answers (of an operator).
-    Raises :class:`tdcr.exact.TooMuchWork`."""
-    from tdcr.exact import TooMuchWork
+    solver process); ``starts`` ``(T, N_t)``: polish these answers (of an operator).  Every answer's
+    ``source`` is ``"exact"``.  Raises :class:`tdcr.exact.TooMuchWork`."""
+    _admit(problem, max_seconds, seconds_per_design)
+    results = answer(problem, exact_forward(problem.design), starts=None if starts is None else np.asarray(starts))
+    return [r | {"source": "exact"} for r in results]
 
-    estimate = problem.n_targets * EVALUATIONS_PER_TARGET * 4 * seconds_per_design  # ~4 ms per evaluation
-    if max_seconds is not None and estimate > max_seconds:
-        raise TooMuchWork(estimate, max_seconds)
-    return answer(problem, exact_forward(problem.design), starts=None if starts is None else np.asarray(starts))
+
+def checked(problem: InverseProblem, results: list[dict], *, max_seconds: float | None = None,
+            seconds_per_design: float = 1e-3) -> list[dict]:
+    """An operator's answers kept to the request's tolerance in exact physics (run in a solver
+    process, admitted by one exact evaluation per target; the deadline bounds the rest): the tip at
+    each answer's tensions is the exact
+    solver's (with the design's loads), and so are the reported ``position``, ``direction``,
+    ``error`` and ``status`` (``source`` ``"surrogate"``: the operator's tensions); a target they
+    miss (not within ``tolerance x L``) is finished by exact steps from them when the design carries
+    tendon loads only (``source`` ``"exact"``; the exact Jacobian covers tendon loads only)."""
+    _admit(problem, max_seconds, seconds_per_design, evaluations=1)
+    tensions = np.array([r["tensions"] for r in results], dtype=np.float64)
+    designs = _with_tensions(problem.design, tensions)
+    loads = None
+    if problem.loads is not None:
+        matrix = np.repeat(problem.loads.matrix(1), len(tensions), axis=0)
+        loads = None if not np.any(matrix) else type(problem.loads).from_matrix(matrix)
+    with np.errstate(all="ignore"):
+        sol = solve(designs, np.ones(1), loads=loads)
+    length = float(problem.design.L[0])
+    out, missed = [], []
+    for k, result in enumerate(results):
+        pose = TipPose(position=sol.backbone[k:k + 1, -1], direction=sol.rotation[k:k + 1, -1, :, 2],
+                       jacobian=np.zeros((1, 6, tensions.shape[1])), ok=sol.converged[k:k + 1])
+        wanted = problem.directions[k] if np.isfinite(problem.directions[k]).all() else None
+        target = problem.positions[k]
+        verdict = _status(_residual(pose, 0, target, wanted, length)[0], wanted, problem.tolerance) \
+            if pose.ok[0] and np.isfinite(pose.position).all() else "failed"
+        exact = _result(tensions[k], pose, target, wanted, verdict, result["iterations"])
+        item = result | {"position": np.nan_to_num(exact.position).tolist(),
+                         "error": exact.error if np.isfinite(exact.error) else NOT_FINITE_RESIDUAL,
+                         "status": verdict, "source": "surrogate"}
+        if wanted is not None:
+            item["direction"] = np.nan_to_num(exact.direction).tolist()
+        out.append(item)
+        if verdict != "reached" and loads is None:
+            missed.append(k)
+    if missed:
+        sub = replace(problem, positions=problem.positions[missed], directions=problem.directions[missed])
+        finished = answer(sub, exact_forward(problem.design), starts=tensions[missed])
+        for k, item in zip(missed, finished, strict=True):
+            out[k] = item | {"iterations": item["iterations"] + out[k]["iterations"], "source": "exact"}
+    return out
+
+
+def finish(problem: InverseProblem, results: list[dict], *, max_seconds: float | None = None,
+           seconds_per_design: float = 1e-3) -> list[dict]:
+    """An operator's ``results`` finished in exact physics: every target polished by exact steps
+    (``problem.polish``), else :func:`checked`."""
+    if problem.polish:
+        return answer_exact(problem, starts=np.array([r["tensions"] for r in results]), max_seconds=max_seconds,
+                            seconds_per_design=seconds_per_design)
+    return checked(problem, results, max_seconds=max_seconds, seconds_per_design=seconds_per_design)

@@ -271,7 +271,8 @@ class InverseRequest(BaseModel):
                        description="exact (the solver and its exact Jacobian) or an operator")
     polish: bool = Field(False, description="with an operator: finish each target with exact steps")
     tolerance: float = Field(1e-4, ge=1e-9, le=0.1, description="a target is reached within tolerance x L "
-                             "(and tolerance in direction)")
+                             "(and tolerance in direction), in exact physics: an operator's answers are checked by "
+                             "the exact solver and a target they miss is finished by exact steps (tendon loads only)")
 
 
 class InverseResult(BaseModel):
@@ -281,6 +282,9 @@ class InverseResult(BaseModel):
     error: float = Field(description="distance from the target position, m")
     status: str = Field(description="reached, closest (unreachable within the bounds: the closest tip) or failed")
     iterations: int = Field(description="forward-model evaluations")
+    source: Literal["surrogate", "exact"] = Field("exact", description=(
+        "whose tensions: the operator's (checked in exact physics: position, direction, error and status are the "
+        "exact solver's), or exact steps' (the exact model, polish, or a target the operator's answer missed)"))
 
 
 class InverseResponse(BaseModel):

@@ -1,7 +1,7 @@
 """The 3-D shape viewer (GET / -> /viewer/): its files, headers and vendored JavaScript over HTTP, and
 the page itself in a real headless Chromium (Debian's, driven by Playwright): a slider moved by
 keyboard updates both shapes, the canvas is drawn, and the error shown equals the one computed
-here from /predict and /exact for the same design."""
+here from /predict and /exact for the same design, beside the operator's calibrated bound."""
 
 from __future__ import annotations
 
@@ -25,8 +25,10 @@ CHROMIUM_ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swi
 
 
 @pytest.fixture(scope="module")
-def server(tiny_models):
-    srv = ServerProcess(tiny_models[1])
+def server():
+    from tdcr.runtime import DEFAULT_MODELS_DIR
+
+    srv = ServerProcess(DEFAULT_MODELS_DIR)  # the shipped models: calibrated bounds to show
     yield srv
     srv.stop()
 
@@ -131,6 +133,10 @@ def test_the_page_in_a_real_browser(server, tmp_path):
             shown = float(page.inner_text("#error").split()[0])
             assert shown == pytest.approx(expected, rel=1e-3)
             assert expected > 0
+            # the operator's calibrated bound beside the measured error
+            bound = predicted["results"][0]["error_bound"]
+            assert bound is not None and float(_attr(page, "error-bound")) == pytest.approx(bound, rel=1e-12)
+            assert float(page.inner_text("#error-bound").split()[0]) == pytest.approx(bound, rel=1e-3)
 
             # gravity and a tip force: a loaded operator over the exact loaded shape
             before = int(_attr(page, "updates"))

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
+from tdcr.bounds import bending_angle
 from tdcr.designs import DesignBatch
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
@@ -376,14 +377,6 @@ def study_ood(ctx: Context) -> int:
                 _append(path, {**base, "preset": preset, "model": name, **extra,
                                "error": _summary(relative_l2(pred, truth))})
     return unfinished
-
-
-def bending_angle(features: np.ndarray) -> np.ndarray:
-    """Linearised bending angle theta = max_i tau_i |rho_i| L / (E I), rad, ``(B,)``; I = pi r^4 / 4."""
-    lay = design_space.LAYOUT
-    e, r, length = features[:, 0], features[:, 1], features[:, 2]
-    offsets, tensions = features[:, lay.group("offset")], features[:, lay.group("tension")]
-    return (tensions * offsets).max(axis=1) * length / (e * math.pi * r**4 / 4.0)
 
 
 def design_traits(features: np.ndarray) -> dict[str, np.ndarray]:

@@ -30,6 +30,7 @@ from tdcr.bounds import (
     Calibration,
     bending_angle,
     calibration_grid,
+    disagreement,
 )
 from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
@@ -38,6 +39,10 @@ from tdcr.runtime import Surrogate, takes_loads
 
 #: Confidence of the bounds.
 LEVEL = 0.99
+#: The chance that a calibration set leaves its bounds' coverage below LEVEL (training-conditional,
+#: "PAC" split conformal: Vovk 2012): each bin's quantile rank is raised until the coverage of that
+#: order statistic, Beta(k, n + 1 - k), is at least LEVEL with probability 1 - DELTA.
+DELTA = 0.1
 #: Mondrian bins: quantiles of the calibration set's bending angle.
 N_BINS = 10
 #: Added to every score: a bound is never zero.
@@ -84,7 +89,7 @@ class Measured:
     def score(self, name: str, score: Score) -> np.ndarray | None:
         if score.kind == "bins":
             return None
-        return relative_l2(self.paths[name], self.paths[score.companion])
+        return disagreement(self.paths[name], self.paths[score.companion])
 
 
 def measure(models_dir: str | Path, names: list[str], designs: DesignBatch, loads: ExternalLoads | None) -> Measured:
@@ -103,20 +108,39 @@ def measure(models_dir: str | Path, names: list[str], designs: DesignBatch, load
     return Measured(features=features, loads=matrix, truth=truth.tendons[ok], paths=paths)
 
 
+def conformal_rank(n: int, level: float, delta: float | None) -> int:
+    """The rank k (1-based, of n ascending calibration ratios) of a bin's quantile: the split
+    conformal ceil((n + 1) level) (``delta`` None: coverage >= level on average over calibration
+    sets), or the least k whose coverage Beta(k, n + 1 - k) is >= level with probability
+    1 - ``delta``; n + 1 (no finite bound) when the bin is too small."""
+    from scipy.stats import beta
+
+    k = int(np.ceil((n + 1) * level))
+    if delta is not None:
+        while k <= n and beta.sf(level, k, n + 1 - k) < 1.0 - delta:
+            k += 1
+    return k
+
+
 def fit(error: np.ndarray, score: np.ndarray | None, theta: np.ndarray, *, level: float = LEVEL,
-        n_bins: int = N_BINS) -> tuple[np.ndarray, np.ndarray]:
+        delta: float | None = DELTA, n_bins: int = N_BINS) -> tuple[np.ndarray, np.ndarray]:
     """Mondrian split-conformal quantiles: bin ``edges`` ``(n_bins + 1,)`` of the bending angles
-    ``theta`` ``(B,)`` (their quantiles, outermost min and max) and per bin the ``level`` quantile
-    ``(n_bins,)`` of error / (score + floor), by ``crepes.ConformalRegressor`` (residuals >= 0, so
-    its interval's upper end is the bound)."""
+    ``theta`` ``(B,)`` (their quantiles, outermost min and max) and per bin the quantile
+    ``(n_bins,)`` of error / (score + floor) at the rank of :func:`conformal_rank`, by
+    ``crepes.ConformalRegressor`` (residuals >= 0, so its interval's upper end is the bound; its
+    confidence (k - 1/2) / (n + 1) selects the k-th smallest ratio)."""
     from crepes import ConformalRegressor
 
     edges = np.quantile(theta, np.linspace(0.0, 1.0, n_bins + 1))
     bins = np.clip(np.searchsorted(edges, theta, side="right") - 1, 0, n_bins - 1)
     sigmas = np.ones_like(error) if score is None else score + SCORE_FLOOR
     regressor = ConformalRegressor().fit(residuals=error, sigmas=sigmas, bins=bins)
-    upper = regressor.predict_int(np.zeros(n_bins), sigmas=np.ones(n_bins), bins=np.arange(n_bins),
-                                  confidence=level)[:, 1]
+    upper = np.empty(n_bins)
+    for k in range(n_bins):
+        n = int((bins == k).sum())
+        confidence = min((conformal_rank(n, level, delta) - 0.5) / (n + 1), 1.0)
+        upper[k] = regressor.predict_int(np.zeros(1), sigmas=np.ones(1), bins=np.array([k]),
+                                         confidence=confidence)[0, 1]
     return edges, upper
 
 
@@ -142,7 +166,8 @@ def calibrate(models_dir: str | Path, manifest: dict, names: list[str], *, desig
             edges, quantiles = fit(measured.error(name), measured.score(name, score), theta)
             companion = score.companion
             records[name] = Calibration.sealed({
-                "format": CALIBRATION_FORMAT, "level": LEVEL, "score": score.kind, "companion": companion,
+                "format": CALIBRATION_FORMAT, "level": LEVEL, "delta": DELTA, "score": score.kind,
+                "companion": companion,
                 "companion_sha256": None if companion is None else manifest["models"][companion]["sha256"],
                 "floor": SCORE_FLOOR, "bins": "bending_angle", "edges": edges.tolist(), "quantiles": quantiles.tolist(),
                 "points": CALIBRATION_POINTS,

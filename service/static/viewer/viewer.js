@@ -1,6 +1,7 @@
 // The TDCR shape viewer: sliders -> debounced POST /predict and POST /exact -> three.js drawing.
 // Everything in SI units from the service; shown in friendlier units.  For tests, <body> carries
-// data-updates (answers drawn), data-design (the design drawn, JSON) and data-error (relative l2).
+// data-updates (answers drawn), data-design (the design drawn, JSON), data-error (relative l2) and
+// data-error-bound (the operator's calibrated bound, or "none").
 "use strict";
 (function () {
   const DEBOUNCE_MS = 150;
@@ -224,6 +225,11 @@
     const error = relativeL2(p.tendons, x.tendons);
     body.dataset.error = String(error);
     el("error").textContent = `${error.toExponential(3)} (${(100 * error).toFixed(3)} %)`;
+    // the operator's own bound on that error (null: outside the calibrated region, or uncalibrated)
+    const bound = p.error_bound;
+    body.dataset.errorBound = bound == null ? "none" : String(bound);
+    el("error-bound").textContent = bound == null ? "none: outside the calibrated region"
+      : `${bound.toExponential(3)} ${error <= bound ? "(the error is within it)" : "(exceeded: 1 answer in 100 may)"}`;
     const n = x.backbone.length - 1;
     const tip = Math.hypot(...p.backbone[n].map((v, i) => v - x.backbone[n][i])) * 1e3;
     body.dataset.tipError = String(tip);
