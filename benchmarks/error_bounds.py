@@ -28,9 +28,9 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import time
 
 import numpy as np
+from loaded_operators import seconds  # best of n (benchmarks/ is the script's folder)
 
 from service.process import ROOT
 from tdcr import design_space
@@ -43,16 +43,6 @@ from training.operators.calibrate import SCORES, fit, measure
 TOLERANCES = (0.01, 0.001)
 LEVELS = (0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995)
 TEST_SEED, OOD_SEED = 4250, 4251
-
-
-def best_seconds(run, reps: int = 5) -> float:
-    run()
-    best = float("inf")
-    for _ in range(reps):
-        started = time.perf_counter()
-        run()
-        best = min(best, time.perf_counter() - started)
-    return best
 
 
 def ood_sets(n: int, loads_space) -> dict[str, tuple]:
@@ -131,9 +121,9 @@ def main() -> None:
                 ood_rows.append([name, label, int(t.converged.sum()), *cells])
             f1000 = designs.features()[:1000]
             m1000 = None if loads is None else loads.matrix(args.test)[:1000]
-            plain = best_seconds(lambda op=op, f=f1000, m=m1000: op.predict(f, grid, loads=m, pose=False))
-            guarded = best_seconds(lambda op=op, f=f1000, m=m1000: op.predict(f, grid, loads=m, pose=False,
-                                                                              tolerance=0.01))
+            plain = seconds(lambda op=op, f=f1000, m=m1000: op.predict(f, grid, loads=m, pose=False), 5)
+            guarded = seconds(lambda op=op, f=f1000, m=m1000: op.predict(f, grid, loads=m, pose=False,
+                                                                        tolerance=0.01), 5)
             throughput.append([name, 1000 / plain, 1000 / guarded, plain / guarded])
             # the reliability diagram: each level refitted on the recorded calibration set
             score = SCORES[name]
