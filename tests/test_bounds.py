@@ -284,31 +284,56 @@ def test_binary_predict_takes_the_tolerance_as_a_query_parameter(server):
             client.predict(designs.features(), tolerance=-1.0)
 
 
-def test_oip_rest_and_grpc_keep_the_tolerance_parameter(server):
-    import tritonclient.grpc as grpcclient
-    import tritonclient.http as httpclient
+#: tritonclient in a process of its own: its gRPC stubs and ours define the same proto symbols.
+TRITON_SCRIPT = """
+import json, sys
+import numpy as np
+import tritonclient.grpc as grpcclient
+import tritonclient.http as httpclient
 
+protocol, url, model, path = sys.argv[1:5]
+module = httpclient if protocol == "http" else grpcclient
+features = np.load(path)
+client = module.InferenceServerClient(url)
+design = module.InferInput("design", list(features.shape), "FP64")
+design.set_data_from_numpy(features)
+outputs = [module.InferRequestedOutput(n) for n in ("tendons", "error_bound", "source")]
+result = client.infer(model, [design], outputs=outputs, parameters={"tolerance": 1e-3})
+errors = []
+for name, parameters in ((model, {"tolerance": 1e-9}), ("exact", {"tolerance": 1e-3})):
+    try:
+        client.infer(name, [design], parameters=parameters)
+    except Exception as exc:  # tritonclient's InferenceServerException
+        errors.append(str(exc))
+np.savez(path + ".npz", tendons=result.as_numpy("tendons"), error_bound=result.as_numpy("error_bound"),
+         source=result.as_numpy("source"))
+print(json.dumps(errors))
+"""
+
+
+@pytest.mark.parametrize("protocol", ["http", "grpc"])
+def test_oip_rest_and_grpc_keep_the_tolerance_parameter(server, tmp_path, protocol):
     designs = _hard_and_easy(10)
     features = designs.features()
     solved = solve(designs, GRID).tendons.astype(np.float32)
-    plain = Surrogate.shipped(DEFAULT).predict(features, GRID, tolerance=1e-3)
-    host = server.url.removeprefix("http://")
-    for module, url in ((httpclient, host), (grpcclient, server.grpc_target)):
-        client = module.InferenceServerClient(url)
-        design = module.InferInput("design", list(features.shape), "FP64")
-        design.set_data_from_numpy(features)
-        outputs = [module.InferRequestedOutput(n) for n in ("tendons", "error_bound", "source")]
-        result = client.infer(DEFAULT, [design], outputs=outputs, parameters={"tolerance": 1e-3})
-        source = result.as_numpy("source")
-        np.testing.assert_array_equal(source, plain["source"])
-        exact = source == 1
-        np.testing.assert_array_equal(result.as_numpy("tendons")[exact], solved[exact])
-        np.testing.assert_allclose(result.as_numpy("error_bound"), plain["error_bound"], rtol=1e-6)
-        with pytest.raises(Exception, match="tolerance"):
-            client.infer(DEFAULT, [design], outputs=outputs, parameters={"tolerance": 1e-9})
-        with pytest.raises(Exception, match="parameter 'tolerance' applies to the operators"):
-            client.infer("exact", [design], parameters={"tolerance": 1e-3})
-        client.close()
+    local = Surrogate.shipped(DEFAULT).predict(features, GRID, tolerance=1e-3)
+    path = tmp_path / "designs.npy"
+    np.save(path, features)
+    script = tmp_path / "client.py"
+    script.write_text(TRITON_SCRIPT)
+    url = server.url.removeprefix("http://") if protocol == "http" else server.grpc_target
+    run = subprocess.run([sys.executable, str(script), protocol, url, DEFAULT, str(path)], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    result = np.load(str(path) + ".npz")
+    np.testing.assert_array_equal(result["source"], local["source"])
+    exact = result["source"] == 1
+    assert 0 < exact.sum() < len(exact)
+    np.testing.assert_array_equal(result["tendons"][exact], solved[exact])  # the solver's, in FP32
+    np.testing.assert_allclose(result["error_bound"], local["error_bound"], rtol=1e-6)
+    too_tight, not_an_operator = json.loads(run.stdout)
+    assert "tolerance: must be a relative l2 error of at least 1e-06" in too_tight
+    assert "parameter 'tolerance' applies to the operators" in not_an_operator
 
 
 def test_inverse_with_an_operator_meets_its_tolerance_in_exact_physics(server):
@@ -342,3 +367,19 @@ def test_cli_predict_keeps_a_tolerance(tmp_path):
     assert [x["source"] for x in results] == ["exact" if s else "surrogate" for s in local["source"]]
     bad = subprocess.run([*run, "--tolerance", "1e-9"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--tolerance: must be a relative l2 error of at least 1e-06" in bad.stderr
+
+
+def test_the_exact_part_keeps_the_solvers_admission_and_deadline():
+    from service.process import ServerProcess
+
+    outside = design_space.sample_outside_designs(40, seed=5).to_dicts()  # no bound: all to the solver
+    # admission: 1 s estimated per design, at most 3 x 5 s admitted
+    with ServerProcess(DEFAULT_MODELS_DIR, grpc=False, exact_timeout_s=5, exact_seconds_per_design=1.0) as srv:
+        r = httpx.post(srv.url + "/predict", json={"designs": outside, "tolerance": 0.01}, timeout=60)
+        assert r.status_code == 413 and "would take the solver about 40 s" in r.json()["message"], r.text
+        r = httpx.post(srv.url + "/predict", json={"designs": outside}, timeout=60)  # no tolerance: no solver
+        assert r.status_code == 200 and all(x["error_bound"] is None for x in r.json()["results"])
+    # the deadline: 0.1 ms
+    with ServerProcess(DEFAULT_MODELS_DIR, grpc=False, exact_timeout_s=1e-4) as srv:
+        r = httpx.post(srv.url + "/predict", json={"designs": outside[:2], "tolerance": 0.01}, timeout=60)
+        assert r.status_code == 504 and "did not finish within 0.0001 s" in r.json()["message"], r.text
