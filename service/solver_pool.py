@@ -6,6 +6,9 @@ and replaced: the next request does not queue behind abandoned work.  A worker t
 detected when its pipe closes and replaced the same way; ``healthy`` is False until it is back, so
 ``/readyz`` reflects the pool.  Workers die with the server, even after a SIGKILL of the server:
 they ask Linux for a parent-death signal (``PR_SET_PDEATHSIG``) and also watch their parent's pid.
+Linux sends that signal when the *thread* that started the process ends, so every worker is started
+on the pool's own spawner thread, which lives as long as the pool: started from a short-lived
+thread-pool thread (anyio ends its idle threads after 10 s), a healthy worker was killed with it.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from multiprocessing.connection import Connection
 
 import anyio
@@ -107,12 +111,15 @@ class SolverPool:
     def __init__(self, workers: int, *, start_timeout_s: float = 120.0):
         self._ctx = multiprocessing.get_context("spawn")
         self._start_timeout_s = start_timeout_s
-        self.workers = [self._start() for _ in range(workers)]
+        # the one thread that starts workers: their parent-death signal is tied to it (module docstring)
+        self._spawner = ThreadPoolExecutor(1, thread_name_prefix="tdcr-solver-spawner")
+        self.workers = [self._spawner.submit(self._start).result() for _ in range(workers)]
         self._idle: asyncio.Queue[_Worker] | None = None
         self._tasks: set[asyncio.Task] = set()  # replacements in progress (kept referenced)
         self.down = 0  # workers that died unexpectedly and are being replaced (the pool is unhealthy)
 
     def _start(self) -> _Worker:
+        """A ready worker (on the spawner thread only)."""
         worker = _Worker(self._ctx)
         worker.wait_ready(self._start_timeout_s)
         return worker
@@ -167,7 +174,7 @@ class SolverPool:
             await run_in_threadpool(worker.kill)
             while True:
                 try:
-                    fresh = await run_in_threadpool(self._start)
+                    fresh = await asyncio.wrap_future(self._spawner.submit(self._start))
                     break
                 except (EOFError, OSError, RuntimeError) as exc:  # e.g. killed while starting
                     log.warning("a solver process failed to start (%s); retrying", exc)
@@ -192,3 +199,4 @@ class SolverPool:
     def close(self) -> None:
         for w in self.workers:
             w.kill()
+        self._spawner.shutdown(wait=False)

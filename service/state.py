@@ -99,12 +99,14 @@ def load_models(state: ServiceState) -> ModelRepository:
 
 
 def guard(repository: ModelRepository, exact: ExactModel, problems: list[str]) -> None:
-    """Give every calibrated operator its error bound and the exact solver behind its tolerance;
-    an operator whose score needs a companion that is not served stays unguarded (a problem)."""
+    """Give every operator its error bound (none, so every design goes to the solver under a
+    tolerance, for an uncalibrated one) and the exact solver behind its tolerance; an operator
+    whose score needs a companion that is not served stays unguarded (a problem)."""
     for model in list(repository):
-        if not isinstance(model, SurrogateModel) or model.surrogate.calibration is None:
+        if not isinstance(model, SurrogateModel):
             continue
-        name = model.surrogate.calibration.companion
+        calibration = model.surrogate.calibration
+        name = None if calibration is None else calibration.companion
         companion = None if name is None else repository.models.get(name)
         if name is not None and not isinstance(companion, SurrogateModel):
             problems.append(f"model {model.name}: its error bound needs the operator {name!r}, which is not loaded")

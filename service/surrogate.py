@@ -31,14 +31,15 @@ class SurrogateModel(Model):
     def __init__(self, surrogate: Surrogate, *, limits: Limits, batcher: Batcher):
         self.name = surrogate.name
         self.surrogate, self.limits, self.batcher = surrogate, limits, batcher
-        #: its error bound and the exact solver behind its tolerance (:meth:`guard_with`); None: uncalibrated
+        #: its error bound and the exact solver behind its tolerance (:meth:`guard_with`, at startup)
         self.guard: engine.Guard | None = None
         if surrogate.takes_loads:
             self.inputs = SURROGATE_INPUTS | LOAD_INPUTS
 
     def guard_with(self, companion: SurrogateModel | None, exact) -> None:
-        """Bound its answers (its calibration, scored against the served ``companion``) and keep
-        tolerances with ``exact`` (a sub-request -> :class:`tdcr.exact.ExactAnswer`, blocking)."""
+        """Bound its answers (its calibration, scored against the served ``companion``; none
+        without a calibration) and keep tolerances with ``exact`` (a sub-request ->
+        :class:`tdcr.exact.ExactAnswer`, blocking)."""
         self.guard = engine.Guard(calibration=self.surrogate.calibration,
                                   companion=None if companion is None else companion.batcher, exact=exact)
 

@@ -51,22 +51,20 @@ class Predictor(Protocol):
 @dataclass(frozen=True)
 class Guard:
     """What bounds an operator's answers and keeps a request's tolerance: its ``calibration``
-    (:class:`tdcr.bounds.Calibration`), the ``companion`` predictor its score needs (None: none),
+    (:class:`tdcr.bounds.Calibration`; None: uncalibrated, so no answer has a finite bound and a
+    tolerance sends every design to the solver), the ``companion`` predictor its score needs (None: none),
     and ``exact``: the exact solver's answer (:class:`tdcr.exact.ExactAnswer`) to a sub-request of
     the designs that fall back (:meth:`tdcr.validation.ShapeRequest.take`), with whatever admission
     and deadline the caller keeps."""
 
-    calibration: Calibration
+    calibration: Calibration | None
     companion: Predictor | None
     exact: Callable[[ShapeRequest], ExactAnswer]
 
 
-def local_guard(surrogate) -> Guard | None:
+def local_guard(surrogate) -> Guard:
     """The :class:`Guard` of a loaded :class:`tdcr.runtime.Surrogate` in this process (``tdcr
-    predict``): its calibration, its companion and the exact solver here, unlimited; None if it is
-    not calibrated."""
-    if surrogate.calibration is None:
-        return None
+    predict``): its calibration (if any), its companion and the exact solver here, unlimited."""
     from tdcr.exact import solve_request
 
     return Guard(calibration=surrogate.calibration, companion=surrogate.companion(), exact=solve_request)
@@ -148,11 +146,11 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str, guard_wi
 
     ``guard_with``: the model's :class:`Guard`: every answer gets its ``error_bound``, and with the
     request's ``tolerance`` the designs whose bound exceeds it are the exact solver's (``source``).
-    A tolerance for a model without one is an :class:`InvalidRequest` naming ``tolerance``."""
+    A tolerance without a guard is an :class:`InvalidRequest` naming ``tolerance``."""
     features, loads = request.features, request.loads
     if request.tolerance is not None and guard_with is None:
-        raise InvalidRequest([Problem(("tolerance",), f"model {model!r} has no calibrated error bound to keep it "
-                                      "with (`tdcr calibrate`); send the designs to /exact", "tolerance_uncalibrated")])
+        raise InvalidRequest([Problem(("tolerance",), f"model {model!r} is run here without an exact solver to "
+                                      "keep it with (engine.local_guard)", "tolerance_unguarded")])
     if not predictor.takes_loads:
         problems = check_model_loads(loads, np.arange(len(features)), model=model)
         if problems:

@@ -96,12 +96,15 @@ def on_grid_tendons(out: dict[str, np.ndarray], fractions: np.ndarray) -> np.nda
     return out["tendons"] if same else None
 
 
-def error_bound(calibration: Calibration, features: np.ndarray, loads: np.ndarray | None, *,
+def error_bound(calibration: Calibration | None, features: np.ndarray, loads: np.ndarray | None, *,
                 tendons: np.ndarray | None, own, companion) -> np.ndarray:
-    """The bound ``(B,)`` of an operator's answers (:meth:`Calibration.bound`): its score from
+    """The bound ``(B,)`` of an operator's answers (:meth:`Calibration.bound`; ``inf`` without a
+    calibration): its score from
     ``tendons`` on the calibration grid (computed by ``own(features, grid, loads=, pose=False,
     check=False)`` when None) and the ``companion``'s (a predictor of the same signature).  The one
     computation of a bound, for :meth:`Surrogate.error_bound` and the engine alike."""
+    if calibration is None:
+        return np.full(len(features), np.inf)
     score = None
     if calibration.companion is not None:
         grid = calibration_grid()
@@ -239,11 +242,11 @@ class Surrogate:
     def error_bound(self, features: np.ndarray, *, loads: ExternalLoads | np.ndarray | None = None,
                     tendons: np.ndarray | None = None) -> np.ndarray:
         """The calibrated 99 % bound ``(B,)`` of the relative l2 error of each design's tendon
-        positions (:mod:`tdcr.bounds`; ``inf`` outside the calibrated region); ``tendons``: this
-        operator's answer ``(B, 42, 4, 3)`` on the calibration grid if already computed.  A
-        ``ValueError`` if the model is not calibrated.  Designs are not checked here."""
+        positions (:mod:`tdcr.bounds`; ``inf`` outside the calibrated region, and everywhere for a
+        model without a calibration); ``tendons``: this operator's answer ``(B, 42, 4, 3)`` on the
+        calibration grid if already computed.  Designs are not checked here."""
         if self.calibration is None:
-            raise ValueError(f"model {self.name!r} has no calibrated error bound (run `tdcr calibrate`)")
+            return np.full(len(features), np.inf)
         matrix = self.load_matrix(loads, len(features))
         return error_bound(self.calibration, np.asarray(features, dtype=np.float64), matrix, tendons=tendons,
                            own=self.predict, companion=self.companion())

@@ -383,3 +383,14 @@ def test_the_exact_part_keeps_the_solvers_admission_and_deadline():
     with ServerProcess(DEFAULT_MODELS_DIR, grpc=False, exact_timeout_s=1e-4) as srv:
         r = httpx.post(srv.url + "/predict", json={"designs": outside[:2], "tolerance": 0.01}, timeout=60)
         assert r.status_code == 504 and "did not finish within 0.0001 s" in r.json()["message"], r.text
+
+
+def test_an_uncalibrated_model_has_no_bound_and_its_tolerance_goes_to_the_solver(tiny_models):
+    models_dir = tiny_models[1]
+    name = sorted(load_manifest(models_dir)["models"])[0]
+    op = Surrogate.load(models_dir, name)
+    assert op.calibration is None
+    designs = design_space.sample_designs(3, seed=4264)
+    out = op.predict(designs.features(), GRID, tolerance=0.01)
+    assert np.isinf(op.error_bound(designs.features())).all() and (out["source"] == EXACT).all()
+    np.testing.assert_array_equal(out["tendons"], solve(designs, GRID).tendons)

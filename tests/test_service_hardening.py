@@ -281,3 +281,22 @@ def test_predict_stays_live_during_an_exact_flood(server, example_request):
 
     asyncio.run(go())
     assert answers and set(answers) == {200}
+
+
+def test_solver_workers_outlive_the_thread_that_started_the_pool():
+    """Linux's parent-death signal follows the thread that started a process: a pool built on a
+    short-lived thread (the lifespan's worker thread) once lost its workers when that thread ended."""
+    import threading
+
+    from service.solver_pool import SolverPool
+
+    built = {}
+    starter = threading.Thread(target=lambda: built.setdefault("pool", SolverPool(1)))
+    starter.start()
+    starter.join()
+    time.sleep(1.0)  # the signal, if any, has arrived
+    pool = built["pool"]
+    try:
+        assert all(w.process.is_alive() for w in pool.workers)
+    finally:
+        pool.close()
