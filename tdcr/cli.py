@@ -644,7 +644,8 @@ def build_parser() -> argparse.ArgumentParser:
 EXTRAS = {"torch": "train", "onnx": "train", "onnxscript": "train", "matplotlib": "train",
           "fastapi": "serve", "uvicorn": "serve", "onnxruntime": "serve", "grpc": "serve", "httpx": "serve",
           "orjson": "serve", "prometheus_client": "serve", "pydantic_settings": "serve", "starlette": "serve",
-          "dask": "data", "distributed": "data"}
+          "dask": "data", "distributed": "data", "cma": "design", "scipy": "design", "crepes": "train",
+          "sklearn": "train"}
 
 
 def main(argv: list[str] | None = None) -> int:
