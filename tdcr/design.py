@@ -201,8 +201,9 @@ def inner_ik(tip: TipModel, features: np.ndarray, targets: np.ndarray, direction
              tau: np.ndarray, tension_max: float, iterations: int = INNER_ITERATIONS) -> tuple[np.ndarray, ...]:
     """Box-constrained Levenberg-Marquardt on the tensions of ``B`` problems at once: designs
     ``(B, 15)``, targets ``(B, 3)``, directions ``(B, 3)`` (NaN rows: none), starts ``(B, 4)``.
-    Returns tensions ``(B, 4)``, tip positions ``(B, 3)``, position errors ``(B,)`` m (inf: the
-    model failed) and the designs evaluated."""
+    Returns tensions ``(B, 4)``, tip positions ``(B, 3)``, position errors ``(B,)`` m and
+    direction errors ``(B,)`` (|d - d_target|; 0 without a direction; inf: the model failed), and
+    the designs evaluated."""
     lengths = features[:, 2]
     tension = LAYOUT.group("tension")
     eye = np.eye(N_TENDONS)
@@ -234,7 +235,8 @@ def inner_ik(tip: TipModel, features: np.ndarray, targets: np.ndarray, direction
         cost = np.where(better, t_cost, cost)
         damping = np.where(better, damping * 0.3, damping * 10.0)
     error = np.where(np.isfinite(cost), np.linalg.norm(position - targets, axis=1), np.inf)
-    return tau, position, error, evaluations
+    direction_error = np.where(np.isfinite(cost), np.linalg.norm(r[:, 3:], axis=1), np.inf)
+    return tau, position, error, direction_error, evaluations
 
 
 # -- the search -------------------------------------------------------------------------------
@@ -315,6 +317,7 @@ def search(task: Task, *, surrogate=None, inner: str = "operator", progress: boo
     counts = {"surrogate": 0, "exact": 0}
     pool: list[Candidate] = []
     best: tuple[float, np.ndarray, list[dict]] | None = None  # objective, features, exact targets
+    closest: tuple[float, np.ndarray, list[dict]] | None = None  # summed exact miss, features, targets
     tried: list[np.ndarray] = []
     overturned = generations = since = 0
     history = []
@@ -329,9 +332,11 @@ def search(task: Task, *, surrogate=None, inner: str = "operator", progress: boo
         targets = np.tile(np.repeat(task.positions, len(STARTS), axis=0), (p, 1))
         directions = np.tile(np.repeat(task.directions, len(STARTS), axis=0), (p, 1))
         starts = np.tile(np.repeat(np.array(STARTS)[:, None] * task.tension_max, N_TENDONS, axis=1), (p * t, 1))
-        tau, _, error, evaluated = inner_ik(tip, rows, targets, directions, starts, task.tension_max)
+        tau, _, error, turn, evaluated = inner_ik(tip, rows, targets, directions, starts, task.tension_max)
         counts["exact" if inner == "exact" else "surrogate"] += evaluated
-        error = error.reshape(p, t, len(STARTS))
+        # a miss in metres: the position's, and the direction's times L (the exact inverse kinematics
+        # asks both within the tolerance, the direction's over L)
+        error = np.maximum(error, turn * rows[:, 2]).reshape(p, t, len(STARTS))
         tau = tau.reshape(p, t, len(STARTS), N_TENDONS)
         pick = np.argmin(error, axis=2)                                            # the better start
         err = np.take_along_axis(error, pick[..., None], axis=2)[..., 0]          # (P, T)
@@ -367,6 +372,9 @@ def search(task: Task, *, surrogate=None, inner: str = "operator", progress: boo
                     best, improved = (value, candidate.features, results), True
             else:
                 overturned += 1
+                miss = sum(r["error"] for r in results)
+                if closest is None or miss < closest[0]:
+                    closest = (miss, candidate.features, results)
         since = 0 if improved else since + 1
         history.append(float(fitness.min()))
         bar.n = min(round(time.perf_counter() - started), bar.total)
@@ -374,7 +382,10 @@ def search(task: Task, *, surrogate=None, inner: str = "operator", progress: boo
         if best is not None and since >= PATIENCE or es is None:
             break
     bar.close()
-    if best is None:  # best effort: the operator's best candidate (feasible or not), checked by physics
+    if best is None and closest is not None:  # best effort: the proven candidate closest to the task
+        miss, features, results = closest
+        best = (objective_of(task, features, np.array([r["tensions"] for r in results])), features, results)
+    if best is None:  # nothing the operator called feasible: its best candidate, checked by physics
         features = pool[0].features if pool else features_of(task, np.array(es.result.xbest if es else []))
         starts = pool[0].tensions if pool else np.full((t, N_TENDONS), STARTS[0] * task.tension_max)
         results, spent = verify(task, features, starts)

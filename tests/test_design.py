@@ -59,10 +59,10 @@ def test_the_batched_inverse_kinematics_reaches_an_operators_own_tips():
     goal = features.copy()
     goal[:, 11:15] = np.random.default_rng(3).uniform(0, 5, (64, 4))
     targets = op.predict(goal, np.ones(1))["backbone"][:, -1].astype(float)
-    tau, _, error, _ = inner_ik(operator_tip(op), features, targets, np.full((64, 3), np.nan),
+    tau, _, error, turn, _ = inner_ik(operator_tip(op), features, targets, np.full((64, 3), np.nan),
                                 np.full((64, 4), 0.5), 5.0, iterations=30)
     assert np.median(error) < 1e-4 and np.mean(error < 1e-3) > 0.9  # m; a few starts end in local minima
-    assert (tau >= 0).all() and (tau <= 5).all()
+    assert (tau >= 0).all() and (tau <= 5).all() and (turn == 0).all()  # no direction asked
 
 
 def test_a_task_from_a_known_design_is_solved_and_proven_by_the_exact_solver(tmp_path):
