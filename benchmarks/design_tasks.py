@@ -58,10 +58,13 @@ def main() -> None:
     parser.add_argument("--write", action="store_true", help="(re)build the task set file first")
     parser.add_argument("--budget-s", type=float, default=60.0)
     parser.add_argument("--inner", default="operator,exact", help="comma-separated: operator, exact")
+    parser.add_argument("--select", default=None, help="comma-separated task indices (default: all)")
     args = parser.parse_args()
     if args.write:
         Path(args.tasks).write_text(json.dumps(build_tasks(args.budget_s), indent=1) + "\n")
     tasks = json.loads(Path(args.tasks).read_text())
+    if args.select:
+        tasks = [tasks[int(k)] for k in args.select.split(",")]
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; {len(tasks)} tasks, budget {args.budget_s:g} s\n")
     summary = {}
     for inner in args.inner.split(","):

@@ -386,7 +386,7 @@ def search(task: Task, *, surrogate=None, inner: str = "operator", progress: boo
         miss, features, results = closest
         best = (objective_of(task, features, np.array([r["tensions"] for r in results])), features, results)
     if best is None:  # nothing the operator called feasible: its best candidate, checked by physics
-        features = pool[0].features if pool else features_of(task, np.array(es.result.xbest if es else []))
+        features = pool[0].features if pool else features_of(task, np.array(es.result.xbest if es else []))[0]
         starts = pool[0].tensions if pool else np.full((t, N_TENDONS), STARTS[0] * task.tension_max)
         results, spent = verify(task, features, starts)
         counts["exact"] += spent
