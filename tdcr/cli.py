@@ -220,6 +220,63 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _surrogate_named(models_dir: str, name: str):
+    from tdcr.runtime import ManifestError, Surrogate
+
+    try:
+        return Surrogate.load(models_dir, name)
+    except ManifestError as exc:
+        raise UsageError(f"{models_dir}: {exc}") from None
+
+
+def _cmd_design(args) -> int:
+    from tdcr.design import search, validate_task
+    from tdcr.validation import InvalidRequest
+
+    try:
+        task = validate_task(_read_text(args.task))
+    except InvalidRequest as exc:
+        raise _invalid(args.task, exc) from None
+    if args.budget_s is not None:
+        if not args.budget_s > 0:
+            raise UsageError("--budget-s must be > 0")
+        task = dataclasses.replace(task, budget_s=args.budget_s)
+    surrogate = None if args.inner == "exact" else _surrogate_named(args.models_dir, args.operator)
+    result = search(task, surrogate=surrogate, inner=args.inner, progress=sys.stderr.isatty())
+    json.dump(result.as_json(), sys.stdout)
+    sys.stdout.write("\n")
+    return 0
+
+
+def _cmd_workspace(args) -> int:
+    import time
+
+    from tdcr.design import plot_workspace, workspace
+    from tdcr.validation import InvalidRequest, validate_json
+
+    if not 4 <= args.samples <= 1_000_000 or not 0 < args.tension_max <= 1000:
+        raise UsageError("--samples must be in [4, 1000000] and --tension-max in (0, 1000] N")
+    text = _read_text(args.design)
+    try:
+        body = json.loads(text)
+    except ValueError:
+        raise UsageError(f"{args.design}: not JSON") from None
+    try:  # one design, as in a request (its tensions are ignored): the one validation path
+        request = validate_json({"designs": [body]}, target="surrogate", limits=_unlimited())
+    except InvalidRequest as exc:
+        raise _invalid(args.design, exc) from None
+    surrogate = None if args.model == "exact" else _surrogate_named(args.models_dir, args.model)
+    started = time.perf_counter()
+    space = workspace(request.features[0], samples=args.samples, tension_max=args.tension_max, seed=args.seed,
+                      surrogate=surrogate)
+    seconds = time.perf_counter() - started
+    if args.png:
+        plot_workspace(space, args.png)
+    json.dump(space.as_json(seconds=seconds) | ({"png": args.png} if args.png else {}), sys.stdout)
+    sys.stdout.write("\n")
+    return 0
+
+
 def _cmd_calibrate(args) -> int:
     from tdcr.runtime import ManifestError, load_manifest
     from training.operators.calibrate import SCORES, calibrate
@@ -490,6 +547,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write these metrics into the manifest (the service picks its default model by them)")
     p.set_defaults(func=_cmd_evaluate)
 
+    p = command("design", "search the design (E, r, L, offsets, pitches) that reaches a task's targets: CMA-ES "
+                          "over an operator's batched inverse kinematics, proven by the exact solver (the 'design' "
+                          "extra)")
+    p.add_argument("task", help='{"targets": [{"position": [x, y, z]}, ...], "bounds"?, "fixed"?, "tension_max"?, '
+                                '"tolerance"?, "objective"?, "seed"?, "budget_s"?} file, or - for stdin')
+    p.add_argument("--operator", default="deeponet_pose", help="the operator of the inner inverse kinematics")
+    p.add_argument("--inner", choices=["operator", "exact"], default="operator",
+                   help="exact: the exact solver in the inner loop too (the baseline)")
+    p.add_argument("--budget-s", type=float, default=None, help="overrides the task's budget_s")
+    p.add_argument("--models-dir", **models_dir)
+    p.set_defaults(func=_cmd_design)
+
+    p = command("workspace", "Monte-Carlo reachable tips of one design over the tension box: JSON (samples, "
+                             "hull volume, bounding box) and a PNG of three projections (the 'design' extra)")
+    p.add_argument("design", help="one design as JSON (as in a request; its tensions are ignored), or - for stdin")
+    p.add_argument("--samples", type=int, default=20_000, help="tension vectors, uniform in the box")
+    p.add_argument("--tension-max", type=float, default=5.0, help="upper bound of every tension, N")
+    p.add_argument("--model", default="exact", help="exact (the solver) or an operator's name")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--png", default=None, help="write the three projections here")
+    p.add_argument("--models-dir", **models_dir)
+    p.set_defaults(func=_cmd_workspace)
+
     p = command("calibrate", "calibrate the operators' 99 % error bounds on fresh exact solutions (split "
                              "conformal, Mondrian bins; the 'train' extra) and write them into the manifest")
     p.add_argument("--models-dir", **models_dir)
@@ -564,7 +644,8 @@ def build_parser() -> argparse.ArgumentParser:
 EXTRAS = {"torch": "train", "onnx": "train", "onnxscript": "train", "matplotlib": "train",
           "fastapi": "serve", "uvicorn": "serve", "onnxruntime": "serve", "grpc": "serve", "httpx": "serve",
           "orjson": "serve", "prometheus_client": "serve", "pydantic_settings": "serve", "starlette": "serve",
-          "dask": "data", "distributed": "data"}
+          "dask": "data", "distributed": "data", "cma": "design", "scipy": "design", "crepes": "train",
+          "sklearn": "train"}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -71,7 +71,7 @@ def _with_tensions(design: DesignBatch, tensions: np.ndarray) -> DesignBatch:
                        tension=tensions)
 
 
-def _pose(position: np.ndarray, frame: np.ndarray, jacobian: np.ndarray, ok: np.ndarray) -> TipPose:
+def tip_pose_of(position: np.ndarray, frame: np.ndarray, jacobian: np.ndarray, ok: np.ndarray) -> TipPose:
     """A :class:`TipPose` from tip positions, frames and pose Jacobians (rows 3-5 rotation vectors):
     d (R e3) = (dR R^T) R e3 = omega x d for each tension's rotation vector omega."""
     direction = frame[:, :, 2]
@@ -89,7 +89,7 @@ def exact_forward(design: DesignBatch) -> Forward:
     def forward(tensions: np.ndarray) -> TipPose:
         with np.errstate(all="ignore"):
             sol = tip(tensions)
-        return _pose(sol.backbone[:, -1], sol.rotation[:, -1], sol.jacobian[:, -1], sol.converged)
+        return tip_pose_of(sol.backbone[:, -1], sol.rotation[:, -1], sol.jacobian[:, -1], sol.converged)
     return forward
 
 
@@ -101,7 +101,7 @@ def model_forward(design: DesignBatch, tip_pose: Callable[[np.ndarray], tuple[np
         features = _with_tensions(design, tensions).features()
         with np.errstate(all="ignore"):
             position, frame, jacobian = tip_by_differences(features, tip_pose, step=step)
-        return _pose(position, frame, jacobian, np.ones(len(tensions), dtype=bool))
+        return tip_pose_of(position, frame, jacobian, np.ones(len(tensions), dtype=bool))
     return forward
 
 

@@ -303,3 +303,31 @@ class ErrorResponse(BaseModel):
 
     message: str
     detail: list[ErrorItem] | str
+
+
+# -- design search (tdcr design) -----------------------------------------------------------------
+
+#: The design parameters a search varies (tensions are each target's own), and the objectives.
+SEARCH_PARAMETERS = ("E", "r", "L", "offset", "pitch")
+OBJECTIVES = ("max_tension", "total_tension", "length")
+
+
+class DesignTask(BaseModel):
+    """A design search: the targets the robot must reach (base frame, m), the bounds of the
+    parameters searched (default Table I), parameters held fixed, the tension bound (N), the
+    tolerance (m, checked by the exact solver), the objective, the seed and the time budget (s)."""
+
+    model_config = ConfigDict(extra="forbid")
+    targets: list[TipTarget] = Field(min_length=1, max_length=50)
+    bounds: dict[Literal["E", "r", "L", "offset", "pitch"], Annotated[list[float], Field(
+        min_length=2, max_length=2)]] = Field(default_factory=dict, description="[low, high] per parameter, SI; "
+                                              "default Table I")
+    fixed: dict[Literal["E", "r", "L", "offset", "pitch"], float] = Field(default_factory=dict,
+                                                                          description="parameters held fixed, SI")
+    tension_max: float = Field(5.0, gt=0.0, le=TABLE_I["tension"].admissible[1], description="N")
+    tolerance: float = Field(1e-3, gt=0.0, le=0.1, description="a target is reached within this distance, m")
+    objective: Literal["max_tension", "total_tension", "length"] = Field(
+        "max_tension", description="minimised among designs that reach every target: the largest tension over the "
+        "targets (default), the sum of all tensions, or the length L")
+    seed: int = Field(0, ge=0)
+    budget_s: float = Field(120.0, gt=0.0, le=3600.0, description="wall-clock budget of the search, s")
