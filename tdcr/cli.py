@@ -565,7 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=20_000, help="tension vectors, uniform in the box")
     p.add_argument("--tension-max", type=float, default=5.0, help="upper bound of every tension, N")
     p.add_argument("--model", default="exact", help="exact (the solver) or an operator's name")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the sampled tensions")
     p.add_argument("--png", default=None, help="write the three projections here")
     p.add_argument("--models-dir", **models_dir)
     p.set_defaults(func=_cmd_workspace)
