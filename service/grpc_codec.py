@@ -62,7 +62,8 @@ def decode(request: pb.ModelInferRequest, *, inputs: Tensors, outputs: Tensors,
     if "tolerance" in request.parameters:
         parameter = request.parameters["tolerance"]
         choice = parameter.WhichOneof("parameter_choice")
-        value = getattr(parameter, choice) if choice in NUMBER_PARAMETERS else str(getattr(parameter, choice, ""))
+        value = getattr(parameter, choice) if choice in NUMBER_PARAMETERS else str(getattr(parameter, choice or "",
+                                                                                            "no value"))
         tolerance = tolerance_parameter(value)
     return InferRequest(inputs=arrays, outputs=wanted, id=request.id[:64] or None, tolerance=tolerance)
 

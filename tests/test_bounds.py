@@ -394,3 +394,18 @@ def test_an_uncalibrated_model_has_no_bound_and_its_tolerance_goes_to_the_solver
     out = op.predict(designs.features(), GRID, tolerance=0.01)
     assert np.isinf(op.error_bound(designs.features())).all() and (out["source"] == EXACT).all()
     np.testing.assert_array_equal(out["tendons"], solve(designs, GRID).tendons)
+
+
+def test_a_grpc_tolerance_parameter_without_a_number_is_refused_by_name():
+    from service.grpc_codec import decode
+    from service.model import InferenceError
+    from service.oip import SURROGATE_INPUTS, SURROGATE_OUTPUTS
+    from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
+
+    for parameter in (pb.InferParameter(), pb.InferParameter(string_param="tight"), pb.InferParameter(bool_param=True)):
+        request = pb.ModelInferRequest(model_name=DEFAULT)
+        request.parameters["tolerance"].CopyFrom(parameter)
+        request.inputs.add(name="design", datatype="FP64", shape=[1, 15])
+        request.raw_input_contents.append(np.zeros(15).tobytes())
+        with pytest.raises(InferenceError, match="parameter 'tolerance' must be a number"):
+            decode(request, inputs=SURROGATE_INPUTS, outputs=SURROGATE_OUTPUTS)
