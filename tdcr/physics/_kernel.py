@@ -92,7 +92,8 @@ class Shapes(NamedTuple):
     """The outputs, written in place: ``backbone`` (B, n, 3), ``rotation`` (B, n, 3, 3), ``strains``
     (B, n, 6), ``tendons`` (B, n, N_t, 3); per design ``status``, ``residual`` N, ``iterations``
     (Newton iterations, or shooting passes), ``level`` (halvings) and ``estimate``; loaded only,
-    ``m0`` (B, 3) M(0) and ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise)."""
+    ``m0`` (B, 3) M(0) and ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise); ``displacement``
+    (B, N_t) m: each tendon's undeformed minus deformed path length (:func:`_path_lengths`)."""
 
     backbone: np.ndarray
     rotation: np.ndarray
@@ -105,6 +106,7 @@ class Shapes(NamedTuple):
     estimate: np.ndarray
     m0: np.ndarray
     shoot_jac: np.ndarray
+    displacement: np.ndarray
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -559,6 +561,182 @@ def _all_finite(residual, tendons):
     return True
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _stretch(x, ox, oy, dx, dy):
+    """|g_i| = |nu + kappa x rho_i + rho_i'|, the tendon's path length per unit arclength."""
+    g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], ox, oy, dx, dy)
+    return math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+
+
+@njit(cache=True, error_model="numpy")
+def undeformed_length(length, offset, pitch, end):
+    """A tendon's path length on the straight rod, m: int_0^end |e3 + rho'| ds = end L sqrt(1 + (o p)^2)
+    (``end`` a fraction of L)."""
+    return end * length * math.sqrt(1.0 + (offset * pitch) ** 2)
+
+
+@njit(cache=True, error_model="numpy")
+def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen):
+    """Each tendon's deformed path length ``lengths`` (N_t,) m, int_0^end |g_i| ds by Simpson's rule
+    on every step of non-zero width (its edge, midpoint and edge nodes ``xs`` of the interleaved
+    layout ``sig``, 4th order like the Magnus steps), over the steps where the tendon acts.  With
+    ``sens`` (2K+1, 6, N_t) the strains' sensitivities dx/dtau_k, also ``dlen`` (N_t, N_t) =
+    d length_i / d tau_k = int t_i . (dnu_k + dkappa_k x rho_i) ds = int a_i . dx_k ds."""
+    n_t = offset.shape[0]
+    k_steps = (sig.shape[0] - 1) // 2
+    rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
+    want = sens.shape[0] > 0
+    for i in range(n_t):
+        lengths[i] = 0.0
+        if want:
+            for k in range(n_t):
+                dlen[i, k] = 0.0
+    for k in range(k_steps):
+        h = (sig[2 * k + 2] - sig[2 * k]) * length
+        if h == 0.0:
+            continue
+        for node, w in ((2 * k, h / 6.0), (2 * k + 1, 4.0 * h / 6.0), (2 * k + 2, h / 6.0)):
+            _routing(sig[node], length, offset, pitch, angle, rho, drho)
+            x = xs[node]
+            for i in range(n_t):
+                if not end[i] > sig[2 * k + 1]:
+                    continue
+                g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0],
+                                     drho[i, 1])
+                gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+                lengths[i] += w * gn
+                if want:
+                    t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+                    ox, oy = rho[i, 0], rho[i, 1]
+                    c0, c1, c2 = oy * t2, -ox * t2, ox * t1 - oy * t0  # rho_i x t_i
+                    for q in range(n_t):
+                        dx = sens[node, :, q]
+                        dlen[i, q] += w * (t0 * dx[0] + t1 * dx[1] + t2 * dx[2] + c0 * dx[3] + c1 * dx[4]
+                                           + c2 * dx[5])
+
+
+@njit(cache=True, error_model="numpy")
+def _sensitivities(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, sens):
+    """dx/dtau_k at every node, ``sens`` (2K+1, 6, N_t), by the implicit-function theorem on (W1, W2):
+    J dx_k = -a_k with J the Hessian of Phi and a_k = (t_k, rho_k x t_k) for a tendon acting at the
+    node (0 otherwise).  False where J is not positive definite."""
+    n_t = offset.shape[0]
+    rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
+    tau_node = np.empty(n_t)
+    res, jac, low = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+    av, d, y, rhs, out = np.empty(6), np.empty(6), np.empty(6), np.empty(6), np.empty(6)
+    for node in range(sig.shape[0]):
+        _routing(sig[node], length, offset, pitch, angle, rho, drho)
+        _active_tensions(tau, end, act[node], tau_node)
+        _residual_jacobian(xs[node], rho, drho, tau_node, kse, kbt, res, jac, True, av, _NO_TARGET)
+        if not _factor_spd(jac, d, low):
+            return False
+        x = xs[node]
+        for q in range(n_t):
+            if not end[q] > act[node]:
+                for a in range(6):
+                    sens[node, a, q] = 0.0
+                continue
+            g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[q, 0], rho[q, 1], drho[q, 0], drho[q, 1])
+            gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+            t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+            ox, oy = rho[q, 0], rho[q, 1]
+            rhs[0], rhs[1], rhs[2] = -t0, -t1, -t2
+            rhs[3], rhs[4], rhs[5] = -oy * t2, ox * t2, -(ox * t1 - oy * t0)
+            if not _solve_factored(d, low, rhs, out, y):
+                return False
+            for a in range(6):
+                sens[node, a, q] = out[a]
+    return True
+
+
+#: displacement actuation: Newton on the tensions stops when every driven tendon is within this, m
+DISPLACEMENT_TOL = 1e-11
+#: and gives up after this many iterations
+MAX_DISPLACEMENT_ITERATIONS = 50
+
+
+@njit(cache=True, error_model="numpy")
+def find_tensions(kse, kbt, r, length, offset, pitch, angle, tau, end, target, grid, tols, slack):
+    """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
+    (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
+    with the ends (:func:`_with_ends`).  The displacement d_i = l0_i - l_i(tau) has the Jacobian
+    -dl/dtau = int A^T J^-1 A ds, symmetric positive semi-definite: Newton on the driven tendons
+    with the exact Jacobian (:func:`_path_lengths`), projected onto tau >= 0.  A tendon whose
+    displacement would need a push (d_i > target_i at tau_i = 0: its path shortened more than it
+    was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged, iterations)."""
+    edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
+    k0 = edges.shape[0] - 1
+    n_t = offset.shape[0]
+    sig = np.empty(2 * k0 + 1)
+    for k in range(k0):
+        sig[2 * k] = edges[k]
+        sig[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
+    sig[2 * k0] = edges[k0]
+    act = _node_activity(sig)
+    order = np.arange(2 * k0 + 1)
+    xs = np.zeros((2 * k0 + 1, 6))
+    sens = np.empty((2 * k0 + 1, 6, n_t))
+    lengths, dlen = np.empty(n_t), np.empty((n_t, n_t))
+    l0 = np.empty(n_t)
+    for i in range(n_t):
+        l0[i] = undeformed_length(length, offset[i], pitch[i], end[i])
+        slack[i] = False
+    free = np.zeros(n_t, dtype=np.bool_)
+    for it in range(MAX_DISPLACEMENT_ITERATIONS):
+        xs[:, :] = 0.0
+        xs[0, 2] = 1.0
+        ok, _, _ = _solve_nodes_chain(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, r,
+                                      tols.newton_tol, tols.max_newton, order)
+        if not ok or not _sensitivities(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, sens):
+            return False, it + 1
+        _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen)
+        # residual and the free set: driven tendons that pull, or at zero tension but short of their target
+        n_free, worst = 0, 0.0
+        for i in range(n_t):
+            free[i] = False
+            if target[i] != target[i]:
+                continue
+            miss = (l0[i] - lengths[i]) - target[i]
+            if tau[i] > 0.0 or miss < 0.0:
+                free[i] = True
+                n_free += 1
+                worst = max(worst, abs(miss))
+            slack[i] = tau[i] == 0.0 and miss > 0.0
+        if worst <= DISPLACEMENT_TOL:
+            return True, it + 1
+        idx = np.empty(n_free, dtype=np.int64)
+        c = 0
+        for i in range(n_t):
+            if free[i]:
+                idx[c] = i
+                c += 1
+        a = np.empty((n_free, n_free))
+        b = np.empty(n_free)
+        for p in range(n_free):
+            i = idx[p]
+            b[p] = target[i] - (l0[i] - lengths[i])
+            for q in range(n_free):
+                a[p, q] = -dlen[i, idx[q]]
+        step = np.empty(n_free)
+        _solve_dense(a, b, step)
+        for p in range(n_free):
+            tau[idx[p]] = max(tau[idx[p]] + step[p], 0.0)
+    return False, MAX_DISPLACEMENT_ITERATIONS
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def find_tensions_batch(rods, target, grid, tols, slack, status, iterations):
+    """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
+    targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED."""
+    for b in prange(rods.length.shape[0]):
+        ok, it = find_tensions(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b],
+                               rods.pitch[b], rods.angle[b], rods.tension[b], rods.end[b], target[b], grid, tols,
+                               slack[b])
+        _store(status, b, OK if ok else NEWTON_FAILED)
+        _store(iterations, b, it)
+
+
 @njit(cache=True, error_model="numpy")
 def _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle):
     """Each tendon's termination point p(s_e) + R(s_e) rho_i(s_e), (N_t, 3) (rows of tendons that
@@ -589,7 +767,7 @@ def _clamp_ended(fractions_out, end, terminal, tendons_out):
 
 @njit(cache=True, error_model="numpy")
 def solve_design(kse, kbt, r, length, offset, pitch, angle, tau, end, grid, tols, pos_out, rot_out, x_out,
-                 tendons_out):
+                 tendons_out, displacement_out):
     """One design (SI units; ``kse``, ``kbt`` (3,), ``offset``, ``pitch``, ``angle``, ``tau`` (N_t,),
     ``end`` (N_t,) fractions of L) on the base :class:`Grid` ``grid`` with every tendon end added
     (:func:`_with_ends`) and :class:`Tolerances` ``tols``.  Writes backbone (n, 3), frames
@@ -661,6 +839,10 @@ def solve_design(kse, kbt, r, length, offset, pitch, angle, tau, end, grid, tols
     # strains at the outputs: the output edges of the last level (node 2 e is edge e)
     for j in range(n_out):
         x_out[j, :] = xs[2 * out_step[j]]
+    _path_lengths(sig, act, xs, length, offset, pitch, angle, end, np.empty((0, 6, n_t)), displacement_out,
+                  np.empty((n_t, n_t)))
+    for i in range(n_t):
+        displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
     _clamp_ended(fractions_out, end, _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle),
                  tendons_out)
     status = OK
@@ -757,7 +939,7 @@ def solve_batch(rods, grid, tols, out):
     for b in prange(rods.length.shape[0]):
         res = solve_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
                            rods.angle[b], rods.tension[b], rods.end[b], grid, tols, out.backbone[b], out.rotation[b],
-                           out.strains[b], out.tendons[b])
+                           out.strains[b], out.tendons[b], out.displacement[b])
         _store_summary(out, b, res)
 
 
@@ -896,6 +1078,13 @@ def _jump(x, rot, mom, force, rho, drho, tau_left, tau_right, kse, kbt, dt):
 
 
 @njit(cache=True, error_model="numpy")
+def _stage_stretch(x, rho, drho, tau, end, act, out):
+    """|g_i| at a stage's strains ``x`` for the tendons that act there (0 for ended ones), (N_t,)."""
+    for i in range(out.shape[0]):
+        out[i] = _stretch(x, rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1]) if end[i] > act else 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def _step_act(edges, k):
     """The fraction whose tendons act on the edge ``k``'s first stage (:func:`_active_tensions`):
     its step's midpoint, or at the tip and just before an end (a zero-width step) the previous
@@ -910,12 +1099,14 @@ def _step_act(edges, k):
 
 @njit(cache=True, error_model="numpy")
 def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_g, tol, max_iter,
-                want_var, shortcut, out_step, pos_out, rot_out, x_out, jac_out):
+                want_var, shortcut, out_step, pos_out, rot_out, x_out, jac_out, lengths):
     """One RK4 integration from M(0) = ``m0`` and N(0) = ``n_start`` over ``edges`` (fractions of
     L; a tendon end is a zero-width step, :func:`_with_ends`), N' = -f_g between ends and, with
     ``shortcut``, the jump of :func:`_jump` at each.  Writes the tip moment's Jacobian
     dM(L)/dM(0) into ``jac_out`` (3, 3) (if ``want_var``) and poses and strains at the edges
-    ``out_step`` (entries < 0 skipped).  Returns (M(L) (3,), N(L) (3,), converged, residual)."""
+    ``out_step`` (entries < 0 skipped).  With ``lengths`` of size N_t (else empty), the tendons'
+    path lengths int |g_i| ds, m, integrated as one more state by the same RK4 stages.
+    Returns (M(L) (3,), N(L) (3,), converged, residual)."""
     n_t = offset.shape[0]
     ws = (np.empty((n_t, 2)), np.empty((n_t, 2)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)),
           np.empty(6), np.empty(6), np.empty(6))
@@ -937,6 +1128,10 @@ def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse,
     worst = 0.0
     n_out = out_step.shape[0]
     k_steps = edges.shape[0] - 1
+    want_len = lengths.shape[0] > 0
+    stretch = np.zeros((4, n_t))
+    for i in range(lengths.shape[0]):
+        lengths[i] = 0.0
     for k in range(k_steps + 1):
         s0 = edges[k] * length
         # stage 1 (also the strains at the edge, for the outputs)
@@ -946,6 +1141,8 @@ def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse,
         ok = ok and c
         if not (r <= worst):
             worst = r
+        if want_len:
+            _stage_stretch(x, ws[0], ws[1], tau, end, _step_act(edges, k), stretch[0])
         for j in range(n_out):
             if out_step[j] == k:
                 pos_out[j, :] = p
@@ -983,7 +1180,11 @@ def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse,
             ok = ok and c
             if not (r <= worst):
                 worst = r
+            if want_len:
+                _stage_stretch(xs, ws[0], ws[1], tau, end, _step_act(edges, k), stretch[st])
         w6 = h / 6.0
+        for i in range(lengths.shape[0]):
+            lengths[i] += w6 * (stretch[0, i] + 2.0 * stretch[1, i] + 2.0 * stretch[2, i] + stretch[3, i])
         for i in range(3):
             p[i] += w6 * (f[0][0][i] + 2.0 * f[1][0][i] + 2.0 * f[2][0][i] + f[3][0][i])
             mom[i] += w6 * (f[0][2][i] + 2.0 * f[1][2][i] + 2.0 * f[2][2][i] + f[3][2][i])
@@ -1064,7 +1265,8 @@ def _shoot_residual(y, lam, edges, length, offset, pitch, angle, tau, end, kse, 
         for i in range(3):
             y[i] = lam * (f_tip[i] + f_g[i] * length)
     mom, force, ok, worst = _shoot_pass(y[3:], y[:3], edges, length, offset, pitch, angle, tau, end, kse, kbt, radius,
-                                        fg, tol, max_iter, not shortcut, shortcut, out_step, pos, rot, x, jac)
+                                        fg, tol, max_iter, not shortcut, shortcut, out_step, pos, rot, x, jac,
+                                        np.empty(0))
     for i in range(3):
         resid[i] = length * (force[i] - lam * f_tip[i])
         resid[3 + i] = mom[i] - lam * m_tip[i]
@@ -1168,7 +1370,7 @@ def _masked_richardson(fine, coarse, out_step):
 
 @njit(cache=True, error_model="numpy")
 def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g, f_tip, m_tip, grid, tols,
-                        pos_out, rot_out, x_out, tendons_out, shoot_jac):
+                        pos_out, rot_out, x_out, tendons_out, shoot_jac, displacement_out):
     """One design under its distributed weight ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N),
     ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges must end at 1: the tip condition) with
     every tendon end added (:func:`_with_ends`); with ``tols.shortcut`` Rucker & Webster's rule at
@@ -1198,7 +1400,7 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
     zero3 = np.zeros(3)
     jac = np.empty((3, 3))
     _shoot_pass(zero3.copy(), zero3.copy(), edges0, length, offset, pitch, angle, tau, end, kse, kbt, r, zero3, tol,
-                max_iter, False, False, tip_step, tip_p, tip_r, tip_x, jac)
+                max_iter, False, False, tip_step, tip_p, tip_r, tip_x, jac, np.empty(0))
     tip = tip_p[0]
     y = np.zeros(6)
     half = 0.5 * length
@@ -1276,6 +1478,11 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
     pos_out[:, :] = pos[:n_out]
     rot_out[:, :, :] = rot[:n_out]
     x_out[:, :] = xo[:n_out]
+    # the path lengths on the final grid: one more pass from the result, recording nothing
+    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, length, offset, pitch, angle, tau, end, kse, kbt, r, f_g, tol,
+                max_iter, False, shortcut, none, pos, rot, xo, jac, displacement_out)
+    for i in range(n_t):
+        displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
     terminal = np.zeros((n_t, 3))
     for i in range(n_t):
         if end_step[i] < 0:
@@ -1307,8 +1514,8 @@ def solve_loaded_batch(rods, loads, grid, tols, out):
     for b in prange(rods.length.shape[0]):
         res = solve_loaded_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b],
                                   rods.pitch[b], rods.angle[b], rods.tension[b], rods.end[b], loads.f_g[b],
-                                  loads.f_tip[b], loads.m_tip[b], grid, tols, out.backbone[b], out.rotation[b], out.strains[b], out.tendons[b],
-                                  out.shoot_jac[b])
+                                  loads.f_tip[b], loads.m_tip[b], grid, tols, out.backbone[b], out.rotation[b],
+                                  out.strains[b], out.tendons[b], out.shoot_jac[b], out.displacement[b])
         _store_summary(out, b, res)
         m0 = out.m0[b]
         m0[0], m0[1], m0[2] = res[5], res[6], res[7]

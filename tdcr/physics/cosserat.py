@@ -124,6 +124,11 @@ class RodSolution:
         jacobian: with ``solve(..., jacobian=True)``, the sensitivity of the pose at each
             arclength to the tensions, base frame, ``(B, n, 6, N_t)``: rows 0-2 d p / d tau (m/N),
             rows 3-5 the rotation vector of d R R^T / d tau (rad/N); else ``None``.
+        tension: every tendon's tension, N, ``(B, N_t)``: as given, or found for a displacement.
+        displacement: every tendon's displacement (length pulled in), m, ``(B, N_t)``: its path
+            length on the straight rod minus its path length int_0^end |g_i| ds at the equilibrium.
+        slack: ``(B, N_t)``: a displacement-driven tendon that would need a push to reach its
+            displacement, so hangs slack at tension 0 (None: no tendon is displacement-driven).
     """
 
     s: np.ndarray
@@ -139,6 +144,9 @@ class RodSolution:
     status: np.ndarray | None = None
     error_estimate: np.ndarray | None = None
     steps: np.ndarray | None = None
+    tension: np.ndarray | None = None
+    displacement: np.ndarray | None = None
+    slack: np.ndarray | None = None
 
 
 __all__ = ["POISSON_RATIO", "STATUS", "TERMINATIONS", "RodSolution", "SolverOptions", "Status", "TipSolver", "body_strains",
@@ -520,6 +528,11 @@ def solve(
     fractions_out = check_inputs(designs, fractions, loads)
     loaded = loads is not None and not loads.is_zero()
     shortcut = termination == "rucker_webster" and bool(designs.segmented.any())
+    if designs.displacement_driven.any():
+        if loaded or shortcut or jacobian or opts.linearized:
+            raise ValueError("displacement actuation covers tendon loads with consistent termination (no Jacobian, "
+                             "not linearized)")
+        return _solve_displacement(designs, fractions_out, opts, workers)
     if (loaded or shortcut) and opts.linearized:
         raise ValueError("the linearized model covers tendon loads only, with consistent termination")
     if jacobian and (loaded or opts.linearized or shortcut):
@@ -731,7 +744,8 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
     out = kernel.Shapes(backbone=np.empty((b, n, 3)), rotation=np.empty((b, n, 3, 3)), strains=np.empty((b, n, 6)),
                         tendons=np.empty((b, n, n_t, 3)), status=per_design(np.int64), residual=per_design(),
                         iterations=per_design(np.int64), level=per_design(np.int64), estimate=per_design(),
-                        m0=np.empty((b if loaded else 0, 3)), shoot_jac=np.empty((b if loaded else 0, 3, 3)))
+                        m0=np.empty((b if loaded else 0, 3)), shoot_jac=np.empty((b if loaded else 0, 3, 3)),
+                        displacement=np.empty((b, n_t)))
     return kernel, rods, grid, tols, out
 
 
@@ -768,7 +782,7 @@ def _from_kernel(designs: DesignBatch, mat: _Material, fractions_out: np.ndarray
         s=designs.L[:, None] * fractions_out[None, :], backbone=out.backbone, rotation=out.rotation,
         tendons=out.tendons, force=force, moment=moment, converged=status == 0, residual=out.residual,
         iterations=out.iterations, status=status, error_estimate=out.estimate,
-        steps=(len(edges0) - 1) * 2**out.level,
+        steps=(len(edges0) - 1) * 2**out.level, tension=designs.tension.copy(), displacement=out.displacement,
     )
 
 
@@ -788,6 +802,36 @@ def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, load
     status = out.status.astype(np.int8)
     status[(status == Status.CONVERGED) & several_equilibria(out.shoot_jac)] = Status.MULTIPLE_EQUILIBRIA
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
+
+
+def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: SolverOptions,
+                        threads: int) -> RodSolution:
+    """Displacement actuation: the tensions that pull in the displacement-driven tendons' lengths
+    (:func:`tdcr.physics._kernel.find_tensions`: Newton with the exact Jacobian of the path
+    lengths, tau >= 0, slack tendons flagged), then the tendon-only solve at those tensions."""
+    edges0, _, _ = _step_grid(fractions_out, opts.max_step)
+    mat = material(designs)
+    kernel, rods, grid, tols, _ = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
+    start = np.where(designs.displacement_driven, 0.0, designs.tension)
+    rods = rods._replace(tension=np.ascontiguousarray(start, dtype=np.float64).copy())
+    b, n_t = designs.n_designs, designs.n_tendons
+    slack, found = np.zeros((b, n_t), dtype=np.bool_), np.empty(b, dtype=np.int64)
+    iterations = np.empty(b, dtype=np.int64)
+    wanted = np.where(designs.displacement_driven, designs.displacement, np.nan)
+    target = np.ascontiguousarray(wanted)
+    for correction in range(2):
+        # the tensions on the base grid; then, once, again for the target moved by what the solve's
+        # finer grid (step control) still misses (the grids' lengths differ by O(h^4))
+        _run_kernel(kernel.find_tensions_batch, threads, b, rods, target, grid, tols, slack, found, iterations)
+        sol = _solve_compiled(designs.replace(tension=rods.tension, displacement=None), fractions_out, edges0, opts,
+                              threads)
+        miss = np.where(slack, 0.0, wanted - sol.displacement)
+        if correction or not (np.nan_to_num(np.abs(miss)) > DISPLACEMENT_TOL).any():
+            break
+        target = np.ascontiguousarray(target + np.nan_to_num(miss))
+    status = sol.status.copy()
+    status[(status == Status.CONVERGED) & (found != 0)] = Status.DISPLACEMENT_NOT_MET
+    return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
 
 
 def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOptions, *,
@@ -855,6 +899,7 @@ def _solve_on_grid(designs: DesignBatch, fractions_out: np.ndarray, edges: np.nd
             beyond = fractions_out > ends[i]
             tendons[:, beyond, i] = terminal[:, None, :]
     force, moment = internal_wrench(R, x_out, mat)
+    displacement = _displacements(designs, edges, x)
     residual = _wrench_norm(res, designs.L[:, None]).max(axis=1)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
     status = np.zeros(b, dtype=np.int8)
@@ -865,8 +910,31 @@ def _solve_on_grid(designs: DesignBatch, fractions_out: np.ndarray, edges: np.nd
     return RodSolution(
         s=designs.L[:, None] * fractions_out[None, :], backbone=p, rotation=R, tendons=tendons,
         force=force, moment=moment, converged=status == 0, residual=residual, iterations=iters,
-        jacobian=pose_jacobian, status=status,
+        jacobian=pose_jacobian, status=status, tension=designs.tension.copy(), displacement=displacement,
     ), x
+
+
+def _displacements(designs: DesignBatch, edges: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Each tendon's displacement, m, ``(B, N_t)``, from the node strains ``x`` ``(B, 2K+1, 6)`` (K+1
+    edges, then K midpoints) by the kernel's quadrature (``_kernel._path_lengths``)."""
+    from tdcr.physics._compiled import kernel
+
+    k = edges.size - 1
+    sig = np.empty(2 * k + 1)
+    sig[0::2], sig[1::2] = edges, edges[:-1] + 0.5 * np.diff(edges)
+    inter = np.empty_like(x)
+    inter[:, 0::2], inter[:, 1::2] = x[:, :k + 1], x[:, k + 1:]
+    act = kernel._node_activity(sig)
+    ends, angles = designs.end_fractions, np.ascontiguousarray(designs.angles)
+    out = np.empty((designs.n_designs, designs.n_tendons))
+    lengths, no_sens, no_dlen = np.empty(designs.n_tendons), np.empty((0, 6, designs.n_tendons)), np.empty((1, 1))
+    for b in range(designs.n_designs):
+        kernel._path_lengths(sig, act, np.ascontiguousarray(inter[b]), float(designs.L[b]), designs.offset[b],
+                             designs.pitch[b], angles[b], np.ascontiguousarray(ends[b]), no_sens, lengths, no_dlen)
+        for i in range(designs.n_tendons):
+            out[b, i] = kernel.undeformed_length(float(designs.L[b]), designs.offset[b, i], designs.pitch[b, i],
+                                                 ends[b, i]) - lengths[i]
+    return out
 
 
 def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.ndarray, opts: SolverOptions,
@@ -878,7 +946,35 @@ def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
     status = out.status.astype(np.int8)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
     status[(status == Status.CONVERGED) & ~(out.residual <= opts.residual_tol * scale)] = Status.RESIDUAL_TOO_LARGE
+    # Newton stopped (or divided by |g_i| = 0) beside a collapsed tendon
+    failed = np.nonzero((status == Status.NEWTON_FAILED) | (status == Status.NOT_FINITE)
+                        & np.isfinite(out.tendons).all(axis=(1, 2, 3)))[0]
+    status[failed[tendon_collapsed(designs.take(failed), fractions_out, out.strains[failed])]] = \
+        Status.TENDON_COLLAPSED
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
+
+
+#: Displacement actuation: the largest miss of a tendon's displacement, m.
+DISPLACEMENT_TOL = 1e-10
+#: |g_i| (the tendon's path length per unit s) below which a tendon has collapsed.
+COLLAPSED_STRETCH = 1e-2
+
+
+def tendon_collapsed(designs: DesignBatch, fractions: np.ndarray, strains: np.ndarray) -> np.ndarray:
+    """Per design ``(B,)``: some tendon's path length per unit arclength |g_i| = |nu + kappa x rho_i +
+    rho_i'| falls below :data:`COLLAPSED_STRETCH` (or is not finite: 0 / 0 in its direction) at the
+    strains ``(B, n, 6)`` where Newton stopped.
+    The potential (eq. PHI) then has its minimum at the kink g_i = 0: the tension bends the rod
+    until the tendon would pass its centre of curvature (to first order tau o^2 / (E I) >= 1 for
+    one tendon), and no equilibrium with a taut tendon exists -- more continuation would not help."""
+    if len(designs) == 0:
+        return np.zeros(0, dtype=bool)
+    rho, drho = tendon_routing(designs, fractions)
+    g = strains[:, :, None, :3] + _cross(strains[:, :, None, 3:], rho) + drho
+    acting = designs.end_fractions[:, None, :] >= fractions[None, :, None]
+    with np.errstate(invalid="ignore"):
+        stretch = np.where(acting, np.linalg.norm(g, axis=-1), np.inf)
+        return ~(stretch.min(axis=(1, 2)) >= COLLAPSED_STRETCH)
 
 
 def _strain_sensitivities(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
