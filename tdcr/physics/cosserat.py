@@ -598,7 +598,8 @@ def _solve_tendon_only(designs: DesignBatch, fractions_out: np.ndarray, opts: So
     model and warm-started tip solves (:class:`TipSolver`), which use the base grid.  The
     vectorised path (Jacobian, linearized, tip solves) runs designs with the same tendon ends
     together, on their grid."""
-    edges0, _, out0 = _step_grid(fractions_out, opts.max_step)
+    edges0, _, out0 = _step_grid(np.append(fractions_out, 1.0), opts.max_step)  # to the tip: the path lengths
+    out0 = out0[:-1]
     if not (jacobian or opts.linearized or warm is not None):
         return _solve_compiled(designs, fractions_out, edges0, opts, threads)
     ends = designs.end_fractions
@@ -809,7 +810,7 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     """Displacement actuation: the tensions that pull in the displacement-driven tendons' lengths
     (:func:`tdcr.physics._kernel.find_tensions`: Newton with the exact Jacobian of the path
     lengths, tau >= 0, slack tendons flagged), then the tendon-only solve at those tensions."""
-    edges0, _, _ = _step_grid(fractions_out, opts.max_step)
+    edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step)
     mat = material(designs)
     kernel, rods, grid, tols, _ = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
     start = np.where(designs.displacement_driven, 0.0, designs.tension)
