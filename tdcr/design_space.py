@@ -76,6 +76,34 @@ LOADS: dict[str, LoadBound] = {
     "tip_moment": LoadBound("tip_moment", "N m", (-10.0, 10.0)),
 }
 
+@dataclass(frozen=True)
+class LayoutBound:
+    """Admissible range of an optional field of the general design (exact solver only)."""
+
+    name: str
+    unit: str
+    admissible: tuple[float, float]
+    exclusive_min: bool = False
+    exclusive_max: bool = False
+    description: str = ""
+
+
+#: The general design's optional fields and their admissible bounds (the surrogates take only the
+#: defaults: angles 2 pi i / N_t, every tendon ending at the tip, nu = 0.3, tensions).
+LAYOUT_FIELDS: dict[str, LayoutBound] = {
+    "angle": LayoutBound("angle", "rad", (-50.0, 50.0), description="body-frame angle of the tendon at s = 0 "
+                         "(default 2 pi i / N_t)"),
+    "end": LayoutBound("end", "m", (0.0, TABLE_I["L"].admissible[1]), exclusive_min=True,
+                       description="arclength where the tendon terminates, 0 < end <= L (default L): tendons "
+                                   "with distinct ends make segments"),
+    "displacement": LayoutBound("displacement", "m", (-1.0, 1.0), description="length pulled in (its path "
+                                "length on the straight rod minus its deformed path length), instead of a "
+                                "tension: the solver finds the tension (0 where the tendon would go slack)"),
+    "poisson": LayoutBound("poisson", "", (0.0, 0.5), exclusive_min=True, exclusive_max=True,
+                           description="Poisson ratio nu of the backbone, G = E / (2 (1 + nu)) (default 0.3)"),
+}
+
+
 #: The paper's out-of-distribution bins, as fractions p of the upper bound (x = high * (1 + p)).
 OOD_BINS: tuple[tuple[float, float], ...] = ((-0.05, 0.0), (0.0, 0.05), (0.05, 0.10), (0.10, 0.15), (0.15, 0.20))
 
@@ -90,7 +118,14 @@ def describe() -> dict:
     trained = TRAINING_LOADS.ranges()
     return {"parameters": {k: bounds(p) | {"table_i": [p.low, p.high]} for k, p in TABLE_I.items()},
             "loads": {k: bounds(b) | {"trained": trained[k]} for k, b in LOADS.items()},
-            "n_tendons": N_TENDONS, "feature_order": feature_names(), "default_points": DEFAULT_POINTS}
+            "layout": {k: bounds(b) | {"exclusive_max": b.exclusive_max, "default": _LAYOUT_DEFAULTS[k]}
+                       for k, b in LAYOUT_FIELDS.items()},
+            "n_tendons": N_TENDONS, "max_tendons": MAX_TENDONS, "feature_order": feature_names(),
+            "default_points": DEFAULT_POINTS}
+
+
+#: The defaults of the general design's optional fields, in words.
+_LAYOUT_DEFAULTS = {"angle": "2 pi i / N_t", "end": "L", "displacement": None, "poisson": 0.3}
 
 
 def feature_names(n_tendons: int = N_TENDONS) -> list[str]:

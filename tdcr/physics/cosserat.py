@@ -548,9 +548,17 @@ def check_inputs(designs: DesignBatch, fractions: np.ndarray, loads: ExternalLoa
     and load inside its admissible bounds, the fractions in [0, 1] (clamped within rounding).
     Returns the fractions ``(n,)``; raises :class:`tdcr.checks.InvalidRequest` (a ``ValueError``)
     with the service's words, e.g. ``designs[0].tendons[1].tension: must be in [0, 1000] N, got -2``."""
-    from tdcr.checks import Problem, check_features, check_fractions, check_loads, checkable_loads, raise_problems
+    from tdcr.checks import (
+        Problem,
+        check_features,
+        check_fractions,
+        check_layout,
+        check_loads,
+        checkable_loads,
+        raise_problems,
+    )
 
-    problems = check_features(designs.features())
+    problems = check_features(designs.features()) + check_layout(designs)
     clamped, more = check_fractions(fractions, name="fractions")
     problems += more
     if loads is not None:
