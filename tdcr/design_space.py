@@ -153,6 +153,23 @@ def sample_designs(n: int, *, seed: int, n_tendons: int = N_TENDONS) -> DesignBa
     return DesignBatch.from_features(rng.uniform(low, high, size=(n, low.size)))
 
 
+def sample_segmented_designs(n: int, *, seed: int, segments: int = 2, tendons_per_segment: int = 3) -> DesignBatch:
+    """``n`` robots of ``segments`` equal segments with ``tendons_per_segment`` tendons each, every
+    other parameter uniform in its Table I range (seeded): segment k's tendons end at (k + 1) L /
+    segments, evenly spaced around the axis and turned by pi k / tendons_per_segment against the
+    segment before (staggered, as multi-segment robots route them)."""
+    if segments < 1 or tendons_per_segment < 1 or segments * tendons_per_segment > MAX_TENDONS:
+        raise ValueError(f"segments and tendons per segment must be >= 1 with at most {MAX_TENDONS} tendons in all")
+    n_t = segments * tendons_per_segment
+    designs = sample_designs(n, seed=seed, n_tendons=n_t)
+    k = np.repeat(np.arange(segments), tendons_per_segment)
+    j = np.tile(np.arange(tendons_per_segment), segments)
+    angles = 2.0 * np.pi * j / tendons_per_segment + np.pi * k / tendons_per_segment
+    ends = designs.L[:, None] * ((k + 1) / segments)[None, :]
+    return designs.replace(angle=np.tile(angles, (n, 1)), end=np.where(k[None, :] == segments - 1,
+                                                                       designs.L[:, None], ends))
+
+
 def sample_ood_designs(n: int, bin_range: tuple[float, float], *, seed: int, n_tendons: int = N_TENDONS) -> DesignBatch:
     """The paper's OOD test: every parameter set to ``high * (1 + p)``, p uniform in ``bin_range``.
 

@@ -207,6 +207,8 @@ def _potential(x, rho, drho, tau, kse, kbt, target):
     phi = 0.5 * (kse[0] * x[0] ** 2 + kse[1] * x[1] ** 2 + kse[2] * (x[2] - 1.0) ** 2)
     phi += 0.5 * (kbt[0] * x[3] ** 2 + kbt[1] * x[4] ** 2 + kbt[2] * x[5] ** 2)
     for i in range(tau.shape[0]):
+        if tau[i] == 0.0:  # a slack or ended tendon adds nothing
+            continue
         g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
         phi += tau[i] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
     for a in range(6):
@@ -231,6 +233,8 @@ def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av, targ
         jac[0, 0], jac[1, 1], jac[2, 2] = kse[0], kse[1], kse[2]
         jac[3, 3], jac[4, 4], jac[5, 5] = kbt[0], kbt[1], kbt[2]
     for i in range(tau.shape[0]):
+        if tau[i] == 0.0:  # a slack or ended tendon adds nothing to (W1, W2) or its Jacobian
+            continue
         ox, oy = rho[i, 0], rho[i, 1]
         g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], ox, oy, drho[i, 0], drho[i, 1])
         gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
