@@ -1061,10 +1061,7 @@ class TipSolver:
 
     def __call__(self, tensions: np.ndarray) -> RodSolution:
         tensions = np.asarray(tensions, dtype=np.float64)
-        t, d = tensions.shape[0], self.design
-        designs = DesignBatch(E=np.repeat(d.E, t), r=np.repeat(d.r, t), L=np.repeat(d.L, t),
-                              offset=np.repeat(d.offset, t, axis=0), pitch=np.repeat(d.pitch, t, axis=0),
-                              tension=tensions)
+        designs = self.design.take(np.zeros(tensions.shape[0], dtype=np.int64)).replace(tension=tensions)
         return _solve_tendon_only(designs, np.ones(1), self.options, jacobian=True, warm=self._warm)
 
 
