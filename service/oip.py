@@ -302,7 +302,7 @@ class OipCodec:
         if request.tolerance is not None and spec.kind != "surrogate":
             raise InferenceError("invalid", f"parameter 'tolerance' applies to the operators, not to {spec.name!r} "
                                             "(the exact solver's error is below 1e-6 already)")
-        if request.termination is not None and spec.kind != "exact":
+        if request.termination is not None and spec.kind != "solver":
             raise InferenceError("invalid", f"parameter 'termination' applies to the exact model, not to {spec.name!r}")
         try:
             if spec.kind == "inverse":

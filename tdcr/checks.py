@@ -129,7 +129,7 @@ def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[P
             value = values[b, i]
             if not np.isfinite(value):
                 msg, kind = f"must be a finite number, got {value}", "finite_number"
-            elif name == "end" and low < value <= high:
+            elif name == "end" and value > low:
                 msg, kind = f"must be in (0, L] = (0, {designs.L[b]:g}] m, got {value:.6g}", "end_beyond_length"
             else:
                 interval = (f"{'(' if bound.exclusive_min else '['}{low:g}, {high:g}{')' if bound.exclusive_max else ']'}"

@@ -42,6 +42,7 @@ from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's voc
 )
 from tdcr.design_space import (
     DEFAULT_POINTS,
+    FRACTION_ROUNDING,
     MAX_POINTS,
     N_FEATURES,
     N_TENDONS,
@@ -357,8 +358,9 @@ def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | 
         angle=optional("angle", lambda d, i: 2.0 * np.pi * i / n_t), end=optional("end", lambda d, i: d.L),
         displacement=optional("displacement", lambda d, i: np.nan), poisson=poisson,
     )
-    if batch.end is not None:  # an end within rounding of L is L
-        batch = batch.replace(end=np.minimum(batch.end, batch.L[:, None]))
+    if batch.end is not None:  # an end within rounding of L is L (farther ones are refused by check_layout)
+        rounding = (batch.end > batch.L[:, None]) & (batch.end <= batch.L[:, None] * (1.0 + FRACTION_ROUNDING))
+        batch = batch.replace(end=np.where(rounding, batch.L[:, None], batch.end))
     loads = None
     takes_loads = "gravity" in type(designs[0]).model_fields  # surrogate designs have no load fields
     if takes_loads and any(d.gravity is not None or d.tip_force is not None or d.tip_moment is not None
