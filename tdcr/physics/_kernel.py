@@ -583,9 +583,11 @@ def undeformed_length(length, offset, pitch, end):
 def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen):
     """Each tendon's deformed path length ``lengths`` (N_t,) m, int_0^end |g_i| ds by Simpson's rule
     on every step of non-zero width (its edge, midpoint and edge nodes ``xs`` of the interleaved
-    layout ``sig``, 4th order like the Magnus steps), over the steps where the tendon acts.  With
-    ``sens`` (2K+1, 6, N_t) the strains' sensitivities dx/dtau_k, also ``dlen`` (N_t, N_t) =
-    d length_i / d tau_k = int t_i . (dnu_k + dkappa_k x rho_i) ds = int a_i . dx_k ds."""
+    layout ``sig``, 4th order like the Magnus steps), over the steps where the tendon acts: one
+    pass over the nodes, each weighted by the steps it belongs to (an edge beside an end belongs to
+    one step only, and acts as that step, :func:`_node_activity`).  With ``sens`` (2K+1, 6, N_t)
+    the strains' sensitivities dx/dtau_k, also ``dlen`` (N_t, N_t) = d length_i / d tau_k =
+    int t_i . (dnu_k + dkappa_k x rho_i) ds = int a_i . dx_k ds."""
     n_t = offset.shape[0]
     k_steps = (sig.shape[0] - 1) // 2
     rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
@@ -595,28 +597,33 @@ def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths
         if want:
             for k in range(n_t):
                 dlen[i, k] = 0.0
-    for k in range(k_steps):
-        h = (sig[2 * k + 2] - sig[2 * k]) * length
-        if h == 0.0:
+    for node in range(sig.shape[0]):
+        if node % 2 == 1:  # a midpoint
+            w = 4.0 * (sig[node + 1] - sig[node - 1]) * length / 6.0
+        else:
+            k = node // 2
+            w = 0.0
+            if k > 0:
+                w += (sig[node] - sig[node - 2]) * length / 6.0
+            if k < k_steps:
+                w += (sig[node + 2] - sig[node]) * length / 6.0
+        if w == 0.0:
             continue
-        for node, w in ((2 * k, h / 6.0), (2 * k + 1, 4.0 * h / 6.0), (2 * k + 2, h / 6.0)):
-            _routing(sig[node], length, offset, pitch, angle, rho, drho)
-            x = xs[node]
-            for i in range(n_t):
-                if not end[i] > sig[2 * k + 1]:
-                    continue
-                g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0],
-                                     drho[i, 1])
-                gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-                lengths[i] += w * gn
-                if want:
-                    t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
-                    ox, oy = rho[i, 0], rho[i, 1]
-                    c0, c1, c2 = oy * t2, -ox * t2, ox * t1 - oy * t0  # rho_i x t_i
-                    for q in range(n_t):
-                        dx = sens[node, :, q]
-                        dlen[i, q] += w * (t0 * dx[0] + t1 * dx[1] + t2 * dx[2] + c0 * dx[3] + c1 * dx[4]
-                                           + c2 * dx[5])
+        _routing(sig[node], length, offset, pitch, angle, rho, drho)
+        x = xs[node]
+        for i in range(n_t):
+            if not end[i] > act[node]:
+                continue
+            g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+            gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+            lengths[i] += w * gn
+            if want:
+                t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+                ox, oy = rho[i, 0], rho[i, 1]
+                c0, c1, c2 = oy * t2, -ox * t2, ox * t1 - oy * t0  # rho_i x t_i
+                for q in range(n_t):
+                    dx = sens[node, :, q]
+                    dlen[i, q] += w * (t0 * dx[0] + t1 * dx[1] + t2 * dx[2] + c0 * dx[3] + c1 * dx[4] + c2 * dx[5])
 
 
 @njit(cache=True, error_model="numpy")
@@ -747,8 +754,10 @@ def _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle):
     end at the tip are not written), from the converged nodes ``xs`` (2K+1, 6) on ``edges``."""
     n_t = end.shape[0]
     pos, rot = np.zeros((n_t, 3)), np.zeros((n_t, 3, 3))
-    _magnus(edges, xs[0::2], xs[1::2], length, end_step, pos, rot)
     terminal = np.zeros((n_t, 3))
+    if end_step.max() < 0:  # every tendon ends at the tip
+        return terminal
+    _magnus(edges, xs[0::2], xs[1::2], length, end_step, pos, rot)
     for i in range(n_t):
         if end_step[i] < 0:
             continue
