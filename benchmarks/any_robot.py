@@ -82,7 +82,8 @@ def step_control(n: int) -> None:
     print(f"\n### Step control, three segments of 2 tendons ({n} Table I designs)\n")
     print(f"converged {ok.sum()} / {n}; estimate of the tendon positions' relative l2: median "
           f"{np.median(sol.error_estimate[ok]):.2g}, max {sol.error_estimate[ok].max():.2g} (step_tol "
-          f"{SolverOptions().step_tol:g}); statuses {dict(zip(STATUS, np.bincount(sol.status, minlength=len(STATUS)).tolist(), strict=True))}")
+          f"{SolverOptions().step_tol:g}); statuses "
+          f"{dict(zip(STATUS, np.bincount(sol.status, minlength=len(STATUS)).tolist(), strict=True))}")
 
 
 def tm_robot(pitch: float, tensions: np.ndarray) -> DesignBatch:
@@ -113,7 +114,8 @@ def termination(plot: str | None) -> None:
         rows.append((pitch, out))
     print("\n### Termination rules: relative l2 of the tendon positions, exact vs rucker_webster\n")
     print("tdcr-modeling's default robot with helical routing, 50 tension sets in [0, 2] N\n")
-    print("| pitch rad/m | unloaded: median | max | tip force 0.05 N: median | max | converged |\n|---:|---:|---:|---:|---:|---:|")
+    print("| pitch rad/m | unloaded: median | max | tip force 0.05 N: median | max | converged |")
+    print("|---:|---:|---:|---:|---:|---:|")
     for pitch, ((m0, x0, n0), (m1, x1, n1)) in rows:
         print(f"| {pitch:g} | {m0:.2g} | {x0:.2g} | {m1:.2g} | {x1:.2g} | {min(n0, n1)} |")
     if plot:

@@ -45,8 +45,8 @@ from tdcr.client import INFERENCE_HEADER_LENGTH
 from tdcr.design_space import N_FEATURES, N_TENDONS, range_warnings
 from tdcr.designs import DesignBatch
 from tdcr.engine import Prediction
-from tdcr.physics.cosserat import TERMINATIONS
 from tdcr.exact import ExactAnswer
+from tdcr.physics.cosserat import TERMINATIONS
 from tdcr.validation import (
     INVERSE_DEFAULTS,
     OUTPUTS,

@@ -132,7 +132,8 @@ def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[P
             elif name == "end" and value > low:
                 msg, kind = f"must be in (0, L] = (0, {designs.L[b]:g}] m, got {value:.6g}", "end_beyond_length"
             else:
-                interval = (f"{'(' if bound.exclusive_min else '['}{low:g}, {high:g}{')' if bound.exclusive_max else ']'}"
+                opening, closing = "(" if bound.exclusive_min else "[", ")" if bound.exclusive_max else "]"
+                interval = (f"{opening}{low:g}, {high:g}{closing}"
                             + (f" {bound.unit}" if bound.unit else ""))
                 msg, kind = f"must be in {interval}, got {value:.6g}", "out_of_range"
             problems.append(Problem(loc, msg, kind))

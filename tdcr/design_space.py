@@ -77,13 +77,9 @@ LOADS: dict[str, LoadBound] = {
 }
 
 @dataclass(frozen=True)
-class LayoutBound:
+class LayoutBound(LoadBound):
     """Admissible range of an optional field of the general design (exact solver only)."""
 
-    name: str
-    unit: str
-    admissible: tuple[float, float]
-    exclusive_min: bool = False
     exclusive_max: bool = False
     description: str = ""
 

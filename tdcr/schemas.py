@@ -185,9 +185,9 @@ _JACOBIAN_WITHOUT_LOADS = {
 
 
 #: JSON schema: the Jacobian is the consistent model's under tension actuation.
+_NO_DISPLACEMENT = {"items": {"properties": {"tendons": {"items": {"properties": {"displacement": {"type": "null"}}}}}}}
 _JACOBIAN_CONSISTENT = {"if": {"properties": {"jacobian": {"const": True}}, "required": ["jacobian"]},
-                        "then": {"properties": {"termination": {"const": "exact"}, "designs": {"items": {
-                            "properties": {"tendons": {"items": {"properties": {"displacement": {"type": "null"}}}}}}}}}}
+                        "then": {"properties": {"termination": {"const": "exact"}, "designs": _NO_DISPLACEMENT}}}
 #: JSON schema: displacement actuation covers tendon loads with consistent termination.
 _DISPLACEMENT_UNLOADED = {"if": {"properties": {"designs": {"contains": {"properties": {"tendons": {"contains": {
     "properties": {"displacement": {"type": "number"}}, "required": ["displacement"]}}}}}}},

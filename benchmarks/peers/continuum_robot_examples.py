@@ -71,7 +71,8 @@ def main() -> None:
     args = parser.parse_args()
     cases = {name: run(args.repo, name) for name in EXAMPLES}
     design = {"E": 200e9, "poisson": 0.25, "r": 0.001, "L": 0.5, "density": 8000.0, "gravity": [9.81, 0.0, 0.0],
-              "offset": 0.01506, "tension": [15.0, 0.0, 0.0, 0.0], "pitch": {"straight": 0.0, "helical": 2 * np.pi / 0.5}}
+              "offset": 0.01506, "tension": [15.0, 0.0, 0.0, 0.0],
+              "pitch": {"straight": 0.0, "helical": 2 * np.pi / 0.5}}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"peer": "https://github.com/JohnDTill/ContinuumRobotExamples", "design": design,
                                     "cases": cases}, indent=1))

@@ -758,14 +758,21 @@ def _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle):
     if end_step.max() < 0:  # every tendon ends at the tip
         return terminal
     _magnus(edges, xs[0::2], xs[1::2], length, end_step, pos, rot)
-    for i in range(n_t):
+    _end_points(pos, rot, length, end_step, end, offset, pitch, angle, terminal)
+    return terminal
+
+
+@njit(cache=True, error_model="numpy")
+def _end_points(pos, rot, length, end_step, end, offset, pitch, angle, terminal):
+    """``terminal`` (N_t, 3) = p + R rho_i(s_e) from each tendon's pose at its end, ``pos`` (N_t, 3),
+    ``rot`` (N_t, 3, 3) (tendons with ``end_step`` < 0, ending at the tip, skipped)."""
+    for i in range(end.shape[0]):
         if end_step[i] < 0:
             continue
         phi = _tendon_angle(angle[i], pitch[i], end[i] * length)
         rx, ry = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
         for a in range(3):
             terminal[i, a] = pos[i, a] + rot[i, a, 0] * rx + rot[i, a, 1] * ry
-    return terminal
 
 
 @njit(cache=True, error_model="numpy")
@@ -1035,6 +1042,26 @@ def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, a
 
 
 @njit(cache=True, error_model="numpy")
+def _tendon_wrench(x, rho, drho, tau, sign, out):
+    """``out`` (6,) += sign sum_i tau_i (t_i, rho_i x t_i) at the strains ``x``: the tendons' pull on
+    the free body beyond the cut, in the body frame (the tendon terms of eqs. W1, W2)."""
+    for i in range(tau.shape[0]):
+        if tau[i] == 0.0:
+            continue
+        g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+        gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+        ox, oy = rho[i, 0], rho[i, 1]
+        ti = sign * tau[i]
+        out[0] += ti * t0
+        out[1] += ti * t1
+        out[2] += ti * t2
+        out[3] += ti * oy * t2
+        out[4] -= ti * ox * t2
+        out[5] += ti * (ox * t1 - oy * t0)
+
+
+@njit(cache=True, error_model="numpy")
 def _jump(x, rot, mom, force, rho, drho, tau_left, tau_right, kse, kbt, dt):
     """Rucker & Webster's rule at a tendon end (termination ``"rucker_webster"``), in place on the
     totals ``force`` N and ``mom`` M (base frame): only the ending tendons' pull -tau_e t_e is
@@ -1046,43 +1073,16 @@ def _jump(x, rot, mom, force, rho, drho, tau_left, tau_right, kse, kbt, dt):
     M^+ likewise: they jump by sum_c tau_c (t_c^+ - t_c^-) (and its moment), the kink forces that the
     consistent equilibrium keeps and this rule drops.  ``x`` (6,): the strains just before the end;
     ``dt`` (6,) workspace."""
-    n_t = tau_right.shape[0]
     xp = np.empty(6)
     for a in range(6):
         dt[a] = 0.0
-    for i in range(n_t):  # sum_c tau_c (t_c, rho_c x t_c) at the strains before the end
-        if tau_right[i] == 0.0:
-            continue
-        g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
-        gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-        t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
-        ox, oy = rho[i, 0], rho[i, 1]
-        ti = tau_right[i]
-        dt[0] += ti * t0
-        dt[1] += ti * t1
-        dt[2] += ti * t2
-        dt[3] += ti * oy * t2
-        dt[4] -= ti * ox * t2
-        dt[5] += ti * (ox * t1 - oy * t0)
+    _tendon_wrench(x, rho, drho, tau_right, 1.0, dt)  # sum_c tau_c (t_c, rho_c x t_c) before the end
     for a in range(3):
         nb = rot[0, a] * force[0] + rot[1, a] * force[1] + rot[2, a] * force[2]
         mb = rot[0, a] * mom[0] + rot[1, a] * mom[1] + rot[2, a] * mom[2]
         xp[a] = (nb - dt[a]) / kse[a] + (1.0 if a == 2 else 0.0)
         xp[3 + a] = (mb - dt[3 + a]) / kbt[a]
-    for i in range(n_t):  # minus the same sums at the strains after the end: -(sum_c ... t_c^-) + (... t_c^+)
-        if tau_right[i] == 0.0:
-            continue
-        g0, g1, g2 = _tendon(xp[0], xp[1], xp[2], xp[3], xp[4], xp[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
-        gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-        t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
-        ox, oy = rho[i, 0], rho[i, 1]
-        ti = tau_right[i]
-        dt[0] -= ti * t0
-        dt[1] -= ti * t1
-        dt[2] -= ti * t2
-        dt[3] -= ti * oy * t2
-        dt[4] += ti * ox * t2
-        dt[5] -= ti * (ox * t1 - oy * t0)
+    _tendon_wrench(xp, rho, drho, tau_right, -1.0, dt)  # minus the same sums after the end
     for a in range(3):  # the totals jump by R (-dt): the kink forces' resultant and moment
         force[a] -= rot[a, 0] * dt[0] + rot[a, 1] * dt[1] + rot[a, 2] * dt[2]
         mom[a] -= rot[a, 0] * dt[3] + rot[a, 1] * dt[4] + rot[a, 2] * dt[5]
@@ -1298,7 +1298,6 @@ def _shoot(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radi
     the result; ``info`` (3,) receives the mismatch (N m), the pass's local flag (1/0) and its
     largest local residual (N), ``jac`` (3, 3) dM(L)/dM(0) of the last pass.
     Returns (converged, passes, det of the shooting Jacobian)."""
-    n_un = 6 if shortcut else 3
     first = 0 if shortcut else 3
     step, y_prev = np.zeros(6), y.copy()
     resid, r_q, y_q = np.empty(6), np.empty(6), np.empty(6)
@@ -1497,13 +1496,7 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
     for i in range(n_t):
         displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
     terminal = np.zeros((n_t, 3))
-    for i in range(n_t):
-        if end_step[i] < 0:
-            continue
-        phi = _tendon_angle(angle[i], pitch[i], end[i] * length)
-        rx, ry = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
-        for a in range(3):
-            terminal[i, a] = pos[n_out + i, a] + rot[n_out + i, a, 0] * rx + rot[n_out + i, a, 1] * ry
+    _end_points(pos[n_out:], rot[n_out:], length, end_step, end, offset, pitch, angle, terminal)
     _clamp_ended(fractions_out, end, terminal, tendons_out)
     tip_residual = mismatch / length
     residual = worst if worst > tip_residual else tip_residual

@@ -149,7 +149,8 @@ class RodSolution:
     slack: np.ndarray | None = None
 
 
-__all__ = ["POISSON_RATIO", "STATUS", "TERMINATIONS", "RodSolution", "SolverOptions", "Status", "TipSolver", "body_strains",
+__all__ = ["POISSON_RATIO", "STATUS", "TERMINATIONS", "RodSolution", "SolverOptions", "Status", "TipSolver",
+           "body_strains",
            "internal_wrench", "material", "solve", "tendon_routing"]
 
 
