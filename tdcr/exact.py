@@ -168,12 +168,16 @@ def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None
 
 
 def warm_up() -> bool:
-    """Import and run the solver once, tendon-only and loaded (warms worker processes up; compiles
-    the numba kernels into their cache on first use)."""
-    from tdcr.design_space import sample_designs
+    """Import and run the solver once, tendon-only, loaded, with segments under both termination
+    rules and with displacement actuation (warms worker processes up; compiles the numba kernels
+    into their cache on first use)."""
+    from tdcr.design_space import sample_designs, sample_segmented_designs
     from tdcr.designs import ExternalLoads
 
     designs, fraction = sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5)
     solve(designs, fraction)
     solve(designs, fraction, loads=ExternalLoads(tip_force=np.array([[0.0, 0.01, 0.0]] * 2)))
+    segmented = sample_segmented_designs(1, seed=0)
+    solve(segmented, fraction, termination="rucker_webster")
+    solve(designs.replace(displacement=np.full(designs.offset.shape, 1e-4)), fraction)
     return True

@@ -203,7 +203,7 @@ def test_the_port_answers_while_the_service_starts(root, tiny_models, tmp_path):
                             cwd=root, env=env, stdout=log, stderr=subprocess.STDOUT)
     url, seen = f"http://127.0.0.1:{port}", []
     try:
-        deadline = time.monotonic() + 300
+        deadline = time.monotonic() + 420  # a first start compiles every kernel (about two minutes)
         while time.monotonic() < deadline:
             try:
                 live, ready = httpx.get(url + "/healthz"), httpx.get(url + "/readyz")

@@ -168,3 +168,19 @@ def test_high_tension_converges_or_is_flagged():
     sol = solve(d, np.linspace(0.0, 1.0, 42))
     assert set(np.unique(sol.status)) <= {Status.CONVERGED, Status.TENDON_COLLAPSED}
     assert (sol.status == Status.TENDON_COLLAPSED).any()
+
+
+def test_inverse_kinematics_reaches_a_target_of_a_two_segment_robot():
+    """The exact inverse (tip Jacobian of the vectorised path, with the ends) on a segmented design:
+    the tensions it returns put the tip on the target in the forward solver."""
+    from tdcr.inverse import answer_exact
+    from tdcr.validation import validate_inverse
+
+    robot = two_segments(1)
+    target = solve(robot, np.array([1.0])).backbone[0, 0]
+    body = {"design": robot.replace(tension=np.zeros((1, 6))).to_dicts()[0],
+            "targets": [{"position": target.tolist()}], "tension_max": 5.0}
+    (result,) = answer_exact(validate_inverse(body))
+    assert result["status"] == "reached"
+    reached = solve(robot.replace(tension=np.array([result["tensions"]])), np.array([1.0])).backbone[0, 0]
+    assert np.linalg.norm(reached - target) < 1e-4 * 0.2

@@ -33,7 +33,7 @@ def robots() -> DesignBatch:
 def server():
     from service.process import ServerProcess
 
-    srv = ServerProcess(DEFAULT_MODELS_DIR)
+    srv = ServerProcess(DEFAULT_MODELS_DIR, ready_timeout_s=300)  # a first start compiles the kernels
     yield srv
     srv.stop()
 
