@@ -21,6 +21,7 @@ from service.oip import (
     OutputTensors,
     check_input,
     check_request,
+    termination_parameter,
     tolerance_parameter,
 )
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
@@ -65,7 +66,14 @@ def decode(request: pb.ModelInferRequest, *, inputs: Tensors, outputs: Tensors,
         value = getattr(parameter, choice) if choice in NUMBER_PARAMETERS else str(getattr(parameter, choice or "",
                                                                                             "no value"))
         tolerance = tolerance_parameter(value)
-    return InferRequest(inputs=arrays, outputs=wanted, id=request.id[:64] or None, tolerance=tolerance)
+    termination = None
+    if "termination" in request.parameters:
+        parameter = request.parameters["termination"]
+        choice = parameter.WhichOneof("parameter_choice")
+        termination = termination_parameter(getattr(parameter, choice) if choice == "string_param" else
+                                            f"a {choice or 'parameter with no value'}")
+    return InferRequest(inputs=arrays, outputs=wanted, id=request.id[:64] or None, tolerance=tolerance,
+                        termination=termination)
 
 
 def encode(model: str, tensors: OutputTensors, *, raw: bool,

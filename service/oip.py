@@ -14,10 +14,14 @@ Models and their tensors:
   ``[-1]`` (the calibrated 99 % bound of each answer's relative l2 error; -1: none) and ``source``
   INT32 ``[-1]`` (0: the surrogate answered, 1: the exact solver); the request parameter
   ``tolerance`` (a number, relative l2) sends the designs whose bound exceeds it to the exact solver;
-* ``exact`` (the solver): also the inputs ``gravity`` ``[-1, 3]``, ``density`` ``[-1]``,
-  ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``, and the outputs ``converged`` BOOL,
-  ``residual`` FP64, ``status`` INT32 (an index into ``tdcr.physics.STATUS``) and
-  ``error_estimate`` FP64 (-1: none);
+* ``exact`` (the solver): ``design`` ``[-1, 3 + 3 N_t]`` for any N_t, the inputs ``gravity``
+  ``[-1, 3]``, ``density`` ``[-1]``, ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``, and for
+  any robot ``layout`` FP64 ``[-1, N_t, 4]`` (per tendon: angle at s = 0 in rad, end in m,
+  displacement in m, and 1 where the tendon is driven by that displacement, 0 by its tension in
+  ``design``) and ``poisson`` FP64 ``[-1]``; the request parameter ``termination`` (``exact`` or
+  ``rucker_webster``); the outputs ``converged`` BOOL, ``residual`` FP64, ``status`` INT32 (an
+  index into ``tdcr.physics.STATUS``), ``error_estimate`` FP64 (-1: none), ``tension`` FP64
+  ``[-1, N_t]`` N, ``displacement`` FP64 ``[-1, N_t]`` m and ``slack`` BOOL ``[-1, N_t]``;
 * ``inverse`` (inverse kinematics with the exact model): inputs ``design`` ``[1, 15]``,
   ``position`` ``[-1, 3]`` (the targets), optionally ``direction`` ``[-1, 3]`` and ``tension_max``
   ``[1]``; outputs ``tensions`` FP64 ``[-1, 4]`` N, ``position`` (the tips reached), ``error`` (m)
@@ -42,6 +46,7 @@ from tdcr.design_space import N_FEATURES, N_TENDONS, range_warnings
 from tdcr.designs import DesignBatch
 from tdcr.engine import Prediction
 from tdcr.exact import ExactAnswer
+from tdcr.physics.cosserat import TERMINATIONS
 from tdcr.validation import (
     INVERSE_DEFAULTS,
     OUTPUTS,
@@ -70,10 +75,16 @@ NO_BOUND = -1.0
 #: The solver's extra tensors.
 LOAD_INPUTS = {"gravity": TensorSpec("FP64", (-1, 3)), "density": TensorSpec("FP64", (-1,)),
                "tip_force": TensorSpec("FP64", (-1, 3)), "tip_moment": TensorSpec("FP64", (-1, 3))}
-EXACT_INPUTS = SURROGATE_INPUTS | LOAD_INPUTS
+#: Any robot's tensors: per tendon (angle rad, end m, displacement m, displacement-driven 0/1), and nu.
+LAYOUT_COLUMNS = ("angle", "end", "displacement", "driven")
+LAYOUT_INPUTS = {"layout": TensorSpec("FP64", (-1, -1, len(LAYOUT_COLUMNS))), "poisson": TensorSpec("FP64", (-1,))}
+EXACT_INPUTS = SURROGATE_INPUTS | {"design": TensorSpec("FP64", (-1, -1))} | LOAD_INPUTS | LAYOUT_INPUTS
 EXACT_OUTPUTS = {k: v for k, v in SURROGATE_OUTPUTS.items() if k not in GUARD_OUTPUTS} | {
+    "tendons": TensorSpec("FP32", (-1, -1, -1, 3)),
     "converged": TensorSpec("BOOL", (-1,)), "residual": TensorSpec("FP64", (-1,)),
-    "status": TensorSpec("INT32", (-1,)), "error_estimate": TensorSpec("FP64", (-1,))}
+    "status": TensorSpec("INT32", (-1,)), "error_estimate": TensorSpec("FP64", (-1,)),
+    "tension": TensorSpec("FP64", (-1, -1)), "displacement": TensorSpec("FP64", (-1, -1)),
+    "slack": TensorSpec("BOOL", (-1, -1))}
 #: Inverse kinematics (/inverse with the exact model): one design, the targets of a path.
 INVERSE_INPUTS = {"design": TensorSpec("FP64", (1, N_FEATURES)), "position": TensorSpec("FP64", (-1, 3)),
                   "direction": TensorSpec("FP64", (-1, 3)), "tension_max": TensorSpec("FP64", (1,))}
@@ -130,6 +141,7 @@ class InferRequest:
     outputs: dict[str, bool]
     id: str | None
     tolerance: float | None = None
+    termination: str | None = None  #: the exact model's ``termination`` parameter (None: absent)
 
 
 def tolerance_parameter(value) -> float | None:
@@ -139,6 +151,16 @@ def tolerance_parameter(value) -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InferenceError("invalid", f"parameter 'tolerance' must be a number (relative l2), got {quote(value)}")
     return float(value)
+
+
+def termination_parameter(value) -> str | None:
+    """The request parameter ``termination`` (None: absent); :class:`InferenceError` else."""
+    if value is None:
+        return None
+    if value not in TERMINATIONS:
+        raise InferenceError("invalid", f"parameter 'termination' must be one of {list(TERMINATIONS)}, "
+                                        f"got {quote(value)}")
+    return str(value)
 
 
 def check_input(name, datatype, shape, *, inputs: Tensors, seen: Mapping[str, np.ndarray]) -> tuple[np.dtype, int]:
@@ -226,8 +248,9 @@ def decode(body: bytes, header_length: str | None, *, inputs: Tensors, outputs: 
     request_id = request.get("id")
     parameters = request.get("parameters") or {}
     tolerance = tolerance_parameter(parameters.get("tolerance") if isinstance(parameters, dict) else None)
+    termination = termination_parameter(parameters.get("termination") if isinstance(parameters, dict) else None)
     return InferRequest(inputs=arrays, outputs=wanted, id=None if request_id is None else str(request_id)[:64],
-                        tolerance=tolerance)
+                        tolerance=tolerance, termination=termination)
 
 
 def encode(model: str, tensors: OutputTensors, binary: Mapping[str, bool],
@@ -279,6 +302,8 @@ class OipCodec:
         if request.tolerance is not None and spec.kind != "surrogate":
             raise InferenceError("invalid", f"parameter 'tolerance' applies to the operators, not to {spec.name!r} "
                                             "(the exact solver's error is below 1e-6 already)")
+        if request.termination is not None and spec.kind != "solver":
+            raise InferenceError("invalid", f"parameter 'termination' applies to the exact model, not to {spec.name!r}")
         try:
             if spec.kind == "inverse":
                 task = _inverse_problem(inputs)
@@ -287,7 +312,8 @@ class OipCodec:
                 task = validate_features(inputs["design"], target="surrogate" if spec.kind == "surrogate" else "solver",
                                          model=spec.name, s=inputs.get("s"), arclength=inputs.get("arclength"),
                                          outputs=wanted or ["tendons"], tolerance=request.tolerance,
-                                         limits=spec.limits, loads={n: inputs[n] for n in LOAD_INPUTS if n in inputs})
+                                         limits=spec.limits, loads={n: inputs[n] for n in LOAD_INPUTS if n in inputs},
+                                         layout=_layout(inputs), termination=request.termination or "exact")
         except InvalidRequest as exc:
             inputs_named = "input 'design' or 's'" if spec.kind == "surrogate" else "inputs"
             if [p.loc for p in exc.problems] == [("tolerance",)]:
@@ -299,6 +325,22 @@ class OipCodec:
     def encode(self, decoded: Decoded, answer):
         tensors = answer_tensors(decoded, answer)
         return self.wire_encode(decoded.model, {n: tensors[n] for n in decoded.request.outputs}, decoded.request)
+
+
+def _layout(inputs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
+    """The ``layout`` ``[B, N_t, 4]`` and ``poisson`` ``[B]`` inputs as the general design's arrays
+    by name (:func:`tdcr.validation.validate_features`'s ``layout``), or None."""
+    out = {}
+    if "layout" in inputs:
+        layout = np.asarray(inputs["layout"], dtype=np.float64)
+        driven = layout[..., 3]
+        if not np.isin(driven, (0.0, 1.0)).all():
+            raise InferenceError("invalid", "input 'layout': its last column (displacement-driven) must be 0 or 1")
+        out = {"angle": layout[..., 0], "end": layout[..., 1],
+               "displacement": np.where(driven == 1.0, layout[..., 2], np.nan)}
+    if "poisson" in inputs:
+        out["poisson"] = np.asarray(inputs["poisson"], dtype=np.float64)
+    return out or None
 
 
 def _inverse_problem(inputs: Mapping[str, np.ndarray]):
@@ -327,7 +369,9 @@ def answer_tensors(decoded: Decoded, answer) -> OutputTensors:
                 "in_distribution": ("BOOL", np.array([not w for w in range_warnings(decoded.task.features)])),
                 "converged": ("BOOL", g.converged), "residual": ("FP64", g.residual),
                 "status": ("INT32", g.status.astype(np.int32)),
-                "error_estimate": ("FP64", np.where(np.isnan(g.error_estimate), -1.0, g.error_estimate))}
+                "error_estimate": ("FP64", np.where(np.isnan(g.error_estimate), -1.0, g.error_estimate)),
+                "tension": ("FP64", g.tension), "displacement": ("FP64", g.displacement),
+                "slack": ("BOOL", np.zeros(g.tension.shape, dtype=bool) if g.slack is None else g.slack)}
     if isinstance(answer, InverseAnswer):
         r = answer.results
         return {"tensions": ("FP64", np.array([x["tensions"] for x in r])),

@@ -108,7 +108,7 @@ def _exchange(worker: _Worker, message, timeout: float):
 class SolverPool:
     """``workers`` solver processes; :meth:`run` solves on an idle one within a deadline."""
 
-    def __init__(self, workers: int, *, start_timeout_s: float = 120.0):
+    def __init__(self, workers: int, *, start_timeout_s: float = 300.0):
         self._ctx = multiprocessing.get_context("spawn")
         self._start_timeout_s = start_timeout_s
         # the one thread that starts workers: their parent-death signal is tied to it (module docstring)

@@ -14,8 +14,8 @@ from typing import NamedTuple
 import numpy as np
 
 from tdcr.bounds import EXACT_TOLERANCE
-from tdcr.design_space import FRACTION_ROUNDING, LOADS, N_TENDONS, TABLE_I, admissible_bounds
-from tdcr.designs import LOAD_COLUMNS, ExternalLoads, FeatureLayout
+from tdcr.design_space import FRACTION_ROUNDING, LAYOUT_FIELDS, LOADS, N_TENDONS, TABLE_I, admissible_bounds
+from tdcr.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout, default_angles
 
 #: Problems quoted in one message (the rest are counted).
 MAX_LISTED_PROBLEMS = 20
@@ -102,6 +102,64 @@ def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list
             p = TABLE_I[name]
             problems.append(Problem(loc, f"must be in {_interval(*p.admissible, p.exclusive_min, p.unit)}, "
                                          f"got {value:.6g}", "out_of_range"))
+    return problems
+
+
+def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[Problem]:
+    """Problems with the general design's optional fields (:data:`tdcr.design_space.LAYOUT_FIELDS`): an
+    angle, end, displacement or Poisson ratio that is not finite or outside its admissible bounds,
+    an end beyond the design's L (within rounding: clamped), a Poisson ratio outside (0, 0.5)."""
+    rows = np.arange(designs.n_designs) if rows is None else rows
+    problems = []
+    for name in ("angle", "end", "displacement", "poisson"):
+        values = getattr(designs, name)
+        if values is None:
+            continue
+        values = values.reshape(designs.n_designs, -1)
+        bound = LAYOUT_FIELDS[name]
+        low, high = bound.admissible
+        given = ~np.isnan(values) if name == "displacement" else np.ones(values.shape, dtype=bool)
+        with np.errstate(invalid="ignore"):
+            bad = given & (~np.isfinite(values) | ((values >= high) if bound.exclusive_max else (values > high))
+                           | ((values <= low) if bound.exclusive_min else (values < low)))
+            if name == "end":
+                bad |= values > designs.L[:, None] * (1.0 + FRACTION_ROUNDING)
+        for b, i in zip(*np.nonzero(bad), strict=True):
+            loc = ("designs", int(rows[b])) + ((name,) if name == "poisson" else ("tendons", int(i), name))
+            value = values[b, i]
+            if not np.isfinite(value):
+                msg, kind = f"must be a finite number, got {value}", "finite_number"
+            elif name == "end" and value > low:
+                msg, kind = f"must be in (0, L] = (0, {designs.L[b]:g}] m, got {value:.6g}", "end_beyond_length"
+            else:
+                opening, closing = "(" if bound.exclusive_min else "[", ")" if bound.exclusive_max else "]"
+                interval = (f"{opening}{low:g}, {high:g}{closing}"
+                            + (f" {bound.unit}" if bound.unit else ""))
+                msg, kind = f"must be in {interval}, got {value:.6g}", "out_of_range"
+            problems.append(Problem(loc, msg, kind))
+    return problems
+
+
+def check_standard_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[Problem]:
+    """Problems of designs for a surrogate, which takes only the layout it was trained on
+    (:meth:`DesignBatch.is_standard`): one per design, naming its first other field."""
+    rows = np.arange(designs.n_designs) if rows is None else rows
+    angles = default_angles(designs.n_tendons)
+    problems = []
+    for b in np.nonzero(~designs.is_standard())[0]:
+        where: tuple = ("poisson",)
+        why = f"the operators were trained at nu = {DEFAULT_POISSON}"
+        for i in range(designs.n_tendons):
+            if designs.displacement_driven[b, i]:
+                where, why = ("tendons", i, "displacement"), "the operators take tensions"
+            elif designs.end_fractions[b, i] < 1.0:
+                where, why = ("tendons", i, "end"), "the operators take tendons that end at the tip"
+            elif not np.isclose(designs.angles[b, i], angles[i], rtol=0.0, atol=1e-12):
+                where, why = ("tendons", i, "angle"), f"the operators take tendons at 2 pi i / {designs.n_tendons}"
+            else:
+                continue
+            break
+        problems.append(Problem(("designs", int(rows[b])) + where, f"{why}; {EXACT_ROUTES}", "layout"))
     return problems
 
 

@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from tdcr.design_space import DEFAULT_POINTS
+from tdcr.design_space import DEFAULT_POINTS, MAX_TENDONS
 
 
 class UsageError(Exception):
@@ -89,7 +89,10 @@ def _cmd_generate(args) -> int:
                           unloaded_fraction=args.unloaded_fraction)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    cfg = GenerateConfig(n=args.n, seed=args.seed, points=args.points, shard_size=args.shard_size, loads=loads)
+    if args.segments < 1 or args.tendons_per_segment < 1 or args.segments * args.tendons_per_segment > MAX_TENDONS:
+        raise UsageError(f"--segments and --tendons-per-segment must be >= 1, at most {MAX_TENDONS} tendons in all")
+    cfg = GenerateConfig(n=args.n, seed=args.seed, points=args.points, shard_size=args.shard_size, loads=loads,
+                         segments=args.segments, tendons_per_segment=args.tendons_per_segment)
     try:
         meta = generate(args.out, cfg, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet)
     except DatasetMismatch as exc:
@@ -504,6 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tip-fraction", type=float, default=1.0, help="share of the designs with tip loads, in [0, 1]")
     p.add_argument("--unloaded-fraction", type=float, default=0.0,
                    help="share of the designs with no load at all (mixed data for a loaded operator), in [0, 1]")
+    p.add_argument("--segments", type=int, default=1,
+                   help="segments per robot: segment k's tendons end at (k + 1) L / segments (default 1)")
+    p.add_argument("--tendons-per-segment", type=int, default=4,
+                   help="tendons per segment, evenly spaced and staggered between segments (default 4)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_generate)
 

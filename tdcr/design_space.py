@@ -76,6 +76,30 @@ LOADS: dict[str, LoadBound] = {
     "tip_moment": LoadBound("tip_moment", "N m", (-10.0, 10.0)),
 }
 
+@dataclass(frozen=True)
+class LayoutBound(LoadBound):
+    """Admissible range of an optional field of the general design (exact solver only)."""
+
+    exclusive_max: bool = False
+    description: str = ""
+
+
+#: The general design's optional fields and their admissible bounds (the surrogates take only the
+#: defaults: angles 2 pi i / N_t, every tendon ending at the tip, nu = 0.3, tensions).
+LAYOUT_FIELDS: dict[str, LayoutBound] = {
+    "angle": LayoutBound("angle", "rad", (-50.0, 50.0), description="body-frame angle of the tendon at s = 0 "
+                         "(default 2 pi i / N_t)"),
+    "end": LayoutBound("end", "m", (0.0, TABLE_I["L"].admissible[1]), exclusive_min=True,
+                       description="arclength where the tendon terminates, 0 < end <= L (default L): tendons "
+                                   "with distinct ends make segments"),
+    "displacement": LayoutBound("displacement", "m", (-1.0, 1.0), description="length pulled in (its path "
+                                "length on the straight rod minus its deformed path length), instead of a "
+                                "tension: the solver finds the tension (0 where the tendon would go slack)"),
+    "poisson": LayoutBound("poisson", "", (0.0, 0.5), exclusive_min=True, exclusive_max=True,
+                           description="Poisson ratio nu of the backbone, G = E / (2 (1 + nu)) (default 0.3)"),
+}
+
+
 #: The paper's out-of-distribution bins, as fractions p of the upper bound (x = high * (1 + p)).
 OOD_BINS: tuple[tuple[float, float], ...] = ((-0.05, 0.0), (0.0, 0.05), (0.05, 0.10), (0.10, 0.15), (0.15, 0.20))
 
@@ -90,7 +114,14 @@ def describe() -> dict:
     trained = TRAINING_LOADS.ranges()
     return {"parameters": {k: bounds(p) | {"table_i": [p.low, p.high]} for k, p in TABLE_I.items()},
             "loads": {k: bounds(b) | {"trained": trained[k]} for k, b in LOADS.items()},
-            "n_tendons": N_TENDONS, "feature_order": feature_names(), "default_points": DEFAULT_POINTS}
+            "layout": {k: bounds(b) | {"exclusive_max": b.exclusive_max, "default": _LAYOUT_DEFAULTS[k]}
+                       for k, b in LAYOUT_FIELDS.items()},
+            "n_tendons": N_TENDONS, "max_tendons": MAX_TENDONS, "feature_order": feature_names(),
+            "default_points": DEFAULT_POINTS}
+
+
+#: The defaults of the general design's optional fields, in words.
+_LAYOUT_DEFAULTS = {"angle": "2 pi i / N_t", "end": "L", "displacement": None, "poisson": 0.3}
 
 
 def feature_names(n_tendons: int = N_TENDONS) -> list[str]:
@@ -116,6 +147,23 @@ def sample_designs(n: int, *, seed: int, n_tendons: int = N_TENDONS) -> DesignBa
     rng = np.random.default_rng(seed)
     low, high = feature_bounds(n_tendons)
     return DesignBatch.from_features(rng.uniform(low, high, size=(n, low.size)))
+
+
+def sample_segmented_designs(n: int, *, seed: int, segments: int = 2, tendons_per_segment: int = 3) -> DesignBatch:
+    """``n`` robots of ``segments`` equal segments with ``tendons_per_segment`` tendons each, every
+    other parameter uniform in its Table I range (seeded): segment k's tendons end at (k + 1) L /
+    segments, evenly spaced around the axis and turned by pi k / tendons_per_segment against the
+    segment before (staggered, as multi-segment robots route them)."""
+    if segments < 1 or tendons_per_segment < 1 or segments * tendons_per_segment > MAX_TENDONS:
+        raise ValueError(f"segments and tendons per segment must be >= 1 with at most {MAX_TENDONS} tendons in all")
+    n_t = segments * tendons_per_segment
+    designs = sample_designs(n, seed=seed, n_tendons=n_t)
+    k = np.repeat(np.arange(segments), tendons_per_segment)
+    j = np.tile(np.arange(tendons_per_segment), segments)
+    angles = 2.0 * np.pi * j / tendons_per_segment + np.pi * k / tendons_per_segment
+    ends = designs.L[:, None] * ((k + 1) / segments)[None, :]
+    return designs.replace(angle=np.tile(angles, (n, 1)), end=np.where(k[None, :] == segments - 1,
+                                                                       designs.L[:, None], ends))
 
 
 def sample_ood_designs(n: int, bin_range: tuple[float, float], *, seed: int, n_tendons: int = N_TENDONS) -> DesignBatch:

@@ -2,7 +2,10 @@
 
 A design is (E, r, L) plus, for each of ``N_t`` tendons, an offset, a helical
 pitch and a tension.  Tendon ``i`` runs in the body frame at
-``offset_i * [cos(2 pi i / N_t + pitch_i s), sin(2 pi i / N_t + pitch_i s), 0]``.
+``offset_i * [cos(angle_i + pitch_i s), sin(angle_i + pitch_i s), 0]`` for ``s <= end_i``, with
+the defaults ``angle_i = 2 pi i / N_t`` and ``end_i = L``; the material's Poisson ratio defaults to
+:data:`DEFAULT_POISSON`.  A tendon may be driven by a ``displacement`` (the length pulled in, m)
+instead of its tension.
 """
 
 from __future__ import annotations
@@ -21,6 +24,13 @@ TENDON_GROUPS = ("offset", "pitch", "tension")
 LOAD_COLUMNS: dict[str, slice] = {"gravity": slice(0, 3), "density": slice(3, 4), "tip_force": slice(4, 7),
                                   "tip_moment": slice(7, 10)}
 N_LOAD_COLUMNS = 10
+#: The Poisson ratio of a design that gives none (G = E / (2 (1 + nu))): the surrogates' material.
+DEFAULT_POISSON = 0.3
+
+
+def default_angles(n_tendons: int) -> np.ndarray:
+    """The body-frame angles at s = 0 of evenly spaced tendons, 2 pi i / N_t, rad, ``(N_t,)``."""
+    return 2.0 * np.pi * np.arange(n_tendons) / n_tendons
 
 
 @dataclass(frozen=True)
@@ -79,7 +89,14 @@ class DesignBatch:
         L: backbone length, m, ``(B,)``.
         offset: tendon offsets from the backbone axis, m, ``(B, N_t)``.
         pitch: helical pitch of each tendon, rad/m, ``(B, N_t)``.
-        tension: tendon tensions, N, ``(B, N_t)``.
+        tension: tendon tensions, N, ``(B, N_t)`` (of a displacement-driven tendon: the solver's
+            start, usually 0).
+        angle: body-frame angle of each tendon at s = 0, rad, ``(B, N_t)``; ``None``: 2 pi i / N_t.
+        end: arclength where each tendon terminates, m, ``(B, N_t)``, 0 < end <= L; ``None``: L.
+        poisson: Poisson ratio nu of the backbone, ``(B,)``, G = E / (2 (1 + nu)); ``None``:
+            :data:`DEFAULT_POISSON`.
+        displacement: length pulled in of each displacement-driven tendon, m, ``(B, N_t)``, NaN
+            where the tendon is driven by its tension; ``None``: every tendon by its tension.
     """
 
     E: np.ndarray
@@ -88,10 +105,17 @@ class DesignBatch:
     offset: np.ndarray
     pitch: np.ndarray
     tension: np.ndarray
+    angle: np.ndarray | None = None
+    end: np.ndarray | None = None
+    poisson: np.ndarray | None = None
+    displacement: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("E", "r", "L", "offset", "pitch", "tension"):
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
+        for name in _OPTIONAL:
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
         b = self.E.shape[0]
         if self.E.ndim != 1 or self.r.shape != (b,) or self.L.shape != (b,):
             raise ValueError("E, r and L must all have shape (B,)")
@@ -99,6 +123,62 @@ class DesignBatch:
             raise ValueError("offset must have shape (B, N_t)")
         if self.pitch.shape != self.offset.shape or self.tension.shape != self.offset.shape:
             raise ValueError("offset, pitch and tension must share the shape (B, N_t)")
+        for name in ("angle", "end", "displacement"):
+            if getattr(self, name) is not None and getattr(self, name).shape != self.offset.shape:
+                raise ValueError(f"{name} must have the shape (B, N_t) of offset")
+        if self.poisson is not None and self.poisson.shape != (b,):
+            raise ValueError("poisson must have shape (B,)")
+
+    @property
+    def angles(self) -> np.ndarray:
+        """The tendons' angles at s = 0, rad, ``(B, N_t)`` (defaults filled in)."""
+        if self.angle is None:
+            return np.broadcast_to(default_angles(self.n_tendons), self.offset.shape)
+        return self.angle
+
+    @property
+    def ends(self) -> np.ndarray:
+        """The tendons' ends, m, ``(B, N_t)`` (default L)."""
+        return np.broadcast_to(self.L[:, None], self.offset.shape) if self.end is None else self.end
+
+    @property
+    def end_fractions(self) -> np.ndarray:
+        """The tendons' ends as fractions of L, ``(B, N_t)``, in (0, 1] (1 exactly for a tendon that
+        ends at the tip)."""
+        if self.end is None:
+            return np.ones(self.offset.shape)
+        return np.minimum(self.end / self.L[:, None], 1.0)
+
+    @property
+    def poissons(self) -> np.ndarray:
+        """The Poisson ratio of every design, ``(B,)``."""
+        return np.full(self.n_designs, DEFAULT_POISSON) if self.poisson is None else self.poisson
+
+    @property
+    def displacement_driven(self) -> np.ndarray:
+        """Per tendon ``(B, N_t)``: driven by a displacement (rather than its tension)."""
+        if self.displacement is None:
+            return np.zeros(self.offset.shape, dtype=bool)
+        return ~np.isnan(self.displacement)
+
+    @property
+    def segmented(self) -> np.ndarray:
+        """Per design ``(B,)``: some tendon ends before the tip (the rod has several segments)."""
+        return (self.end_fractions < 1.0).any(axis=1)
+
+    def is_standard(self) -> np.ndarray:
+        """Per design ``(B,)``: the surrogates' layout, i.e. default angles, every tendon ending at
+        the tip, the default Poisson ratio and tension actuation."""
+        out = ~self.segmented & ~self.displacement_driven.any(axis=1)
+        if self.angle is not None:
+            out &= np.isclose(self.angle, default_angles(self.n_tendons), rtol=0.0, atol=1e-12).all(axis=1)
+        if self.poisson is not None:
+            out &= self.poisson == DEFAULT_POISSON
+        return out
+
+    def replace(self, **fields) -> DesignBatch:
+        """A copy with some fields replaced (e.g. ``tension=...``)."""
+        return DesignBatch(**{name: fields.get(name, getattr(self, name)) for name in _FIELDS})
 
     @property
     def n_designs(self) -> int:
@@ -113,10 +193,8 @@ class DesignBatch:
 
     def take(self, index) -> DesignBatch:
         """Sub-batch selected by an integer index array or slice."""
-        return DesignBatch(
-            E=self.E[index], r=self.r[index], L=self.L[index],
-            offset=self.offset[index], pitch=self.pitch[index], tension=self.tension[index],
-        )
+        return DesignBatch(**{name: None if getattr(self, name) is None else getattr(self, name)[index]
+                              for name in _FIELDS})
 
     def features(self) -> np.ndarray:
         """Raw SI feature matrix ``(B, 3 + 3 N_t)``: [E, r, L, offsets, pitches, tensions]."""
@@ -137,16 +215,57 @@ class DesignBatch:
         )
 
     def to_dicts(self) -> list[dict]:
-        """The designs as JSON-ready dicts of the request format (``tdcr.schemas.Design``), SI units."""
-        return [{"E": E, "r": r, "L": L, "tendons": [{"offset": o, "pitch": p, "tension": t}
-                                                     for o, p, t in zip(offset, pitch, tension, strict=True)]}
-                for E, r, L, offset, pitch, tension in zip(self.E.tolist(), self.r.tolist(), self.L.tolist(),
-                                                           self.offset.tolist(), self.pitch.tolist(),
-                                                           self.tension.tolist(), strict=True)]
+        """The designs as JSON-ready dicts of the request format (``tdcr.schemas.Design``), SI units;
+        the optional fields only where given."""
+        out = []
+        for b in range(self.n_designs):
+            tendons = []
+            for i in range(self.n_tendons):
+                t = {"offset": float(self.offset[b, i]), "pitch": float(self.pitch[b, i])}
+                if self.displacement is not None and not np.isnan(self.displacement[b, i]):
+                    t["displacement"] = float(self.displacement[b, i])
+                else:
+                    t["tension"] = float(self.tension[b, i])
+                if self.angle is not None:
+                    t["angle"] = float(self.angle[b, i])
+                if self.end is not None:
+                    t["end"] = float(self.end[b, i])
+                tendons.append(t)
+            design = {"E": float(self.E[b]), "r": float(self.r[b]), "L": float(self.L[b]), "tendons": tendons}
+            if self.poisson is not None:
+                design["poisson"] = float(self.poisson[b])
+            out.append(design)
+        return out
 
     @classmethod
     def concatenate(cls, batches: list[DesignBatch]) -> DesignBatch:
-        return cls.from_features(np.concatenate([b.features() for b in batches], axis=0))
+        """One batch of ``batches`` with one tendon count (optional fields filled with defaults
+        where some batches give them and others not)."""
+        fields = {}
+        for name in _FIELDS:
+            if name in _OPTIONAL and all(getattr(b, name) is None for b in batches):
+                fields[name] = None
+                continue
+            fields[name] = np.concatenate([_resolved(b, name) for b in batches], axis=0)
+        return cls(**fields)
+
+
+#: The optional fields of :class:`DesignBatch` (``None``: the default), and all of them in order.
+_OPTIONAL = ("angle", "end", "poisson", "displacement")
+_FIELDS = ("E", "r", "L", "offset", "pitch", "tension") + _OPTIONAL
+
+
+def _resolved(batch: DesignBatch, name: str) -> np.ndarray:
+    """A field of ``batch`` with its default filled in (NaN displacements: tension-driven)."""
+    if name == "angle":
+        return np.array(batch.angles)
+    if name == "end":
+        return np.array(batch.ends)
+    if name == "poisson":
+        return batch.poissons
+    if name == "displacement" and batch.displacement is None:
+        return np.full(batch.offset.shape, np.nan)
+    return getattr(batch, name)
 
 
 @dataclass(frozen=True)

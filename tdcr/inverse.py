@@ -65,10 +65,7 @@ Forward = Callable[[np.ndarray], TipPose]
 
 def _with_tensions(design: DesignBatch, tensions: np.ndarray) -> DesignBatch:
     """``T`` copies of a one-design batch with the given tensions ``(T, N_t)``."""
-    t = tensions.shape[0]
-    return DesignBatch(E=np.repeat(design.E, t), r=np.repeat(design.r, t), L=np.repeat(design.L, t),
-                       offset=np.repeat(design.offset, t, axis=0), pitch=np.repeat(design.pitch, t, axis=0),
-                       tension=tensions)
+    return design.take(np.zeros(tensions.shape[0], dtype=np.int64)).replace(tension=tensions)
 
 
 def tip_pose_of(position: np.ndarray, frame: np.ndarray, jacobian: np.ndarray, ok: np.ndarray) -> TipPose:

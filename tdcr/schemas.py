@@ -16,7 +16,17 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from tdcr.bounds import EXACT_TOLERANCE
-from tdcr.design_space import DEFAULT_POINTS, FRACTION_ROUNDING, LOADS, MAX_POINTS, MAX_TENDONS, N_TENDONS, TABLE_I
+from tdcr.design_space import (
+    DEFAULT_POINTS,
+    FRACTION_ROUNDING,
+    LAYOUT_FIELDS,
+    LOADS,
+    MAX_POINTS,
+    MAX_TENDONS,
+    N_TENDONS,
+    TABLE_I,
+)
+from tdcr.physics.cosserat import TERMINATIONS
 
 #: Longest model name a request may carry.
 MAX_MODEL_NAME = 64
@@ -48,14 +58,49 @@ _Fraction = Annotated[float, Field(strict=True, json_schema_extra={"minimum": -F
                                                                    "maximum": 1.0 + FRACTION_ROUNDING})]
 
 
-class Tendon(BaseModel):
-    """One tendon: radial offset (m), helical pitch (rad/m) and tension (N, >= 0)."""
+def _layout(bound):
+    """An optional field of the general design (:data:`tdcr.design_space.LAYOUT_FIELDS`), with its bounds."""
+    low, high = bound.admissible
+    extra = {"exclusiveMinimum" if bound.exclusive_min else "minimum": low,
+             "exclusiveMaximum" if bound.exclusive_max else "maximum": high}
+    unit = f", {bound.unit}" if bound.unit else ""
+    return Field(None, description=f"{bound.description}{unit}", json_schema_extra=extra)
+
+
+_FloatOrNone = Annotated[float | None, Field(strict=True)]
+
+
+class SurrogateTendon(BaseModel):
+    """One tendon of the surrogates' layout: radial offset (m), helical pitch (rad/m) and tension
+    (N, >= 0), at the default angle 2 pi i / 4 and ending at the tip."""
 
     model_config = ConfigDict(extra="forbid")
     offset: _number(TABLE_I["offset"]) = Field(  # type: ignore[valid-type]
         description="distance of the tendon from the backbone axis, m")
     pitch: _number(TABLE_I["pitch"]) = Field(0.0, description="helical pitch of the routing, rad/m")  # type: ignore[valid-type]
     tension: _number(TABLE_I["tension"]) = Field(description="tendon tension, N")  # type: ignore[valid-type]
+
+
+#: JSON schema: a tendon gives its tension or its displacement, not both.
+_TENSION_OR_DISPLACEMENT = {"oneOf": [{"required": [k], "properties": {k: {"type": "number"}}}
+                                      for k in ("tension", "displacement")]}
+
+
+class InverseTendon(SurrogateTendon):
+    """A tendon of a design for inverse kinematics: any angle and end (the exact model)."""
+
+    angle: _FloatOrNone = _layout(LAYOUT_FIELDS["angle"])
+    end: _FloatOrNone = _layout(LAYOUT_FIELDS["end"])
+
+
+class Tendon(InverseTendon):
+    """One tendon of any robot: radial offset (m), helical pitch (rad/m), its angle at s = 0 (rad)
+    and where it ends (m), driven by its tension (N, >= 0) or by its displacement (m)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_TENSION_OR_DISPLACEMENT)
+    tension: _number(TABLE_I["tension"]) | None = Field(  # type: ignore[valid-type]
+        None, description="tendon tension, N (or give displacement)")
+    displacement: _FloatOrNone = _layout(LAYOUT_FIELDS["displacement"])
 
 
 #: A gravity vector needs a density (JSON Schema of every design with loads).
@@ -83,17 +128,20 @@ class SurrogateDesign(_Loads):
     E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
     r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
     L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
-    tendons: list[Tendon] = Field(min_length=N_TENDONS, max_length=N_TENDONS)
+    tendons: list[SurrogateTendon] = Field(min_length=N_TENDONS, max_length=N_TENDONS)
 
 
 class Design(_Loads):
-    """A TDCR design in SI units, with optional external loads for the physics solver (a gravity
-    vector needs a density)."""
+    """A TDCR design in SI units -- any number of tendons (up to MAX_TENDONS), each at any angle and
+    ending anywhere (segments), driven by tension or displacement, and the material's Poisson
+    ratio -- with optional external loads for the physics solver (a gravity vector needs a
+    density)."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra=_GRAVITY_NEEDS_DENSITY)
     E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
     r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
     L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
+    poisson: _FloatOrNone = _layout(LAYOUT_FIELDS["poisson"])
     tendons: list[Tendon] = Field(min_length=1, max_length=MAX_TENDONS)
 
 
@@ -136,12 +184,31 @@ _JACOBIAN_WITHOUT_LOADS = {
         "gravity": {"type": "null"}, "tip_force": {"type": "null"}, "tip_moment": {"type": "null"}}}}}}}
 
 
+#: JSON schema: the Jacobian is the consistent model's under tension actuation.
+_NO_DISPLACEMENT = {"items": {"properties": {"tendons": {"items": {"properties": {"displacement": {"type": "null"}}}}}}}
+_JACOBIAN_CONSISTENT = {"if": {"properties": {"jacobian": {"const": True}}, "required": ["jacobian"]},
+                        "then": {"properties": {"termination": {"const": "exact"}, "designs": _NO_DISPLACEMENT}}}
+#: JSON schema: displacement actuation covers tendon loads with consistent termination.
+_DISPLACEMENT_UNLOADED = {"if": {"properties": {"designs": {"contains": {"properties": {"tendons": {"contains": {
+    "properties": {"displacement": {"type": "number"}}, "required": ["displacement"]}}}}}}},
+    "then": {"properties": {"termination": {"const": "exact"}, "designs": {"items": {"properties": {
+        "gravity": {"type": "null"}, "tip_force": {"type": "null"}, "tip_moment": {"type": "null"}}}}}}}
+
+_TERMINATION = Field("exact", description=(
+    "how a tendon that ends before the tip loads the rod: exact (default) -- the consistent equilibrium, the "
+    "total wrench across any cut through rod and tendons continuous: the ending tendon's pull and the kink "
+    "forces of the tendons that continue past it -- or rucker_webster, the common shortcut (e.g. "
+    "tdcr-modeling) that applies only the ending tendon's pull, for comparison with codes that use it"))
+
+
 class SolveRequest(_Arclengths):
     """A batch of designs and the arclengths wanted: ``points`` equispaced, or explicit ``s``."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S | _JACOBIAN_WITHOUT_LOADS)
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S | _JACOBIAN_WITHOUT_LOADS | {
+        "allOf": [_JACOBIAN_CONSISTENT, _DISPLACEMENT_UNLOADED]})
     designs: list[Design] = Field(min_length=1)
     jacobian: bool = _JACOBIAN
+    termination: Literal[TERMINATIONS] = _TERMINATION  # type: ignore[valid-type]
 
 
 #: JSON schema: a tolerance is kept without the operator's tip Jacobian.
@@ -211,7 +278,15 @@ class ExactShape(BaseModel):
                                         "(then non-finite coordinates are returned as 0)")
     residual: float = Field(description="wrench-balance residual, N (1.8e308 when it is not finite)")
     status: str = Field("converged", description="the solver's verdict: converged, newton_failed, not_finite, "
-                        "step_tol_not_met, residual_too_large, shooting_failed or multiple_equilibria")
+                        "step_tol_not_met, residual_too_large, shooting_failed, multiple_equilibria, "
+                        "tendon_collapsed (a tendon would pass its centre of curvature: no equilibrium with a taut "
+                        "tendon) or displacement_not_met")
+    tension: list[float] = Field(description="(N_t,) every tendon's tension, N: as given, or found for its "
+                                             "displacement")
+    displacement: list[float] = Field(description="(N_t,) every tendon's displacement, m: its path length on the "
+                                                  "straight rod minus its path length at the equilibrium")
+    slack: list[bool] | None = Field(None, description="(N_t,) with displacement actuation: the tendon would need "
+                                                       "a push to reach its displacement, so hangs slack at tension 0")
     error_estimate: float | None = Field(None, description="estimated relative l2 error of the tendon positions "
                                          "due to the integration step (null where not estimated)")
     tip_jacobian: list[list[float]] | None = Field(None, description="(6, N_t) with jacobian: true")
@@ -247,7 +322,8 @@ class InverseDesign(_Loads):
     E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
     r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
     L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
-    tendons: list[Tendon] = Field(min_length=1, max_length=MAX_TENDONS)
+    poisson: _FloatOrNone = _layout(LAYOUT_FIELDS["poisson"])
+    tendons: list[InverseTendon] = Field(min_length=1, max_length=MAX_TENDONS)
 
 
 class InverseRequest(BaseModel):
@@ -255,8 +331,10 @@ class InverseRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"allOf": [
         {"if": {"properties": {"model": {"not": {"const": EXACT_MODEL}}}, "required": ["model"]},
-         "then": {"properties": {"design": {"properties": {"tendons": {"minItems": N_TENDONS,
-                                                                       "maxItems": N_TENDONS}}}}}},
+         "then": {"properties": {"design": {"properties": {
+             "poisson": {"type": "null"},
+             "tendons": {"minItems": N_TENDONS, "maxItems": N_TENDONS, "items": {"properties": {
+                 "angle": {"type": "null"}, "end": {"type": "null"}}}}}}}}},
         # a design with loads: an operator (the exact inverse covers tendon loads only), no polish
         {"if": {"properties": {"design": {"anyOf": [{"properties": {k: {"type": "array"}}, "required": [k]}
                                                     for k in ("gravity", "tip_force", "tip_moment")]}},

@@ -31,7 +31,9 @@ from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's voc
     _short,
     check_features,
     check_fractions,
+    check_layout,
     check_loads,
+    check_standard_layout,
     check_tolerance,
     checkable_loads,
     format_location,
@@ -40,12 +42,13 @@ from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's voc
 )
 from tdcr.design_space import (
     DEFAULT_POINTS,
+    FRACTION_ROUNDING,
     MAX_POINTS,
     N_FEATURES,
     N_TENDONS,
     TABLE_I,
 )
-from tdcr.designs import DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.designs import DEFAULT_POISSON, DesignBatch, ExternalLoads, FeatureLayout
 from tdcr.schemas import EXACT_MODEL, MAX_MODEL_NAME, MAX_TARGETS, InverseRequest, PredictRequest, SolveRequest
 
 #: What a request is for: the surrogates (4 tendons, no loads) or the physics solver.
@@ -93,6 +96,7 @@ class ShapeRequest:
     outputs: tuple[str, ...] = OUTPUTS
     jacobian: bool = False
     tolerance: float | None = None  #: relative l2: designs whose error bound exceeds it are solved exactly
+    termination: str = "exact"  #: how a tendon that ends before the tip loads the rod (tdcr.solve)
 
     @property
     def n_designs(self) -> int:
@@ -115,8 +119,20 @@ class ShapeRequest:
 
     @property
     def n_loaded(self) -> int:
-        """Designs with non-zero gravity, tip force or tip moment (the solver then shoots)."""
-        return sum(int(_loaded(g.loads).sum()) for g in self.groups if g.loads is not None)
+        """Designs the solver shoots for: non-zero gravity, tip force or tip moment, or segments
+        under Rucker & Webster's rule."""
+        count = 0
+        for g in self.groups:
+            shooting = np.zeros(len(g.rows), dtype=bool) if g.loads is None else _loaded(g.loads)
+            if self.termination == "rucker_webster":
+                shooting |= g.designs.segmented
+            count += int(shooting.sum())
+        return count
+
+    @property
+    def n_displacement(self) -> int:
+        """Designs with a displacement-driven tendon (the solver first finds their tensions)."""
+        return sum(int(g.designs.displacement_driven.any(axis=1).sum()) for g in self.groups)
 
     @property
     def pose(self) -> bool:
@@ -134,7 +150,8 @@ class ShapeRequest:
         if loads is not None and not _loaded(loads).any():
             loads = None  # tendon loads only: the solver needs no shooting
         return ShapeRequest(groups=(DesignGroup(rows=np.arange(len(rows)), designs=group.designs.take(rows),
-                                                loads=loads),), fractions=self.fractions, outputs=self.outputs)
+                                                loads=loads),), fractions=self.fractions, outputs=self.outputs,
+                            termination=self.termination)
 
 
 # -- value checks ------------------------------------------------------------------------------
@@ -202,7 +219,8 @@ def _check_sizes(n_designs: int, n_points: int, limits: Limits) -> None:
 
 def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: list[Problem], *,
              model: str | None, outputs: tuple[str, ...], jacobian: bool = False,
-             tolerance: float | None = None) -> ShapeRequest:
+             tolerance: float | None = None, target: Target = "solver",
+             termination: str = "exact") -> ShapeRequest:
     """Every value check of every entry point; raises :class:`InvalidRequest` naming each field."""
     problems = problems + check_tolerance(tolerance)
     if tolerance is not None and jacobian:
@@ -210,7 +228,10 @@ def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: 
                                 "tolerance, or from /exact", "tolerance_with_jacobian"))
     value_problems = []
     for g in groups:  # (the surrogates' 4 tendons and no loads are structure: checked by the schema or shape)
-        value_problems += check_features(g.designs.features(), g.rows)
+        value_problems += check_features(g.designs.features(), g.rows) + check_layout(g.designs, g.rows)
+        if target == "surrogate":
+            value_problems += check_standard_layout(g.designs, g.rows)
+        value_problems += _check_actuation(g, jacobian=jacobian, termination=termination)
         if g.loads is not None:
             value_problems += check_loads(g.loads, g.rows)
             if jacobian:
@@ -223,7 +244,27 @@ def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: 
         raise InvalidRequest(problems)
     groups = [g if g.loads is None else replace(g, loads=_zero_absent(g.loads)) for g in groups]
     return ShapeRequest(groups=tuple(groups), fractions=fractions, model=model, outputs=outputs, jacobian=jacobian,
-                        tolerance=None if tolerance is None else float(tolerance))
+                        tolerance=None if tolerance is None else float(tolerance), termination=termination)
+
+
+def _check_actuation(group: DesignGroup, *, jacobian: bool, termination: str) -> list[Problem]:
+    """Problems of what the solver covers: displacement actuation under tendon loads, consistent
+    termination and no Jacobian; the Jacobian of segments under consistent termination."""
+    designs, problems = group.designs, []
+    loaded = np.zeros(len(group.rows), dtype=bool) if group.loads is None else _loaded(_zero_absent(group.loads))
+    for b, i in zip(*np.nonzero(designs.displacement_driven), strict=True):
+        loc = ("designs", int(group.rows[b]), "tendons", int(i), "displacement")
+        if loaded[b] or jacobian or termination != "exact":
+            why = ("gravity and tip loads" if loaded[b] else "the tip Jacobian" if jacobian
+                   else f"termination {termination!r}")
+            problems.append(Problem(loc, f"displacement actuation covers tendon loads with termination 'exact' and "
+                                    f"no Jacobian: remove {why}, or give the tension", "displacement_unsupported"))
+            break
+    if jacobian and termination != "exact":
+        problems += [Problem(("designs", int(group.rows[b]), "jacobian"), "the tip Jacobian of segments is the "
+                             "consistent model's: use termination 'exact'", "jacobian_with_shortcut")
+                     for b in np.nonzero(designs.segmented)[0]]
+    return problems
 
 
 def _zero_absent(loads: ExternalLoads) -> ExternalLoads:
@@ -259,10 +300,11 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     by_count: dict[int, list[int]] = {}
     for i, d in enumerate(request.designs):
         by_count.setdefault(len(d.tendons), []).append(i)
-    groups = [_group_from_json([request.designs[i] for i in rows], np.asarray(rows))
+    groups = [_group_from_json([request.designs[i] for i in rows], np.asarray(rows), problems)
               for rows in by_count.values()]
     return _checked(groups, fractions, problems, model=getattr(request, "model", None),
-                    outputs=wanted, jacobian=request.jacobian, tolerance=getattr(request, "tolerance", None))
+                    outputs=wanted, jacobian=request.jacobian, tolerance=getattr(request, "tolerance", None),
+                    target=target, termination=getattr(request, "termination", "exact"))
 
 
 def _what_to_do(problem: Problem, target: Target) -> Problem:
@@ -273,17 +315,52 @@ def _what_to_do(problem: Problem, target: Target) -> Problem:
         return problem
     if loc[2:] == ("tendons",) and problem.type in ("too_short", "too_long"):
         return problem._replace(msg=f"{problem.msg}: the operators take {N_TENDONS} tendons; {EXACT_ROUTES}")
+    if problem.type == "extra_forbidden" and loc[-1] in _LAYOUT_WORDS:
+        return problem._replace(msg=f"{_LAYOUT_WORDS[loc[-1]]}; {EXACT_ROUTES}")
     return problem
 
 
-def _group_from_json(designs: list, rows: np.ndarray) -> DesignGroup:
-    """Arrays of parsed designs that share a tendon count (loads: NaN gravity and density where absent)."""
+#: Why a surrogate refuses a general design's field (it was trained on one layout).
+_LAYOUT_WORDS = {"poisson": "the operators were trained at nu = 0.3",
+                 "angle": f"the operators take tendons at 2 pi i / {N_TENDONS}",
+                 "end": "the operators take tendons that end at the tip",
+                 "displacement": "the operators take tensions",
+                 "termination": "the operators' tendons all end at the tip"}
+
+
+def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | None = None) -> DesignGroup:
+    """Arrays of parsed designs that share a tendon count (loads: NaN gravity and density where
+    absent; the optional layout fields None when no design gives them, else their defaults where
+    absent).  A tendon with neither or both of tension and displacement is a problem (appended)."""
+    def optional(name: str, default) -> list | None:
+        if not any(getattr(t, name, None) is not None for d in designs for t in d.tendons):
+            return None
+        return [[default(d, i) if getattr(t, name) is None else getattr(t, name) for i, t in enumerate(d.tendons)]
+                for d in designs]
+
+    for j, d in enumerate(designs):
+        for i, t in enumerate(d.tendons):
+            given = (t.tension is not None) + (getattr(t, "displacement", None) is not None)
+            if given != 1 and problems is not None:
+                problems.append(Problem(("designs", int(rows[j]), "tendons", i, "tension"),
+                                        "give the tendon's tension (N) or its displacement (m), not both"
+                                        if given else "give the tendon's tension (N) or its displacement (m)",
+                                        "tension_or_displacement"))
+    poisson = None
+    if any(getattr(d, "poisson", None) is not None for d in designs):
+        poisson = [DEFAULT_POISSON if d.poisson is None else d.poisson for d in designs]
+    n_t = len(designs[0].tendons)
     batch = DesignBatch(
         E=[d.E for d in designs], r=[d.r for d in designs], L=[d.L for d in designs],
         offset=[[t.offset for t in d.tendons] for d in designs],
         pitch=[[t.pitch for t in d.tendons] for d in designs],
-        tension=[[t.tension for t in d.tendons] for d in designs],
+        tension=[[0.0 if t.tension is None else t.tension for t in d.tendons] for d in designs],
+        angle=optional("angle", lambda d, i: 2.0 * np.pi * i / n_t), end=optional("end", lambda d, i: d.L),
+        displacement=optional("displacement", lambda d, i: np.nan), poisson=poisson,
     )
+    if batch.end is not None:  # an end within rounding of L is L (farther ones are refused by check_layout)
+        rounding = (batch.end > batch.L[:, None]) & (batch.end <= batch.L[:, None] * (1.0 + FRACTION_ROUNDING))
+        batch = batch.replace(end=np.where(rounding, batch.L[:, None], batch.end))
     loads = None
     takes_loads = "gravity" in type(designs[0]).model_fields  # surrogate designs have no load fields
     if takes_loads and any(d.gravity is not None or d.tip_force is not None or d.tip_moment is not None
@@ -303,11 +380,15 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
                       outputs: Iterable[str] | None = None, limits: Limits = Limits(),
                       loads: Mapping[str, np.ndarray] | None = None,
                       arclength: Sequence[float] | np.ndarray | None = None,
-                      tolerance: float | None = None) -> ShapeRequest:
+                      tolerance: float | None = None, layout: Mapping[str, np.ndarray] | None = None,
+                      termination: str = "exact") -> ShapeRequest:
     """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body or OIP tensors) with arclengths and
     options; ``loads``: any of ``gravity`` ``(B, 3)`` m/s^2, ``density`` ``(B,)`` kg/m^3,
     ``tip_force`` ``(B, 3)`` N, ``tip_moment`` ``(B, 3)`` N m (whether the model takes them is the
-    model's check: :func:`tdcr.checks.check_model_loads`); ``tolerance``: as :class:`ShapeRequest`'s.
+    model's check: :func:`tdcr.checks.check_model_loads`); ``tolerance``: as :class:`ShapeRequest`'s;
+    ``layout``: any of the general design's ``angle``, ``end``, ``displacement`` (NaN: tension-driven)
+    ``(B, N_t)`` and ``poisson`` ``(B,)`` (:class:`tdcr.designs.DesignBatch`); ``termination``: as
+    :func:`tdcr.solve`'s.
 
     Raises :class:`InvalidRequest`.
     """
@@ -326,13 +407,38 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     _check_sizes(len(features), 0 if fractions is None else fractions.size, limits)
     wanted, more = check_outputs(outputs)
     problems += more + _check_model(model)
-    group = DesignGroup(rows=np.arange(len(features)), designs=DesignBatch.from_features(features),
+    designs = _with_layout(DesignBatch.from_features(features), layout, problems)
+    group = DesignGroup(rows=np.arange(len(features)), designs=designs,
                         loads=_loads_from_arrays(loads, len(features), problems))
     if tolerance is not None and target != "surrogate":
         problems.append(Problem(("tolerance",), "applies to surrogate answers only (the exact solver's error is "
                                 "below 1e-6 already)", "tolerance_exact"))
         tolerance = None
-    return _checked([group], fractions, problems, model=model, outputs=wanted, tolerance=tolerance)
+    return _checked([group], fractions, problems, model=model, outputs=wanted, tolerance=tolerance, target=target,
+                    termination=termination)
+
+
+def _with_layout(designs: DesignBatch, layout: Mapping[str, np.ndarray] | None,
+                 problems: list[Problem]) -> DesignBatch:
+    """``designs`` with the general design's arrays of ``layout`` by name; a wrong name or shape is
+    a problem (appended) and the field is left at its default."""
+    if not layout:
+        return designs
+    fields = {}
+    for name, values in layout.items():
+        values = np.asarray(values, dtype=np.float64)
+        shape = (designs.n_designs,) if name == "poisson" else (designs.n_designs, designs.n_tendons)
+        if name not in ("angle", "end", "displacement", "poisson"):
+            problems.append(Problem((name,), "not a layout field; they are angle, end, displacement and poisson",
+                                    "layout"))
+        elif values.shape != shape:
+            where = "layout" if name != "poisson" else "poisson"
+            problems.append(Problem((where,), f"{name} must have shape {list(shape)} (a row per design"
+                                    f"{'' if name == 'poisson' else ', a column per tendon of design'}), got "
+                                    f"{list(values.shape)}", "shape"))
+        else:
+            fields[name] = values
+    return designs.replace(**fields) if fields else designs
 
 
 #: The external loads' arrays and their trailing shapes.
@@ -413,7 +519,8 @@ def check_inverse(design: DesignBatch, positions: np.ndarray, directions: np.nda
     bounds, and only for an operator (the exact model's Jacobian covers tendon loads) without
     ``polish``.
     Raises :class:`InvalidRequest`."""
-    problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(design.features())]
+    problems = [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_features(design.features())
+                + check_layout(design) + (check_standard_layout(design) if model != EXACT_MODEL else [])]
     if loads is not None:  # any load field given
         problems += [Problem(("design",) + p.loc[2:], p.msg, p.type) for p in check_loads(loads, np.zeros(1, int))]
         loads = _zero_absent(loads)

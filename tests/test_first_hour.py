@@ -203,7 +203,7 @@ def test_the_port_answers_while_the_service_starts(root, tiny_models, tmp_path):
                             cwd=root, env=env, stdout=log, stderr=subprocess.STDOUT)
     url, seen = f"http://127.0.0.1:{port}", []
     try:
-        deadline = time.monotonic() + 300
+        deadline = time.monotonic() + 420  # a first start compiles every kernel (about two minutes)
         while time.monotonic() < deadline:
             try:
                 live, ready = httpx.get(url + "/healthz"), httpx.get(url + "/readyz")
@@ -215,6 +215,9 @@ def test_the_port_answers_while_the_service_starts(root, tiny_models, tmp_path):
                 break
             assert ready.json()["problems"][0].startswith("starting: loading the models")
             predict = httpx.post(url + "/predict", json={"designs": design_space.sample_designs(1, seed=0).to_dicts()})
+            if predict.status_code == 200 and httpx.get(url + "/readyz").status_code == 200:
+                seen.append((200, 200))  # it became ready between the two calls
+                break
             assert predict.status_code == 503 and "starting" in predict.json()["message"]
             time.sleep(0.2)
         assert (200, 503) in seen and seen[-1] == (200, 200), seen[:3] + seen[-3:]

@@ -156,6 +156,18 @@ def test_the_page_in_a_real_browser(server, tmp_path):
             assert float(_attr(page, "error")) == pytest.approx(expected, rel=1e-9)
             assert "loaded operator" in page.inner_text("#message")
 
+            # a tendon that ends before the tip: segments, the exact solver alone, drawn to its end
+            before = int(_attr(page, "updates"))
+            page.focus("#p-end_1")
+            page.keyboard.press("Home")  # tendon 2 ends at 0.05 L
+            _wait(lambda: "end" in json.loads(_attr(page, "design") or "{}").get("tendons", [{}, {}])[1]
+                  and int(_attr(page, "updates")) > before)
+            design = json.loads(_attr(page, "design"))
+            assert design["tendons"][1]["end"] == pytest.approx(0.05 * design["L"])
+            points = json.loads(_attr(page, "tendon-points"))
+            assert points[1] < points[0] == 42  # drawn from the base to its end only
+            assert "exact solver alone" in page.inner_text("#message") and _attr(page, "error") == "none"
+
             drawn, total = page.evaluate(DRAWN_PIXELS)
             assert drawn > 0.005 * total, (drawn, total)  # not blank
             page.click("#reset")

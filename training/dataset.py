@@ -45,12 +45,16 @@ from tdcr.physics import STATUS, SolverOptions, solve
 FORMAT_VERSION = 1
 _ARRAYS = ("index", "features", "s", "tendons", "backbone", "rotation", "converged", "residual")
 #: arrays of newer or loaded datasets, read where a shard has them
-_OPTIONAL = ("status", "error_estimate", "gravity", "density", "tip_force", "tip_moment")
+_OPTIONAL = ("status", "error_estimate", "gravity", "density", "tip_force", "tip_moment", "angle", "end",
+             "tension", "displacement")
 
 
 @dataclass(frozen=True)
 class GenerateConfig:
-    """What to generate: ``n`` Table I designs from ``seed``, at ``points`` equispaced arclengths."""
+    """What to generate: ``n`` Table I designs from ``seed``, at ``points`` equispaced arclengths;
+    robots of ``segments`` segments with ``tendons_per_segment`` tendons each
+    (:func:`tdcr.design_space.sample_segmented_designs`; the default, one segment of 4 tendons, is
+    the surrogates' design space)."""
 
     n: int
     seed: int = 0
@@ -58,10 +62,27 @@ class GenerateConfig:
     shard_size: int = 1000
     test_fraction: float = 0.2
     loads: design_space.LoadSpace = design_space.LoadSpace()
+    segments: int = 1
+    tendons_per_segment: int = design_space.N_TENDONS
 
     @property
     def n_shards(self) -> int:
         return -(-self.n // self.shard_size)
+
+    @property
+    def n_tendons(self) -> int:
+        return self.segments * self.tendons_per_segment
+
+    def designs(self) -> DesignBatch:
+        """The dataset's designs (seeded)."""
+        if (self.segments, self.tendons_per_segment) == (1, design_space.N_TENDONS):
+            return design_space.sample_designs(self.n, seed=self.seed)
+        return design_space.sample_segmented_designs(self.n, seed=self.seed, segments=self.segments,
+                                                     tendons_per_segment=self.tendons_per_segment)
+
+
+#: Plan keys added after datasets were first made, with the value an older plan means.
+_PLAN_DEFAULTS = {"segments": 1, "tendons_per_segment": design_space.N_TENDONS}
 
 
 class DatasetMismatch(ValueError):
@@ -69,17 +90,24 @@ class DatasetMismatch(ValueError):
 
 
 def solve_shard(features: np.ndarray, index: np.ndarray, points: int,
-                loads: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                loads: dict[str, np.ndarray] | None = None,
+                layout: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Solve one shard of designs ``(b, 3 + 3 N_t)`` (and their ``loads``, arrays as in the module
-    doc); returns the shard's arrays."""
+    doc; ``layout``: the tendons' ``angle`` and ``end`` ``(b, N_t)`` of robots with segments);
+    returns the shard's arrays."""
     designs = DesignBatch.from_features(features)
+    if layout:
+        designs = designs.replace(**layout)
     external = None if loads is None else ExternalLoads(**{k: v for k, v in loads.items() if v is not None})
     sol = solve(designs, np.linspace(0.0, 1.0, points), loads=external)
     arrays = {
         "index": index, "features": features, "s": sol.s, "tendons": sol.tendons,
         "backbone": sol.backbone, "rotation": sol.rotation, "converged": sol.converged,
         "status": sol.status, "residual": sol.residual, "error_estimate": sol.error_estimate,
+        "displacement": sol.displacement,
     }
+    if layout:
+        arrays.update(layout)
     if loads is not None:
         b = features.shape[0]
         arrays.update(gravity=np.zeros((b, 3)) if loads["gravity"] is None else loads["gravity"],
@@ -120,7 +148,7 @@ def _plan(out: Path, cfg: GenerateConfig) -> None:
     plan_file = out / "plan.json"
     plan = json.loads(json.dumps({"format_version": FORMAT_VERSION, **asdict(cfg)}))  # tuples as JSON lists
     if plan_file.exists():
-        old = json.loads(plan_file.read_text())
+        old = _PLAN_DEFAULTS | json.loads(plan_file.read_text())
         if old != plan:
             raise DatasetMismatch(f"{out} holds a dataset made with other settings: {old}")
     else:
@@ -145,14 +173,18 @@ def generate(
     _plan(out, cfg)
     for stale in (out / "shards").glob("*.tmp-*"):  # half-written by a killed run (one writer per dataset)
         stale.unlink()
-    features = design_space.sample_designs(cfg.n, seed=cfg.seed).features()
+    designs = cfg.designs()
+    features = designs.features()
+    layout = None if designs.angle is None else {"angle": designs.angles, "end": designs.ends}
     todo = [k for k in range(cfg.n_shards) if not shard_path(out, k).exists()]
     done_designs = cfg.n - sum(len(range(cfg.n)[_shard_range(cfg, k)]) for k in todo)
     bar = _progress_bar(cfg.n, done_designs, progress)
     started = time.perf_counter()
     loads = cfg.loads.sample(cfg.n, seed=cfg.seed)
     jobs = [(k, features[_shard_range(cfg, k)], np.arange(cfg.n)[_shard_range(cfg, k)],
-             _load_rows(loads, _shard_range(cfg, k))) for k in todo]
+             _load_rows(loads, _shard_range(cfg, k)),
+             None if layout is None else {name: v[_shard_range(cfg, k)] for name, v in layout.items()})
+            for k in todo]
     for k, arrays in _run_jobs(jobs, cfg.points, workers=workers, scheduler=scheduler):
         _write_atomic(shard_path(out, k), arrays)
         if bar is not None:
@@ -184,17 +216,17 @@ def _run_jobs(jobs, points: int, *, workers: int | None, scheduler: str | None):
         from distributed import as_completed as dask_completed
 
         with Client(scheduler) as client:
-            futures = {client.submit(solve_shard, f, i, points, ld, pure=False): k for k, f, i, ld in jobs}
+            futures = {client.submit(solve_shard, f, i, points, ld, lay, pure=False): k for k, f, i, ld, lay in jobs}
             for fut in dask_completed(futures):
                 yield futures[fut], fut.result()
         return
     workers = workers or os.cpu_count() or 1
     if workers == 1:
-        for k, f, i, ld in jobs:
-            yield k, solve_shard(f, i, points, ld)
+        for k, f, i, ld, lay in jobs:
+            yield k, solve_shard(f, i, points, ld, lay)
         return
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(solve_shard, f, i, points, ld): k for k, f, i, ld in jobs}
+        futures = {pool.submit(solve_shard, f, i, points, ld, lay): k for k, f, i, ld, lay in jobs}
         for fut in as_completed(futures):
             yield futures[fut], fut.result()
 
@@ -229,8 +261,8 @@ def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> d
         "format_version": FORMAT_VERSION,
         "generator": "tdcr generate",
         **asdict(cfg),
-        "n_tendons": design_space.N_TENDONS,
-        "feature_names": design_space.feature_names(),
+        "n_tendons": cfg.n_tendons,
+        "feature_names": design_space.feature_names(cfg.n_tendons),
         "ranges": {k: asdict(v) for k, v in design_space.TABLE_I.items()},
         "fractions": np.linspace(0.0, 1.0, cfg.points).tolist(),  # the arclengths, fractions of L
         "solver": asdict(SolverOptions()),

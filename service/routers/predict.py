@@ -52,6 +52,10 @@ def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[
         200: {"model": PredictResponse, "content": {NPZ: {"schema": {"type": "string", "format": "binary"}}}},
         404: {"model": ErrorResponse}, 413: {"model": ErrorResponse}, 415: {"model": ErrorResponse},
         422: {"model": ErrorResponse},
+        503: {"model": ErrorResponse, "description": "with a tolerance: the exact solver that answers the designs "
+                                                     "over it is saturated (Retry-After)"},
+        504: {"model": ErrorResponse, "description": "with a tolerance: the exact solver did not finish within the "
+                                                     "deadline"},
     },
     openapi_extra={"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": "#/components/schemas/PredictRequest"}},

@@ -43,7 +43,9 @@ STEP_TOL_NOT_MET, SHOOTING_FAILED = int(Status.STEP_TOL_NOT_MET), int(Status.SHO
 class Rods(NamedTuple):
     """The designs of a batch, batch first: stiffness diagonals ``kse`` K_se (B, 3) N and ``kbt``
     K_bt (B, 3) N m^2 (:func:`tdcr.physics.cosserat.material`), ``radius`` (B,) m, ``length``
-    (B,) m, tendon ``offset`` (B, N_t) m, ``pitch`` (B, N_t) rad/m and ``tension`` (B, N_t) N."""
+    (B,) m, tendon ``offset`` (B, N_t) m, ``pitch`` (B, N_t) rad/m, ``tension`` (B, N_t) N,
+    ``angle`` (B, N_t) rad at s = 0 and ``end`` (B, N_t) fractions of L where each tendon
+    terminates (1: the tip)."""
 
     kse: np.ndarray
     kbt: np.ndarray
@@ -52,6 +54,8 @@ class Rods(NamedTuple):
     offset: np.ndarray
     pitch: np.ndarray
     tension: np.ndarray
+    angle: np.ndarray
+    end: np.ndarray
 
 
 class Grid(NamedTuple):
@@ -73,6 +77,7 @@ class Tolerances(NamedTuple):
     max_level: int
     shooting_tol: float
     max_shooting: int
+    shortcut: bool  #: termination "rucker_webster": only the ending tendon's pull at each end (see _jump)
 
 
 class Loads(NamedTuple):
@@ -87,7 +92,8 @@ class Shapes(NamedTuple):
     """The outputs, written in place: ``backbone`` (B, n, 3), ``rotation`` (B, n, 3, 3), ``strains``
     (B, n, 6), ``tendons`` (B, n, N_t, 3); per design ``status``, ``residual`` N, ``iterations``
     (Newton iterations, or shooting passes), ``level`` (halvings) and ``estimate``; loaded only,
-    ``m0`` (B, 3) M(0) and ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise)."""
+    ``m0`` (B, 3) M(0) and ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise); ``displacement``
+    (B, N_t) m: each tendon's undeformed minus deformed path length (:func:`_path_lengths`)."""
 
     backbone: np.ndarray
     rotation: np.ndarray
@@ -100,6 +106,7 @@ class Shapes(NamedTuple):
     estimate: np.ndarray
     m0: np.ndarray
     shoot_jac: np.ndarray
+    displacement: np.ndarray
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -109,9 +116,89 @@ def _tendon(nu0, nu1, nu2, k0, k1, k2, ox, oy, dx, dy):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _tendon_angle(i, n_t, pitch, s):
-    """Body-frame angle of tendon i at arclength ``s`` m: 2 pi i / N_t + pitch_i s (rad)."""
-    return 2.0 * math.pi * i / n_t + pitch * s
+def _tendon_angle(angle, pitch, s):
+    """Body-frame angle of a tendon at arclength ``s`` m: angle_i + pitch_i s (rad)."""
+    return angle + pitch * s
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _active_tensions(tau, end, act, out):
+    """The tensions ``out`` (N_t,) acting at a node whose step lies around the fraction ``act``:
+    tau_i where tendon i continues past it (end_i > act), else 0 (it has terminated)."""
+    for i in range(tau.shape[0]):
+        out[i] = tau[i] if end[i] > act else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _with_ends(edges0, out_step0, end):
+    """The design's step grid: the base ``edges0`` (K+1,) with every tendon end below the tip
+    (``end`` (N_t,) fractions) inserted twice, as a step of zero width: its left edge carries the
+    strains just before the end, its right edge those just after (an end within 1e-9 of an edge
+    falls on that edge).  Returns ``(edges, out_step, end_step)``: the outputs' edges (an output at
+    an end: the left edge) and each tendon's end edge (the left one; -1 for the tip)."""
+    n_t = end.shape[0]
+    cuts = np.empty(n_t)
+    n_cut = 0
+    for i in range(n_t):
+        e = end[i]
+        if e >= 1.0 - 1e-12:
+            continue
+        for k in range(edges0.shape[0]):
+            if abs(edges0[k] - e) <= 1e-9:
+                e = edges0[k]
+        dup = False
+        for c in range(n_cut):
+            dup = dup or cuts[c] == e
+        if not dup:
+            cuts[n_cut] = e
+            n_cut += 1
+    cuts = np.sort(cuts[:n_cut])
+    edges = np.empty(edges0.shape[0] + 2 * n_cut)
+    n, c = 0, 0
+    for k in range(edges0.shape[0]):
+        while c < n_cut and cuts[c] < edges0[k]:
+            edges[n], edges[n + 1] = cuts[c], cuts[c]
+            n += 2
+            c += 1
+        if c < n_cut and cuts[c] == edges0[k]:
+            edges[n] = edges0[k]  # the end falls on an edge: that edge twice
+            n += 1
+            c += 1
+        edges[n] = edges0[k]
+        n += 1
+    edges = edges[:n]
+    out_step = np.empty(out_step0.shape[0], dtype=np.int64)
+    for j in range(out_step0.shape[0]):
+        out_step[j] = np.searchsorted(edges, edges0[out_step0[j]])  # the first (left) of equal edges
+    end_step = np.full(n_t, -1, dtype=np.int64)
+    for i in range(n_t):
+        if end[i] < 1.0 - 1e-12:
+            e = end[i]
+            for k in range(edges0.shape[0]):
+                if abs(edges0[k] - e) <= 1e-9:
+                    e = edges0[k]
+            end_step[i] = np.searchsorted(edges, e)
+    return edges, out_step, end_step
+
+
+@njit(cache=True, error_model="numpy")
+def _node_activity(sig):
+    """For the interleaved nodes ``sig`` (2K+1,) (edge 0, mid 0, edge 1, ...), the fraction whose
+    tendons act at each node (:func:`_active_tensions`): a midpoint of a step of non-zero width --
+    an edge takes its left step's (the strains just before an end), or its right step's after a
+    zero-width step (just after the end); a node inside a zero-width step its own fraction."""
+    k_steps = (sig.shape[0] - 1) // 2
+    act = np.empty(sig.shape[0])
+    for k in range(k_steps):
+        act[2 * k + 1] = sig[2 * k + 1]
+    for k in range(k_steps + 1):
+        if k > 0 and sig[2 * k] > sig[2 * k - 2]:
+            act[2 * k] = sig[2 * k - 1]
+        elif k < k_steps and sig[2 * k + 2] > sig[2 * k]:
+            act[2 * k] = sig[2 * k + 1]
+        else:
+            act[2 * k] = sig[2 * k]
+    return act
 
 
 @njit(cache=True, error_model="numpy")
@@ -120,6 +207,8 @@ def _potential(x, rho, drho, tau, kse, kbt, target):
     phi = 0.5 * (kse[0] * x[0] ** 2 + kse[1] * x[1] ** 2 + kse[2] * (x[2] - 1.0) ** 2)
     phi += 0.5 * (kbt[0] * x[3] ** 2 + kbt[1] * x[4] ** 2 + kbt[2] * x[5] ** 2)
     for i in range(tau.shape[0]):
+        if tau[i] == 0.0:  # a slack or ended tendon adds nothing
+            continue
         g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
         phi += tau[i] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
     for a in range(6):
@@ -144,6 +233,8 @@ def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av, targ
         jac[0, 0], jac[1, 1], jac[2, 2] = kse[0], kse[1], kse[2]
         jac[3, 3], jac[4, 4], jac[5, 5] = kbt[0], kbt[1], kbt[2]
     for i in range(tau.shape[0]):
+        if tau[i] == 0.0:  # a slack or ended tendon adds nothing to (W1, W2) or its Jacobian
+            continue
         ox, oy = rho[i, 0], rho[i, 1]
         g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], ox, oy, drho[i, 0], drho[i, 1])
         gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
@@ -283,33 +374,36 @@ def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, ja
 
 
 @njit(cache=True, error_model="numpy")
-def _routing(fraction, length, offset, pitch, rho, drho):
+def _routing(fraction, length, offset, pitch, angle, rho, drho):
     """rho_i(s) and rho_i'(s) (x, y components; z is 0) at s = fraction L, each (N_t, 2)."""
     n_t = offset.shape[0]
     for i in range(n_t):
-        phi = _tendon_angle(i, n_t, pitch[i], fraction * length)
+        phi = _tendon_angle(angle[i], pitch[i], fraction * length)
         c, s = math.cos(phi), math.sin(phi)
         rho[i, 0], rho[i, 1] = offset[i] * c, offset[i] * s
         drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * s, offset[i] * pitch[i] * c
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes(node_fractions, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
-    """Newton at the nodes ``node_fractions[order]`` in that order, each from the strains of the node before
-    (``x_nodes`` (M, 6) holds the start of the first).  Returns (all converged, max iterations,
-    max residual)."""
+def _solve_nodes(node_fractions, act, x_nodes, length, offset, pitch, angle, tau, end, kse, kbt, radius, tol,
+                 max_iter, order):
+    """Newton at the nodes ``node_fractions[order]`` (their tendons those acting at ``act``, see
+    :func:`_node_activity`), each from the start in ``x_nodes`` (M, 6).  Returns (all converged,
+    max iterations, max residual)."""
     n_t = offset.shape[0]
     rho = np.empty((n_t, 2))
     drho = np.empty((n_t, 2))
+    tau_node = np.empty(n_t)
     work, jac, low = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
     ok = True
     iters = 0
     worst = 0.0
     for j in range(order.shape[0]):
         k = order[j]
-        _routing(node_fractions[k], length, offset, pitch, rho, drho)
-        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low,
-                              _NO_TARGET, False)
+        _routing(node_fractions[k], length, offset, pitch, angle, rho, drho)
+        _active_tensions(tau, end, act[k], tau_node)
+        conv, it, r = _newton(x_nodes[k], rho, drho, tau_node, kse, kbt, radius, length, tol, max_iter, work, jac,
+                              low, _NO_TARGET, False)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):  # NaN-propagating max
@@ -393,13 +487,13 @@ def _magnus(edges, x_edge, x_mid, length, out_step, pos_out, rot_out):
 
 
 @njit(cache=True, error_model="numpy")
-def _output_offsets(fractions_out, length, offset, pitch):
+def _output_offsets(fractions_out, length, offset, pitch, angle):
     """rho_i at the outputs (x, y; z is 0), m, (n, N_t, 2)."""
     n_t = offset.shape[0]
     out = np.empty((fractions_out.shape[0], n_t, 2))
     for j in range(fractions_out.shape[0]):
         for i in range(n_t):
-            phi = _tendon_angle(i, n_t, pitch[i], fractions_out[j] * length)
+            phi = _tendon_angle(angle[i], pitch[i], fractions_out[j] * length)
             out[j, i, 0], out[j, i, 1] = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
     return out
 
@@ -471,37 +565,261 @@ def _all_finite(residual, tendons):
     return True
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _stretch(x, ox, oy, dx, dy):
+    """|g_i| = |nu + kappa x rho_i + rho_i'|, the tendon's path length per unit arclength."""
+    g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], ox, oy, dx, dy)
+    return math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+
+
 @njit(cache=True, error_model="numpy")
-def solve_design(kse, kbt, r, length, offset, pitch, tau, grid, tols, pos_out, rot_out, x_out, tendons_out):
-    """One design (SI units; ``kse``, ``kbt`` (3,), ``offset``, ``pitch``, ``tau`` (N_t,)) on the base
-    :class:`Grid` ``grid`` with :class:`Tolerances` ``tols``.  Writes backbone (n, 3), frames (n, 3, 3),
-    strains (n, 6) and tendon positions (n, N_t, 3) at the outputs; returns ``(status, residual N,
-    Newton iterations, level, error estimate)``."""
-    edges0, out_step0, fractions_out = grid.edges, grid.out_step, grid.fractions
+def undeformed_length(length, offset, pitch, end):
+    """A tendon's path length on the straight rod, m: int_0^end |e3 + rho'| ds = end L sqrt(1 + (o p)^2)
+    (``end`` a fraction of L)."""
+    return end * length * math.sqrt(1.0 + (offset * pitch) ** 2)
+
+
+@njit(cache=True, error_model="numpy")
+def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen):
+    """Each tendon's deformed path length ``lengths`` (N_t,) m, int_0^end |g_i| ds by Simpson's rule
+    on every step of non-zero width (its edge, midpoint and edge nodes ``xs`` of the interleaved
+    layout ``sig``, 4th order like the Magnus steps), over the steps where the tendon acts: one
+    pass over the nodes, each weighted by the steps it belongs to (an edge beside an end belongs to
+    one step only, and acts as that step, :func:`_node_activity`).  With ``sens`` (2K+1, 6, N_t)
+    the strains' sensitivities dx/dtau_k, also ``dlen`` (N_t, N_t) = d length_i / d tau_k =
+    int t_i . (dnu_k + dkappa_k x rho_i) ds = int a_i . dx_k ds."""
+    n_t = offset.shape[0]
+    k_steps = (sig.shape[0] - 1) // 2
+    rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
+    want = sens.shape[0] > 0
+    for i in range(n_t):
+        lengths[i] = 0.0
+        if want:
+            for k in range(n_t):
+                dlen[i, k] = 0.0
+    for node in range(sig.shape[0]):
+        if node % 2 == 1:  # a midpoint
+            w = 4.0 * (sig[node + 1] - sig[node - 1]) * length / 6.0
+        else:
+            k = node // 2
+            w = 0.0
+            if k > 0:
+                w += (sig[node] - sig[node - 2]) * length / 6.0
+            if k < k_steps:
+                w += (sig[node + 2] - sig[node]) * length / 6.0
+        if w == 0.0:
+            continue
+        _routing(sig[node], length, offset, pitch, angle, rho, drho)
+        x = xs[node]
+        for i in range(n_t):
+            if not end[i] > act[node]:
+                continue
+            g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+            gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+            lengths[i] += w * gn
+            if want:
+                t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+                ox, oy = rho[i, 0], rho[i, 1]
+                c0, c1, c2 = oy * t2, -ox * t2, ox * t1 - oy * t0  # rho_i x t_i
+                for q in range(n_t):
+                    dx = sens[node, :, q]
+                    dlen[i, q] += w * (t0 * dx[0] + t1 * dx[1] + t2 * dx[2] + c0 * dx[3] + c1 * dx[4] + c2 * dx[5])
+
+
+@njit(cache=True, error_model="numpy")
+def _sensitivities(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, sens):
+    """dx/dtau_k at every node, ``sens`` (2K+1, 6, N_t), by the implicit-function theorem on (W1, W2):
+    J dx_k = -a_k with J the Hessian of Phi and a_k = (t_k, rho_k x t_k) for a tendon acting at the
+    node (0 otherwise).  False where J is not positive definite."""
+    n_t = offset.shape[0]
+    rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
+    tau_node = np.empty(n_t)
+    res, jac, low = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+    av, d, y, rhs, out = np.empty(6), np.empty(6), np.empty(6), np.empty(6), np.empty(6)
+    for node in range(sig.shape[0]):
+        _routing(sig[node], length, offset, pitch, angle, rho, drho)
+        _active_tensions(tau, end, act[node], tau_node)
+        _residual_jacobian(xs[node], rho, drho, tau_node, kse, kbt, res, jac, True, av, _NO_TARGET)
+        if not _factor_spd(jac, d, low):
+            return False
+        x = xs[node]
+        for q in range(n_t):
+            if not end[q] > act[node]:
+                for a in range(6):
+                    sens[node, a, q] = 0.0
+                continue
+            g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[q, 0], rho[q, 1], drho[q, 0], drho[q, 1])
+            gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+            t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+            ox, oy = rho[q, 0], rho[q, 1]
+            rhs[0], rhs[1], rhs[2] = -t0, -t1, -t2
+            rhs[3], rhs[4], rhs[5] = -oy * t2, ox * t2, -(ox * t1 - oy * t0)
+            if not _solve_factored(d, low, rhs, out, y):
+                return False
+            for a in range(6):
+                sens[node, a, q] = out[a]
+    return True
+
+
+#: displacement actuation: Newton on the tensions stops when every driven tendon is within this, m
+DISPLACEMENT_TOL = 1e-11
+#: and gives up after this many iterations
+MAX_DISPLACEMENT_ITERATIONS = 50
+
+
+@njit(cache=True, error_model="numpy")
+def find_tensions(kse, kbt, r, length, offset, pitch, angle, tau, end, target, grid, tols, slack):
+    """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
+    (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
+    with the ends (:func:`_with_ends`).  The displacement d_i = l0_i - l_i(tau) has the Jacobian
+    -dl/dtau = int A^T J^-1 A ds, symmetric positive semi-definite: Newton on the driven tendons
+    with the exact Jacobian (:func:`_path_lengths`), projected onto tau >= 0.  A tendon whose
+    displacement would need a push (d_i > target_i at tau_i = 0: its path shortened more than it
+    was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged, iterations)."""
+    edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
+    k0 = edges.shape[0] - 1
+    n_t = offset.shape[0]
+    sig = np.empty(2 * k0 + 1)
+    for k in range(k0):
+        sig[2 * k] = edges[k]
+        sig[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
+    sig[2 * k0] = edges[k0]
+    act = _node_activity(sig)
+    order = np.arange(2 * k0 + 1)
+    xs = np.zeros((2 * k0 + 1, 6))
+    sens = np.empty((2 * k0 + 1, 6, n_t))
+    lengths, dlen = np.empty(n_t), np.empty((n_t, n_t))
+    l0 = np.empty(n_t)
+    for i in range(n_t):
+        l0[i] = undeformed_length(length, offset[i], pitch[i], end[i])
+        slack[i] = False
+    free = np.zeros(n_t, dtype=np.bool_)
+    for it in range(MAX_DISPLACEMENT_ITERATIONS):
+        xs[:, :] = 0.0
+        xs[0, 2] = 1.0
+        ok, _, _ = _solve_nodes_chain(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, r,
+                                      tols.newton_tol, tols.max_newton, order)
+        if not ok or not _sensitivities(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, sens):
+            return False, it + 1
+        _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen)
+        # residual and the free set: driven tendons that pull, or at zero tension but short of their target
+        n_free, worst = 0, 0.0
+        for i in range(n_t):
+            free[i] = False
+            if target[i] != target[i]:
+                continue
+            miss = (l0[i] - lengths[i]) - target[i]
+            if tau[i] > 0.0 or miss < 0.0:
+                free[i] = True
+                n_free += 1
+                worst = max(worst, abs(miss))
+            slack[i] = tau[i] == 0.0 and miss > 0.0
+        if worst <= DISPLACEMENT_TOL:
+            return True, it + 1
+        idx = np.empty(n_free, dtype=np.int64)
+        c = 0
+        for i in range(n_t):
+            if free[i]:
+                idx[c] = i
+                c += 1
+        a = np.empty((n_free, n_free))
+        b = np.empty(n_free)
+        for p in range(n_free):
+            i = idx[p]
+            b[p] = target[i] - (l0[i] - lengths[i])
+            for q in range(n_free):
+                a[p, q] = -dlen[i, idx[q]]
+        step = np.empty(n_free)
+        _solve_dense(a, b, step)
+        for p in range(n_free):
+            tau[idx[p]] = max(tau[idx[p]] + step[p], 0.0)
+    return False, MAX_DISPLACEMENT_ITERATIONS
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def find_tensions_batch(rods, target, grid, tols, slack, status, iterations):
+    """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
+    targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED."""
+    for b in prange(rods.length.shape[0]):
+        ok, it = find_tensions(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b],
+                               rods.pitch[b], rods.angle[b], rods.tension[b], rods.end[b], target[b], grid, tols,
+                               slack[b])
+        _store(status, b, OK if ok else NEWTON_FAILED)
+        _store(iterations, b, it)
+
+
+@njit(cache=True, error_model="numpy")
+def _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle):
+    """Each tendon's termination point p(s_e) + R(s_e) rho_i(s_e), (N_t, 3) (rows of tendons that
+    end at the tip are not written), from the converged nodes ``xs`` (2K+1, 6) on ``edges``."""
+    n_t = end.shape[0]
+    pos, rot = np.zeros((n_t, 3)), np.zeros((n_t, 3, 3))
+    terminal = np.zeros((n_t, 3))
+    if end_step.max() < 0:  # every tendon ends at the tip
+        return terminal
+    _magnus(edges, xs[0::2], xs[1::2], length, end_step, pos, rot)
+    _end_points(pos, rot, length, end_step, end, offset, pitch, angle, terminal)
+    return terminal
+
+
+@njit(cache=True, error_model="numpy")
+def _end_points(pos, rot, length, end_step, end, offset, pitch, angle, terminal):
+    """``terminal`` (N_t, 3) = p + R rho_i(s_e) from each tendon's pose at its end, ``pos`` (N_t, 3),
+    ``rot`` (N_t, 3, 3) (tendons with ``end_step`` < 0, ending at the tip, skipped)."""
+    for i in range(end.shape[0]):
+        if end_step[i] < 0:
+            continue
+        phi = _tendon_angle(angle[i], pitch[i], end[i] * length)
+        rx, ry = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
+        for a in range(3):
+            terminal[i, a] = pos[i, a] + rot[i, a, 0] * rx + rot[i, a, 1] * ry
+
+
+@njit(cache=True, error_model="numpy")
+def _clamp_ended(fractions_out, end, terminal, tendons_out):
+    """Beyond its end a tendon has no path: its rows of ``tendons_out`` (n, N_t, 3) at outputs past
+    ``end`` (N_t,) hold its termination point ``terminal`` (N_t, 3)."""
+    for j in range(fractions_out.shape[0]):
+        for i in range(end.shape[0]):
+            if end[i] < 1.0 - 1e-12 and fractions_out[j] > end[i]:
+                tendons_out[j, i, :] = terminal[i]
+
+
+@njit(cache=True, error_model="numpy")
+def solve_design(kse, kbt, r, length, offset, pitch, angle, tau, end, grid, tols, pos_out, rot_out, x_out,
+                 tendons_out, displacement_out):
+    """One design (SI units; ``kse``, ``kbt`` (3,), ``offset``, ``pitch``, ``angle``, ``tau`` (N_t,),
+    ``end`` (N_t,) fractions of L) on the base :class:`Grid` ``grid`` with every tendon end added
+    (:func:`_with_ends`) and :class:`Tolerances` ``tols``.  Writes backbone (n, 3), frames
+    (n, 3, 3), strains (n, 6) and tendon positions (n, N_t, 3) at the outputs; returns ``(status,
+    residual N, Newton iterations, level, error estimate)``."""
+    fractions_out = grid.fractions
+    edges, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
     tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
     n_out = fractions_out.shape[0]
     n_t = offset.shape[0]
-    k0 = edges0.shape[0] - 1
+    k0 = edges.shape[0] - 1
     ok = True
     iters = 0
     worst = 0.0
     # level 0: edges and midpoints in order of s, the first from the undeformed strains
-    edges = edges0.copy()
     sig = np.empty(2 * k0 + 1)  # interleaved: edge 0, mid 0, edge 1, ...
     for k in range(k0):
         sig[2 * k] = edges[k]
         sig[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
     sig[2 * k0] = edges[k0]
+    act = _node_activity(sig)
     xs = np.zeros((2 * k0 + 1, 6))
     xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
     order = np.arange(2 * k0 + 1)
-    n_ok, it, res = _solve_nodes_chain(sig, xs, length, offset, pitch, tau, kse, kbt, r, tol, max_iter, order)
+    n_ok, it, res = _solve_nodes_chain(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, r, tol,
+                                       max_iter, order)
     ok = ok and n_ok
     iters = max(iters, it)
     worst = max(worst, res) if res == res else res
     out_step = out_step0.copy()
     _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
-    rho_out = _output_offsets(fractions_out, length, offset, pitch)
+    rho_out = _output_offsets(fractions_out, length, offset, pitch, angle)
     prev = np.empty((n_out, n_t, 3))
     _tendon_positions(pos_out, rot_out, rho_out, prev)
     tendons_out[:, :, :] = prev
@@ -521,13 +839,19 @@ def solve_design(kse, kbt, r, length, offset, pitch, tau, grid, tols, pos_out, r
             new_xs[2 * k + 1] = 0.5 * (xs[k] + xs[k + 1])  # start: the neighbours' mean (error O(h^2))
         new_sig[2 * k_steps] = sig[k_steps]
         new_xs[2 * k_steps] = xs[k_steps]
+        act = _node_activity(new_sig)
+        for k in range(k_steps):  # beside a zero-width step (an end) the neighbours' strains jump
+            if sig[k + 1] == sig[k]:
+                new_xs[2 * k + 1] = xs[k + 1]
         mids = np.arange(1, 2 * k_steps + 1, 2)
-        n_ok, it, res = _solve_nodes(new_sig, new_xs, length, offset, pitch, tau, kse, kbt, r, tol, max_iter, mids)
+        n_ok, it, res = _solve_nodes(new_sig, act, new_xs, length, offset, pitch, angle, tau, end, kse, kbt, r, tol,
+                                     max_iter, mids)
         ok = ok and n_ok
         iters = max(iters, it)
         worst = max(worst, res) if res == res else res
         sig, xs = new_sig, new_xs
         out_step = out_step * 2
+        end_step = np.where(end_step >= 0, end_step * 2, end_step)
         _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
         _tendon_positions(pos_out, rot_out, rho_out, tendons_out)
         estimate = _masked_richardson(tendons_out, prev, out_step)
@@ -535,6 +859,12 @@ def solve_design(kse, kbt, r, length, offset, pitch, tau, grid, tols, pos_out, r
     # strains at the outputs: the output edges of the last level (node 2 e is edge e)
     for j in range(n_out):
         x_out[j, :] = xs[2 * out_step[j]]
+    _path_lengths(sig, act, xs, length, offset, pitch, angle, end, np.empty((0, 6, n_t)), displacement_out,
+                  np.empty((n_t, n_t)))
+    for i in range(n_t):
+        displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
+    _clamp_ended(fractions_out, end, _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle),
+                 tendons_out)
     status = OK
     if not _all_finite(worst, tendons_out):
         status = NOT_FINITE
@@ -550,13 +880,17 @@ _RESYNC = 16
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes_chain(node_fractions, x_nodes, length, offset, pitch, tau, kse, kbt, radius, tol, max_iter, order):
+def _solve_nodes_chain(node_fractions, act, x_nodes, length, offset, pitch, angle, tau, end, kse, kbt, radius, tol,
+                       max_iter, order):
     """As :func:`_solve_nodes`, each node starting from the solved strains of the nodes before
-    (Lagrange extrapolation from the last three).  The tendon angles advance by angle addition
-    between nodes (a rotation per distinct spacing), recomputed exactly every ``_RESYNC`` nodes."""
+    (Lagrange extrapolation from the last three since the last end, where the strains jump).  The
+    tendon angles advance by angle addition between nodes (a rotation per distinct spacing),
+    recomputed exactly every ``_RESYNC`` nodes."""
     n_t = offset.shape[0]
     rho = np.empty((n_t, 2))
     drho = np.empty((n_t, 2))
+    tau_node, tau_prev = np.empty(n_t), np.empty(n_t)
+    since = 0  # nodes solved since the tendons acting last changed
     work, jac, low = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
     cos_phi, sin_phi = np.empty(n_t), np.empty(n_t)
     cos_d, sin_d = np.empty(n_t), np.empty(n_t)
@@ -568,7 +902,7 @@ def _solve_nodes_chain(node_fractions, x_nodes, length, offset, pitch, tau, kse,
         k = order[j]
         if j % _RESYNC == 0:
             for i in range(n_t):
-                phi = _tendon_angle(i, n_t, pitch[i], node_fractions[k] * length)
+                phi = _tendon_angle(angle[i], pitch[i], node_fractions[k] * length)
                 cos_phi[i], sin_phi[i] = math.cos(phi), math.sin(phi)
         else:
             delta = node_fractions[k] - node_fractions[order[j - 1]]
@@ -583,15 +917,21 @@ def _solve_nodes_chain(node_fractions, x_nodes, length, offset, pitch, tau, kse,
         for i in range(n_t):
             rho[i, 0], rho[i, 1] = offset[i] * cos_phi[i], offset[i] * sin_phi[i]
             drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sin_phi[i], offset[i] * pitch[i] * cos_phi[i]
-        if j == 1:
-            x_nodes[k, :] = x_nodes[order[0]]
-        elif j == 2:  # linear extrapolation from the two nodes before (start error O(h^2))
+        _active_tensions(tau, end, act[k], tau_node)
+        changed = False
+        for i in range(n_t):
+            changed = changed or (j > 0 and tau_node[i] != tau_prev[i])
+            tau_prev[i] = tau_node[i]
+        since = 0 if changed or j == 0 else since + 1
+        if since == 0 and j > 0 or since == 1:
+            x_nodes[k, :] = x_nodes[order[j - 1]]
+        elif since == 2:  # linear extrapolation from the two nodes before (start error O(h^2))
             k1, k2 = order[j - 1], order[j - 2]
             span = node_fractions[k1] - node_fractions[k2]
             f = (node_fractions[k] - node_fractions[k1]) / span if span > 0.0 else 0.0
             for a in range(6):
                 x_nodes[k, a] = x_nodes[k1, a] + f * (x_nodes[k1, a] - x_nodes[k2, a])
-        elif j > 2:  # quadratic (Lagrange) extrapolation from the three nodes before (start error O(h^3))
+        elif since > 2:  # quadratic (Lagrange) extrapolation from the three nodes before (start error O(h^3))
             k1, k2, k3 = order[j - 1], order[j - 2], order[j - 3]
             s0, s1, s2, s3 = node_fractions[k], node_fractions[k1], node_fractions[k2], node_fractions[k3]
             d12, d13, d23 = s1 - s2, s1 - s3, s2 - s3
@@ -603,8 +943,8 @@ def _solve_nodes_chain(node_fractions, x_nodes, length, offset, pitch, tau, kse,
                 l1, l2, l3 = 1.0, 0.0, 0.0
             for a in range(6):
                 x_nodes[k, a] = l1 * x_nodes[k1, a] + l2 * x_nodes[k2, a] + l3 * x_nodes[k3, a]
-        conv, it, r = _newton(x_nodes[k], rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low,
-                              _NO_TARGET, False)
+        conv, it, r = _newton(x_nodes[k], rho, drho, tau_node, kse, kbt, radius, length, tol, max_iter, work, jac,
+                              low, _NO_TARGET, False)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):
@@ -618,8 +958,8 @@ def solve_batch(rods, grid, tols, out):
     the :class:`Shapes` ``out``."""
     for b in prange(rods.length.shape[0]):
         res = solve_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
-                           rods.tension[b], grid, tols, out.backbone[b], out.rotation[b], out.strains[b],
-                           out.tendons[b])
+                           rods.angle[b], rods.tension[b], rods.end[b], grid, tols, out.backbone[b], out.rotation[b],
+                           out.strains[b], out.tendons[b], out.displacement[b])
         _store_summary(out, b, res)
 
 
@@ -652,20 +992,19 @@ def _store(array, index, value):
 #   dp' = dR nu + R dnu,  dR' = dR hat(kappa) + R hat(dkappa),  dM' = -dp' x N.
 
 @njit(cache=True, error_model="numpy")
-def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, tau, kse, kbt, radius, f_tip, f_g,
+def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, angle, tau, kse, kbt, radius, force,
            tol, max_iter, ws, fp, frot, fmom, fdp, fdrot, fdmom):
-    """Derivatives of (p, R, M) (and their tangents) at arclength ``s`` m; strains into ``x`` (warm).
-    Returns (converged, residual)."""
+    """Derivatives of (p, R, M) (and their tangents) at arclength ``s`` m under the total force
+    ``force`` N(s) (3,) of the loads beyond s, with the tendons' tensions ``tau`` acting there;
+    strains into ``x`` (warm).  Returns (converged, residual)."""
     rho, drho, work, jac, low, target, dtarget, dx = ws
     n_t = offset.shape[0]
     for i in range(n_t):
-        phi = _tendon_angle(i, n_t, pitch[i], s)
+        phi = _tendon_angle(angle[i], pitch[i], s)
         c, sn = math.cos(phi), math.sin(phi)
         rho[i, 0], rho[i, 1] = offset[i] * c, offset[i] * sn
         drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sn, offset[i] * pitch[i] * c
-    n0 = f_tip[0] + f_g[0] * (length - s)
-    n1 = f_tip[1] + f_g[1] * (length - s)
-    n2 = f_tip[2] + f_g[2] * (length - s)
+    n0, n1, n2 = force[0], force[1], force[2]
     for a in range(3):
         target[a] = rot[0, a] * n0 + rot[1, a] * n1 + rot[2, a] * n2
         target[3 + a] = rot[0, a] * mom[0] + rot[1, a] * mom[1] + rot[2, a] * mom[2]
@@ -703,15 +1042,91 @@ def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, t
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, f_g, tol, max_iter, want_var,
-                out_step, pos_out, rot_out, x_out, jac_out):
-    """One RK4 integration from M(0) = ``m0`` over ``edges`` (fractions of L).  Writes the tip
-    moment's Jacobian dM(L)/dM(0) into ``jac_out`` (3, 3) (if ``want_var``) and poses and strains
-    at the edges ``out_step`` (entries < 0 skipped).  Returns (M(L) (3,), converged, residual)."""
+def _tendon_wrench(x, rho, drho, tau, sign, out):
+    """``out`` (6,) += sign sum_i tau_i (t_i, rho_i x t_i) at the strains ``x``: the tendons' pull on
+    the free body beyond the cut, in the body frame (the tendon terms of eqs. W1, W2)."""
+    for i in range(tau.shape[0]):
+        if tau[i] == 0.0:
+            continue
+        g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+        gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+        ox, oy = rho[i, 0], rho[i, 1]
+        ti = sign * tau[i]
+        out[0] += ti * t0
+        out[1] += ti * t1
+        out[2] += ti * t2
+        out[3] += ti * oy * t2
+        out[4] -= ti * ox * t2
+        out[5] += ti * (ox * t1 - oy * t0)
+
+
+@njit(cache=True, error_model="numpy")
+def _jump(x, rot, mom, force, rho, drho, tau_left, tau_right, kse, kbt, dt):
+    """Rucker & Webster's rule at a tendon end (termination ``"rucker_webster"``), in place on the
+    totals ``force`` N and ``mom`` M (base frame): only the ending tendons' pull -tau_e t_e is
+    applied to the rod there, so its internal wrench jumps by it alone,
+    n^+ = n^- + sum_e tau_e t_e^-,  m^+ = m^- + sum_e tau_e (R rho_e) x t_e^-,
+    and the strains after the end follow from the constitutive law (eqs. W1, W2 without the ended
+    tendons): K_se (nu^+ - e3) = R^T N - sum_c tau_c t_c^-,  K_bt kappa^+ = R^T M - sum_c tau_c rho_c x t_c^-
+    over the continuing tendons c.  The totals then become N^+ = R (K_se (nu^+ - e3) + sum_c tau_c t_c^+),
+    M^+ likewise: they jump by sum_c tau_c (t_c^+ - t_c^-) (and its moment), the kink forces that the
+    consistent equilibrium keeps and this rule drops.  ``x`` (6,): the strains just before the end;
+    ``dt`` (6,) workspace."""
+    xp = np.empty(6)
+    for a in range(6):
+        dt[a] = 0.0
+    _tendon_wrench(x, rho, drho, tau_right, 1.0, dt)  # sum_c tau_c (t_c, rho_c x t_c) before the end
+    for a in range(3):
+        nb = rot[0, a] * force[0] + rot[1, a] * force[1] + rot[2, a] * force[2]
+        mb = rot[0, a] * mom[0] + rot[1, a] * mom[1] + rot[2, a] * mom[2]
+        xp[a] = (nb - dt[a]) / kse[a] + (1.0 if a == 2 else 0.0)
+        xp[3 + a] = (mb - dt[3 + a]) / kbt[a]
+    _tendon_wrench(xp, rho, drho, tau_right, -1.0, dt)  # minus the same sums after the end
+    for a in range(3):  # the totals jump by R (-dt): the kink forces' resultant and moment
+        force[a] -= rot[a, 0] * dt[0] + rot[a, 1] * dt[1] + rot[a, 2] * dt[2]
+        mom[a] -= rot[a, 0] * dt[3] + rot[a, 1] * dt[4] + rot[a, 2] * dt[5]
+    for a in range(6):
+        x[a] = xp[a]
+
+
+@njit(cache=True, error_model="numpy")
+def _stage_stretch(x, rho, drho, tau, end, act, out):
+    """|g_i| at a stage's strains ``x`` for the tendons that act there (0 for ended ones), (N_t,)."""
+    for i in range(out.shape[0]):
+        out[i] = _stretch(x, rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1]) if end[i] > act else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _step_act(edges, k):
+    """The fraction whose tendons act on the edge ``k``'s first stage (:func:`_active_tensions`):
+    its step's midpoint, or at the tip and just before an end (a zero-width step) the previous
+    step's, or its own inside a run of zero-width steps."""
+    k_steps = edges.shape[0] - 1
+    if k < k_steps and edges[k + 1] > edges[k]:
+        return 0.5 * (edges[k] + edges[k + 1])
+    if k > 0 and edges[k] > edges[k - 1]:
+        return 0.5 * (edges[k - 1] + edges[k])
+    return edges[k]
+
+
+@njit(cache=True, error_model="numpy")
+def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_g, tol, max_iter,
+                want_var, shortcut, out_step, pos_out, rot_out, x_out, jac_out, lengths):
+    """One RK4 integration from M(0) = ``m0`` and N(0) = ``n_start`` over ``edges`` (fractions of
+    L; a tendon end is a zero-width step, :func:`_with_ends`), N' = -f_g between ends and, with
+    ``shortcut``, the jump of :func:`_jump` at each.  Writes the tip moment's Jacobian
+    dM(L)/dM(0) into ``jac_out`` (3, 3) (if ``want_var``) and poses and strains at the edges
+    ``out_step`` (entries < 0 skipped).  With ``lengths`` of size N_t (else empty), the tendons'
+    path lengths int |g_i| ds, m, integrated as one more state by the same RK4 stages.
+    Returns (M(L) (3,), N(L) (3,), converged, residual)."""
     n_t = offset.shape[0]
     ws = (np.empty((n_t, 2)), np.empty((n_t, 2)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)),
           np.empty(6), np.empty(6), np.empty(6))
     p, rot, mom = np.zeros(3), np.eye(3), m0.copy()
+    force = n_start.copy()
+    f_stage = np.empty(3)
+    tau_step, tau_right = np.empty(n_t), np.empty(n_t)
     dp, drot, dmom = np.zeros((3, 3)), np.zeros((3, 3, 3)), np.zeros((3, 3))
     for q in range(3):
         dmom[q, q] = 1.0
@@ -726,14 +1141,21 @@ def _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, 
     worst = 0.0
     n_out = out_step.shape[0]
     k_steps = edges.shape[0] - 1
+    want_len = lengths.shape[0] > 0
+    stretch = np.zeros((4, n_t))
+    for i in range(lengths.shape[0]):
+        lengths[i] = 0.0
     for k in range(k_steps + 1):
         s0 = edges[k] * length
         # stage 1 (also the strains at the edge, for the outputs)
-        c, r = _stage(s0, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, tau, kse, kbt, radius,
-                      f_tip, f_g, tol, max_iter, ws, f[0][0], f[0][1], f[0][2], f[0][3], f[0][4], f[0][5])
+        _active_tensions(tau, end, _step_act(edges, k), tau_step)
+        c, r = _stage(s0, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, angle, tau_step, kse, kbt,
+                      radius, force, tol, max_iter, ws, f[0][0], f[0][1], f[0][2], f[0][3], f[0][4], f[0][5])
         ok = ok and c
         if not (r <= worst):
             worst = r
+        if want_len:
+            _stage_stretch(x, ws[0], ws[1], tau, end, _step_act(edges, k), stretch[0])
         for j in range(n_out):
             if out_step[j] == k:
                 pos_out[j, :] = p
@@ -742,6 +1164,11 @@ def _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, 
         if k == k_steps:
             break
         h = (edges[k + 1] - edges[k]) * length
+        if h == 0.0:  # a tendon end: the totals are continuous, or jump by Rucker & Webster's rule
+            if shortcut and k > 0 and edges[k] > edges[k - 1]:
+                _active_tensions(tau, end, edges[k], tau_right)
+                _jump(x, rot, mom, force, ws[0], ws[1], tau_step, tau_right, kse, kbt, ws[5])
+            continue
         xs[:] = x
         for st in range(1, 4):
             a = 0.5 * h if st < 3 else h
@@ -749,6 +1176,7 @@ def _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, 
             for i in range(3):
                 tp[i] = p[i] + a * prev[0][i]
                 tmom[i] = mom[i] + a * prev[2][i]
+                f_stage[i] = force[i] - a * f_g[i]
                 for j2 in range(3):
                     trot[i, j2] = rot[i, j2] + a * prev[1][i, j2]
             if want_var:
@@ -759,16 +1187,21 @@ def _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, 
                         for j2 in range(3):
                             tdrot[q, i, j2] = drot[q, i, j2] + a * prev[4][q, i, j2]
             cur = f[st]
-            c, r = _stage(s0 + (0.5 * h if st < 3 else h), length, tp, trot, tmom, tdp, tdrot, tdmom, xs, want_var,
-                          offset, pitch, tau, kse, kbt, radius, f_tip, f_g, tol, max_iter, ws,
+            c, r = _stage(s0 + a, length, tp, trot, tmom, tdp, tdrot, tdmom, xs, want_var, offset, pitch, angle,
+                          tau_step, kse, kbt, radius, f_stage, tol, max_iter, ws,
                           cur[0], cur[1], cur[2], cur[3], cur[4], cur[5])
             ok = ok and c
             if not (r <= worst):
                 worst = r
+            if want_len:
+                _stage_stretch(xs, ws[0], ws[1], tau, end, _step_act(edges, k), stretch[st])
         w6 = h / 6.0
+        for i in range(lengths.shape[0]):
+            lengths[i] += w6 * (stretch[0, i] + 2.0 * stretch[1, i] + 2.0 * stretch[2, i] + stretch[3, i])
         for i in range(3):
             p[i] += w6 * (f[0][0][i] + 2.0 * f[1][0][i] + 2.0 * f[2][0][i] + f[3][0][i])
             mom[i] += w6 * (f[0][2][i] + 2.0 * f[1][2][i] + 2.0 * f[2][2][i] + f[3][2][i])
+            force[i] -= h * f_g[i]
             for j2 in range(3):
                 rot[i, j2] += w6 * (f[0][1][i, j2] + 2.0 * f[1][1][i, j2] + 2.0 * f[2][1][i, j2] + f[3][1][i, j2])
         if want_var:
@@ -783,7 +1216,7 @@ def _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, 
         for i in range(3):
             for q in range(3):
                 jac_out[i, q] = dmom[q, i]
-    return mom, ok, worst
+    return mom, force, ok, worst
 
 
 @njit(cache=True, error_model="numpy")
@@ -802,38 +1235,117 @@ def _solve3(a, b, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot(m0, lam, edges, length, offset, pitch, tau, kse, kbt, radius, f_tip, f_g, m_tip, tol, max_iter,
-           shoot_tol, max_shoot, scale, out_step, pos, rot, x, info, jac):
-    """Newton on M(L) = M_tip for M(0) (in place on ``m0``), loads scaled by ``lam``, with
-    backtracking on |M(L) - M_tip| when a step does not reduce it.  Every pass records the poses
-    and strains at ``out_step`` (< 0: skipped), so on success they are those of the result;
-    ``info`` (3,) receives the tip moment's mismatch (N m), the pass's local flag (1/0) and its
-    largest local residual (N), ``jac`` (3, 3) the shooting Jacobian dM(L)/dM(0) of the last pass.
+def _solve_dense(a, b, out):
+    """``out`` = a^-1 b for a small square ``a`` by Gaussian elimination with partial pivoting;
+    returns det(a) (0: singular, ``out`` then not finite)."""
+    n = b.shape[0]
+    m = a.copy()
+    v = b.copy()
+    det = 1.0
+    for c in range(n):
+        piv = c
+        for i in range(c + 1, n):
+            if abs(m[i, c]) > abs(m[piv, c]):
+                piv = i
+        if piv != c:
+            det = -det
+            for j in range(n):
+                m[c, j], m[piv, j] = m[piv, j], m[c, j]
+            v[c], v[piv] = v[piv], v[c]
+        det *= m[c, c]
+        for i in range(c + 1, n):
+            f = m[i, c] / m[c, c]
+            for j in range(c, n):
+                m[i, j] -= f * m[c, j]
+            v[i] -= f * v[c]
+    for i in range(n - 1, -1, -1):
+        acc = v[i]
+        for j in range(i + 1, n):
+            acc -= m[i, j] * out[j]
+        out[i] = acc / m[i, i]
+    return det
+
+
+@njit(cache=True, error_model="numpy")
+def _shoot_residual(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip, f_g, m_tip, tol,
+                    max_iter, shortcut, out_step, pos, rot, x, jac, resid):
+    """One pass from the unknowns ``y`` = (N(0), M(0)) (6,), loads scaled by ``lam``: the tip
+    conditions' mismatch into ``resid`` (6,) = (L (N(L) - F_tip), M(L) - M_tip), N m.  Without
+    ``shortcut`` N(0) is known (F_tip + f_g L, written into ``y``) and ``jac`` receives dM(L)/dM(0)
+    from the variational equations.  Returns (converged, largest local residual)."""
+    fg = lam * f_g
+    if not shortcut:
+        for i in range(3):
+            y[i] = lam * (f_tip[i] + f_g[i] * length)
+    mom, force, ok, worst = _shoot_pass(y[3:], y[:3], edges, length, offset, pitch, angle, tau, end, kse, kbt, radius,
+                                        fg, tol, max_iter, not shortcut, shortcut, out_step, pos, rot, x, jac,
+                                        np.empty(0))
+    for i in range(3):
+        resid[i] = length * (force[i] - lam * f_tip[i])
+        resid[3 + i] = mom[i] - lam * m_tip[i]
+    return ok, worst
+
+
+@njit(cache=True, error_model="numpy")
+def _shoot(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip, f_g, m_tip, tol, max_iter,
+           shoot_tol, max_shoot, shortcut, scale, out_step, pos, rot, x, info, jac):
+    """Newton on the tip conditions for the unknowns ``y`` = (N(0), M(0)) (in place), loads
+    scaled by ``lam``, with backtracking when a step does not reduce the mismatch.  Consistent
+    termination: N(0) is known, M(0) alone is shot with the variational Jacobian dM(L)/dM(0);
+    Rucker & Webster's rule (``shortcut``): the jumps at the ends make N(0) unknown too, and the
+    6 x 6 Jacobian comes from one-sided differences (6 more passes).  Every pass
+    records the poses and strains at ``out_step`` (< 0: skipped), so on success they are those of
+    the result; ``info`` (3,) receives the mismatch (N m), the pass's local flag (1/0) and its
+    largest local residual (N), ``jac`` (3, 3) dM(L)/dM(0) of the last pass.
     Returns (converged, passes, det of the shooting Jacobian)."""
-    ft, fg, mt = lam * f_tip, lam * f_g, lam * m_tip
-    step, m_prev = np.zeros(3), m0.copy()
+    first = 0 if shortcut else 3
+    step, y_prev = np.zeros(6), y.copy()
+    resid, r_q, y_q = np.empty(6), np.empty(6), np.empty(6)
+    full = np.empty((6, 6))
+    none = np.full(out_step.shape[0], -1, dtype=np.int64)
     err_prev, alpha, det = np.inf, 1.0, np.nan
+    passes = 0
     for it in range(max_shoot):
-        mom, ok, worst = _shoot_pass(m0, edges, length, offset, pitch, tau, kse, kbt, radius, ft, fg, tol, max_iter,
-                                     True, out_step, pos, rot, x, jac)
-        err = math.sqrt((mom[0] - mt[0]) ** 2 + (mom[1] - mt[1]) ** 2 + (mom[2] - mt[2]) ** 2)
+        ok, worst = _shoot_residual(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip,
+                                    f_g, m_tip, tol, max_iter, shortcut, out_step, pos, rot, x, jac, resid)
+        passes += 1
+        err = 0.0
+        for i in range(first, 6):
+            err += resid[i] ** 2
+        err = math.sqrt(err)
         info[0], info[1], info[2] = err, 1.0 if ok else 0.0, worst
         if not ok or not (err < err_prev) and it > 0:  # backtrack from the last accepted point
             alpha *= 0.5
             if alpha < 1.0 / 256.0:
-                return False, it + 1, det
-            for i in range(3):
-                m0[i] = m_prev[i] - alpha * step[i]
+                return False, passes, det
+            for i in range(first, 6):
+                y[i] = y_prev[i] - alpha * step[i]
             continue
-        resid = np.array([mom[0] - mt[0], mom[1] - mt[1], mom[2] - mt[2]])
-        det = _solve3(jac, resid, step)
+        if shortcut:  # the 6 x 6 Jacobian by one-sided differences
+            for q in range(6):
+                delta = 1e-7 * (scale / length if q < 3 else scale) + 1e-14
+                y_q[:] = y
+                y_q[q] += delta
+                _shoot_residual(y_q, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip,
+                                f_g, m_tip, tol, max_iter, shortcut, none, pos, rot, x, jac, r_q)
+                for i in range(6):
+                    full[i, q] = (r_q[i] - resid[i]) / delta
+            passes += 6
+            for i in range(3):
+                for q in range(3):
+                    jac[i, q] = full[3 + i, 3 + q]
+            det = _solve_dense(full, resid, step)
+        else:
+            sub = np.empty(3)
+            det = _solve3(jac, resid[3:], sub)
+            step[3:] = sub
         if err <= shoot_tol * scale:
-            return True, it + 1, det
-        m_prev[:] = m0
+            return True, passes, det
+        y_prev[:] = y
         err_prev, alpha = err, 1.0
-        for i in range(3):
-            m0[i] -= step[i]
-    return False, max_shoot, det
+        for i in range(first, 6):
+            y[i] -= step[i]
+    return False, passes, det
 
 
 @njit(cache=True, error_model="numpy")
@@ -869,57 +1381,66 @@ def _masked_richardson(fine, coarse, out_step):
 
 
 @njit(cache=True, error_model="numpy")
-def solve_loaded_design(kse, kbt, r, length, offset, pitch, tau, f_g, f_tip, m_tip, grid, tols,
-                        pos_out, rot_out, x_out, tendons_out, shoot_jac):
+def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g, f_tip, m_tip, grid, tols,
+                        pos_out, rot_out, x_out, tendons_out, shoot_jac, displacement_out):
     """One design under its distributed weight ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N),
-    ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges must end at 1: the tip condition).
-    ``shoot_jac`` (3, 3) receives the shooting Jacobian dM(L)/dM(0) at the result (the identity for
-    the unloaded rod; the caller judges several equilibria from it).
+    ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges must end at 1: the tip condition) with
+    every tendon end added (:func:`_with_ends`); with ``tols.shortcut`` Rucker & Webster's rule at
+    the ends (:func:`_jump`).  ``shoot_jac`` (3, 3) receives the shooting Jacobian dM(L)/dM(0) at the
+    result (the identity for the unloaded rod; the caller judges several equilibria from it).
     Returns (status, residual N, shooting passes, level, error estimate, M(0) x 3)."""
-    edges0, out_step0, fractions_out = grid.edges, grid.out_step, grid.fractions
+    fractions_out = grid.fractions
+    edges0, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
     tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
-    shoot_tol, max_shoot = tols.shooting_tol, tols.max_shooting
+    shoot_tol, max_shoot, shortcut = tols.shooting_tol, tols.max_shooting, tols.shortcut
     scale = 0.0
     for i in range(offset.shape[0]):
         scale += tau[i] * offset[i]
     scale += (math.sqrt(m_tip[0] ** 2 + m_tip[1] ** 2 + m_tip[2] ** 2)
               + math.sqrt(f_tip[0] ** 2 + f_tip[1] ** 2 + f_tip[2] ** 2) * length
               + math.sqrt(f_g[0] ** 2 + f_g[1] ** 2 + f_g[2] ** 2) * length * length + 1e-12)
-    rho_out = _output_offsets(fractions_out, length, offset, pitch)
     n_out, n_t = fractions_out.shape[0], offset.shape[0]
+    # the outputs and, after them, the tendons' ends (their termination points)
+    n_ext = n_out + n_t
+    steps0 = np.concatenate((out_step0, end_step))
+    pos, rot, xo = np.zeros((n_ext, 3)), np.zeros((n_ext, 3, 3)), np.zeros((n_ext, 6))
+    rho_out = _output_offsets(fractions_out, length, offset, pitch, angle)
     k0 = edges0.shape[0] - 1
     # first guess: the loads' moment about the base on the tendon-only shape (its tip from one pass)
     tip_step = np.array([k0], dtype=np.int64)
     tip_p, tip_r, tip_x = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6))
     zero3 = np.zeros(3)
     jac = np.empty((3, 3))
-    _shoot_pass(zero3.copy(), edges0, length, offset, pitch, tau, kse, kbt, r, zero3, zero3, tol, max_iter, False,
-                tip_step, tip_p, tip_r, tip_x, jac)
+    _shoot_pass(zero3.copy(), zero3.copy(), edges0, length, offset, pitch, angle, tau, end, kse, kbt, r, zero3, tol,
+                max_iter, False, False, tip_step, tip_p, tip_r, tip_x, jac, np.empty(0))
     tip = tip_p[0]
-    m0 = np.empty(3)
+    y = np.zeros(6)
     half = 0.5 * length
-    m0[0] = tip[1] * f_tip[2] - tip[2] * f_tip[1] + m_tip[0] + half * (tip[1] * f_g[2] - tip[2] * f_g[1])
-    m0[1] = tip[2] * f_tip[0] - tip[0] * f_tip[2] + m_tip[1] + half * (tip[2] * f_g[0] - tip[0] * f_g[2])
-    m0[2] = tip[0] * f_tip[1] - tip[1] * f_tip[0] + m_tip[2] + half * (tip[0] * f_g[1] - tip[1] * f_g[0])
-    start = m0.copy()
+    for i in range(3):
+        y[i] = f_tip[i] + f_g[i] * length
+    y[3] = tip[1] * f_tip[2] - tip[2] * f_tip[1] + m_tip[0] + half * (tip[1] * f_g[2] - tip[2] * f_g[1])
+    y[4] = tip[2] * f_tip[0] - tip[0] * f_tip[2] + m_tip[1] + half * (tip[2] * f_g[0] - tip[0] * f_g[2])
+    y[5] = tip[0] * f_tip[1] - tip[1] * f_tip[0] + m_tip[2] + half * (tip[0] * f_g[1] - tip[1] * f_g[0])
+    start = y.copy()
     info = np.empty(3)
-    none = np.full(n_out, -1, dtype=np.int64)  # continuation steps record nothing
-    ok, passes, det = _shoot(m0, 1.0, edges0, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g, m_tip, tol,
-                             max_iter, shoot_tol, max_shoot, scale, out_step0, pos_out, rot_out, x_out, info, shoot_jac)
+    none = np.full(n_ext, -1, dtype=np.int64)  # continuation steps record nothing
+    ok, passes, det = _shoot(y, 1.0, edges0, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip, f_g, m_tip,
+                             tol, max_iter, shoot_tol, max_shoot, shortcut, scale, steps0, pos, rot, xo, info,
+                             shoot_jac)
     for n_steps in (4, 16):  # load continuation from the tendon-only state when the direct Newton fails
         if ok:
             break
-        m0[:] = 0.0
+        y[:] = 0.0
         for k in range(1, n_steps + 1):
-            for i in range(3):
-                m0[i] += start[i] / n_steps  # predictor: the first guess scales with the loads
-            ok, used, det = _shoot(m0, k / n_steps, edges0, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g,
-                                   m_tip, tol, max_iter, shoot_tol, max_shoot, scale,
-                                   out_step0 if k == n_steps else none, pos_out, rot_out, x_out, info, shoot_jac)
+            for i in range(6):
+                y[i] += start[i] / n_steps  # predictor: the first guess scales with the loads
+            ok, used, det = _shoot(y, k / n_steps, edges0, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip,
+                                   f_g, m_tip, tol, max_iter, shoot_tol, max_shoot, shortcut, scale,
+                                   steps0 if k == n_steps else none, pos, rot, xo, info, shoot_jac)
             passes += used
             if not ok:
                 break
-    _loaded_outputs(out_step0, rho_out, pos_out, rot_out, tendons_out)
+    _loaded_outputs(out_step0, rho_out, pos[:n_out], rot[:n_out], tendons_out)
     mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
     # the free estimate: the coarse grid joins pairs of equal steps (as the tendon-only kernel)
     c_idx = np.empty(k0 + 1, dtype=np.int64)
@@ -939,15 +1460,15 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, tau, f_g, f_tip, m_t
         c_out[j] = to_coarse[out_step0[j]]
     c_pos, c_rot, c_x, coarse = (np.zeros((n_out, 3)), np.zeros((n_out, 3, 3)), np.zeros((n_out, 6)),
                                  np.zeros((n_out, n_t, 3)))
-    c_m0 = m0.copy()
+    c_y = y.copy()
     c_info = np.empty(3)
-    c_ok, used, _ = _shoot(c_m0, 1.0, c_edges, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g, m_tip, tol,
-                           max_iter, shoot_tol, max_shoot, scale, c_out, c_pos, c_rot, c_x, c_info, jac)
+    c_ok, used, _ = _shoot(c_y, 1.0, c_edges, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip, f_g, m_tip,
+                           tol, max_iter, shoot_tol, max_shoot, shortcut, scale, c_out, c_pos, c_rot, c_x, c_info, jac)
     passes += used
     _loaded_outputs(c_out, rho_out, c_pos, c_rot, coarse)
     estimate = _masked_richardson(tendons_out, coarse, c_out) if c_ok else np.inf
     level = 0
-    edges, out_step = edges0, out_step0.copy()
+    edges, steps = edges0, steps0.copy()
     prev = tendons_out.copy()
     while ok and level < max_level and not (estimate <= step_tol):
         level += 1
@@ -956,15 +1477,27 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, tau, f_g, f_tip, m_t
             finer[2 * k] = edges[k]
             finer[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
         finer[-1] = edges[-1]
-        edges, out_step = finer, out_step * 2
-        ok, used, det = _shoot(m0, 1.0, edges, length, offset, pitch, tau, kse, kbt, r, f_tip, f_g, m_tip, tol,
-                               max_iter, shoot_tol, max_shoot, scale, out_step, pos_out, rot_out, x_out, info,
+        edges = finer
+        steps = np.where(steps >= 0, steps * 2, steps)
+        ok, used, det = _shoot(y, 1.0, edges, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip, f_g, m_tip,
+                               tol, max_iter, shoot_tol, max_shoot, shortcut, scale, steps, pos, rot, xo, info,
                                shoot_jac)
         passes += used
-        _loaded_outputs(out_step, rho_out, pos_out, rot_out, tendons_out)
+        _loaded_outputs(steps[:n_out], rho_out, pos[:n_out], rot[:n_out], tendons_out)
         mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
-        estimate = _masked_richardson(tendons_out, prev, out_step)
+        estimate = _masked_richardson(tendons_out, prev, steps[:n_out])
         prev[:, :, :] = tendons_out
+    pos_out[:, :] = pos[:n_out]
+    rot_out[:, :, :] = rot[:n_out]
+    x_out[:, :] = xo[:n_out]
+    # the path lengths on the final grid: one more pass from the result, recording nothing
+    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, length, offset, pitch, angle, tau, end, kse, kbt, r, f_g, tol,
+                max_iter, False, shortcut, none, pos, rot, xo, jac, displacement_out)
+    for i in range(n_t):
+        displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
+    terminal = np.zeros((n_t, 3))
+    _end_points(pos[n_out:], rot[n_out:], length, end_step, end, offset, pitch, angle, terminal)
+    _clamp_ended(fractions_out, end, terminal, tendons_out)
     tip_residual = mismatch / length
     residual = worst if worst > tip_residual else tip_residual
     if not _all_finite(residual, tendons_out):
@@ -977,7 +1510,7 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, tau, f_g, f_tip, m_t
         status = STEP_TOL_NOT_MET
     else:
         status = OK
-    return status, residual, passes, level, estimate, m0[0], m0[1], m0[2]
+    return status, residual, passes, level, estimate, y[3], y[4], y[5]
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
@@ -986,9 +1519,9 @@ def solve_loaded_batch(rods, loads, grid, tols, out):
     ``loads``, over numba's threads, into the :class:`Shapes` ``out`` (``iterations``: passes)."""
     for b in prange(rods.length.shape[0]):
         res = solve_loaded_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b],
-                                  rods.pitch[b], rods.tension[b], loads.f_g[b], loads.f_tip[b], loads.m_tip[b], grid,
-                                  tols, out.backbone[b], out.rotation[b], out.strains[b], out.tendons[b],
-                                  out.shoot_jac[b])
+                                  rods.pitch[b], rods.angle[b], rods.tension[b], rods.end[b], loads.f_g[b],
+                                  loads.f_tip[b], loads.m_tip[b], grid, tols, out.backbone[b], out.rotation[b],
+                                  out.strains[b], out.tendons[b], out.shoot_jac[b], out.displacement[b])
         _store_summary(out, b, res)
         m0 = out.m0[b]
         m0[0], m0[1], m0[2] = res[5], res[6], res[7]

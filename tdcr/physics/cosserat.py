@@ -49,11 +49,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.designs import DEFAULT_POISSON, DesignBatch, ExternalLoads
 from tdcr.physics._lie import hat, se3_bracket, se3_exp
 from tdcr.physics.status import STATUS, Status
 
-POISSON_RATIO = 0.3
+#: The Poisson ratio of a design that gives none (:data:`tdcr.designs.DEFAULT_POISSON`).
+POISSON_RATIO = DEFAULT_POISSON
+#: How a tendon that ends before the tip loads the rod (``solve(..., termination=)``).
+TERMINATIONS = ("exact", "rucker_webster")
 _E3 = np.array([0.0, 0.0, 1.0])
 
 
@@ -121,6 +124,11 @@ class RodSolution:
         jacobian: with ``solve(..., jacobian=True)``, the sensitivity of the pose at each
             arclength to the tensions, base frame, ``(B, n, 6, N_t)``: rows 0-2 d p / d tau (m/N),
             rows 3-5 the rotation vector of d R R^T / d tau (rad/N); else ``None``.
+        tension: every tendon's tension, N, ``(B, N_t)``: as given, or found for a displacement.
+        displacement: every tendon's displacement (length pulled in), m, ``(B, N_t)``: its path
+            length on the straight rod minus its path length int_0^end |g_i| ds at the equilibrium.
+        slack: ``(B, N_t)``: a displacement-driven tendon that would need a push to reach its
+            displacement, so hangs slack at tension 0 (None: no tendon is displacement-driven).
     """
 
     s: np.ndarray
@@ -136,9 +144,13 @@ class RodSolution:
     status: np.ndarray | None = None
     error_estimate: np.ndarray | None = None
     steps: np.ndarray | None = None
+    tension: np.ndarray | None = None
+    displacement: np.ndarray | None = None
+    slack: np.ndarray | None = None
 
 
-__all__ = ["POISSON_RATIO", "STATUS", "RodSolution", "SolverOptions", "Status", "TipSolver", "body_strains",
+__all__ = ["POISSON_RATIO", "STATUS", "TERMINATIONS", "RodSolution", "SolverOptions", "Status", "TipSolver",
+           "body_strains",
            "internal_wrench", "material", "solve", "tendon_routing"]
 
 
@@ -151,8 +163,9 @@ class _Material:
 
 def material(designs: DesignBatch) -> _Material:
     """Stiffnesses K_se (N) and K_bt (N m^2) as diagonals, ``(B, 3)`` each: the one place of the
-    material law, G = E / (2 (1 + POISSON_RATIO)), for every path (the kernels receive these)."""
-    g = designs.E / (2.0 * (1.0 + POISSON_RATIO))
+    material law, G = E / (2 (1 + nu)) with each design's Poisson ratio nu (default
+    :data:`POISSON_RATIO`), for every path (the kernels receive these)."""
+    g = designs.E / (2.0 * (1.0 + designs.poissons))
     area = np.pi * designs.r**2
     inertia = np.pi * designs.r**4 / 4.0
     kse = np.stack([g * area, g * area, designs.E * area], axis=-1)
@@ -173,7 +186,7 @@ def tendon_routing(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Body-frame tendon offsets rho_i(s) and their arclength derivatives.
 
-    rho_i(s) = offset_i [cos(2 pi i / N_t + pitch_i s), sin(...), 0].
+    rho_i(s) = offset_i [cos(angle_i + pitch_i s), sin(...), 0] (default angle_i = 2 pi i / N_t).
 
     Args:
         designs: ``B`` designs with ``N_t`` tendons.
@@ -183,10 +196,8 @@ def tendon_routing(
     Returns:
         ``(rho, drho)``, m and m/m, each ``(B, M, N_t, 3)``.
     """
-    n_t = designs.n_tendons
-    base_angle = 2.0 * np.pi * np.arange(n_t) / n_t  # (N_t,)
     s = designs.L[:, None] * fractions[None, :]  # (B, M)
-    phi = base_angle[None, None, :] + designs.pitch[:, None, :] * s[:, :, None]  # (B, M, N_t)
+    phi = designs.angles[:, None, :] + designs.pitch[:, None, :] * s[:, :, None]  # (B, M, N_t)
     off = designs.offset[:, None, :]
     cos, sin = np.cos(phi), np.sin(phi)
     zeros = np.zeros_like(phi)
@@ -211,11 +222,13 @@ class _Nodes:
     kbt: np.ndarray  # (P, 3)
     radius: np.ndarray  # (P,)
     target: np.ndarray | None  # (P, 6) body-frame (R^T N, R^T M) or None for zero
+    active: np.ndarray | None = None  # (P, N_t): the tendon acts at the node (None: all do)
 
     def take(self, idx: np.ndarray) -> _Nodes:
         return _Nodes(
             self.rho[idx], self.drho[idx], self.tau[idx], self.kse[idx], self.kbt[idx],
             self.radius[idx], None if self.target is None else self.target[idx],
+            None if self.active is None else self.active[idx],
         )
 
 
@@ -423,14 +436,46 @@ def _step_grid(fractions_out: np.ndarray, max_step: float) -> tuple[np.ndarray, 
     return edges, np.diff(edges), np.searchsorted(edges, fractions_out)
 
 
-def _make_nodes(designs: DesignBatch, mat: _Material, fractions: np.ndarray) -> _Nodes:
+def _make_nodes(designs: DesignBatch, mat: _Material, fractions: np.ndarray,
+                act: np.ndarray | None = None) -> _Nodes:
+    """Nodes at ``fractions`` ``(M,)`` of every design; ``act`` ``(M,)``: the fraction whose tendons
+    act at each node (:func:`_node_activity`; None: every tendon, as at s < every end)."""
     rho, drho = tendon_routing(designs, fractions)
     b, m = designs.n_designs, fractions.shape[0]
     rep = lambda a: np.repeat(a, m, axis=0)  # noqa: E731  (B, ...) -> (B*M, ...)
+    tau, active = rep(designs.tension), None
+    if act is not None and designs.segmented.any():
+        active = (designs.end_fractions[:, None, :] > act[None, :, None]).reshape(b * m, -1)
+        tau = tau * active
     return _Nodes(
         rho=rho.reshape(b * m, -1, 3), drho=drho.reshape(b * m, -1, 3),
-        tau=rep(designs.tension), kse=rep(mat.kse), kbt=rep(mat.kbt), radius=rep(designs.r), target=None,
+        tau=tau, kse=rep(mat.kse), kbt=rep(mat.kbt), radius=rep(designs.r), target=None, active=active,
     )
+
+
+def _node_activity(edges: np.ndarray) -> np.ndarray:
+    """The fraction whose tendons act at each node ``(2K+1,)`` of the layout of :func:`_solve_on_grid`
+    (K+1 edges, then K midpoints): a step's midpoint; an edge takes its left step's (just before an
+    end: a zero-width step, :func:`_grid_with_ends`), or its right step's after a zero-width step,
+    or its own inside a run of them (the kernel's rule, ``_kernel._node_activity``)."""
+    widths = np.diff(edges)
+    mids = edges[:-1] + 0.5 * widths
+    act = edges.copy()
+    right = np.append(widths > 0, False)
+    left = np.insert(widths > 0, 0, False)
+    act[right] = mids[right[:-1]]
+    act[left] = mids[left[1:]]  # the left step wins (the kernel's order)
+    return np.concatenate([act, mids])
+
+
+def _grid_with_ends(edges0: np.ndarray, out_step0: np.ndarray, end_fractions: np.ndarray):
+    """The step grid of designs that share the tendon ends ``end_fractions`` ``(N_t,)``: every end
+    below the tip inserted twice (a zero-width step; an end within 1e-9 of an edge on it).  Returns
+    ``(edges, out_step, end_step (N_t,))`` as the kernel's ``_with_ends`` (-1: ends at the tip)."""
+    from tdcr.physics._compiled import kernel
+
+    return kernel._with_ends(np.ascontiguousarray(edges0, dtype=np.float64), out_step0.astype(np.int64),
+                             np.ascontiguousarray(end_fractions, dtype=np.float64))
 
 
 def _undeformed(p: int) -> np.ndarray:
@@ -450,6 +495,7 @@ def solve(
     options: SolverOptions | None = None,
     workers: int = 1,
     jacobian: bool = False,
+    termination: str = "exact",
 ) -> RodSolution:
     """Equilibrium shapes of a batch of designs.
 
@@ -465,20 +511,36 @@ def solve(
         jacobian: also the pose's sensitivity to the tensions (``RodSolution.jacobian``), exact
             by the implicit-function theorem at every node and a tangent carried through the
             Magnus steps (no finite differences).  Tendon loads only.
+        termination: how a tendon that ends before the tip loads the rod (:data:`TERMINATIONS`).
+            ``"exact"``: the consistent equilibrium, in which the total wrench across any cut
+            through rod and tendons is continuous (an ending tendon's pull and the kink forces of
+            the tendons that continue past the end).  ``"rucker_webster"``: the common shortcut of
+            integrating Rucker & Webster's ODE segment by segment with only the ending tendon's
+            pull applied at its end (e.g. tdcr-modeling); it shoots on N(0) and M(0) for such
+            designs.  Both agree for designs whose tendons all end at the tip.
 
     Returns:
         A :class:`RodSolution`.  A design that fails is flagged in ``status`` and ``converged``;
         it never fails the batch.
     """
     opts = options or SolverOptions()
+    if termination not in TERMINATIONS:
+        raise ValueError(f"termination must be one of {list(TERMINATIONS)}, got {termination!r}")
     fractions_out = check_inputs(designs, fractions, loads)
     loaded = loads is not None and not loads.is_zero()
-    if loaded and opts.linearized:
-        raise ValueError("the linearized model covers tendon loads only")
-    if jacobian and (loaded or opts.linearized):
-        raise ValueError("the Jacobian covers the exact model under tendon loads only")
-    if loaded:
-        return _solve_loaded_compiled(designs, fractions_out, loads, opts, workers)
+    shortcut = termination == "rucker_webster" and bool(designs.segmented.any())
+    if designs.displacement_driven.any():
+        if loaded or shortcut or jacobian or opts.linearized:
+            raise ValueError("displacement actuation covers tendon loads with consistent termination (no Jacobian, "
+                             "not linearized)")
+        return _solve_displacement(designs, fractions_out, opts, workers)
+    if (loaded or shortcut) and opts.linearized:
+        raise ValueError("the linearized model covers tendon loads only, with consistent termination")
+    if jacobian and (loaded or opts.linearized or shortcut):
+        raise ValueError("the Jacobian covers the exact model under tendon loads only, with consistent termination")
+    if loaded or shortcut:
+        return _solve_loaded_compiled(designs, fractions_out, loads or ExternalLoads(), opts, workers,
+                                      shortcut=termination == "rucker_webster")
     return _solve_tendon_only(designs, fractions_out, opts, jacobian=jacobian, threads=workers)
 
 
@@ -487,9 +549,17 @@ def check_inputs(designs: DesignBatch, fractions: np.ndarray, loads: ExternalLoa
     and load inside its admissible bounds, the fractions in [0, 1] (clamped within rounding).
     Returns the fractions ``(n,)``; raises :class:`tdcr.checks.InvalidRequest` (a ``ValueError``)
     with the service's words, e.g. ``designs[0].tendons[1].tension: must be in [0, 1000] N, got -2``."""
-    from tdcr.checks import Problem, check_features, check_fractions, check_loads, checkable_loads, raise_problems
+    from tdcr.checks import (
+        Problem,
+        check_features,
+        check_fractions,
+        check_layout,
+        check_loads,
+        checkable_loads,
+        raise_problems,
+    )
 
-    problems = check_features(designs.features())
+    problems = check_features(designs.features()) + check_layout(designs)
     clamped, more = check_fractions(fractions, name="fractions")
     problems += more
     if loads is not None:
@@ -534,14 +604,31 @@ class _WarmStart:
 def _solve_tendon_only(designs: DesignBatch, fractions_out: np.ndarray, opts: SolverOptions, *,
                        jacobian: bool = False, warm: _WarmStart | None = None, threads: int = 1) -> RodSolution:
     """Tendon loads only.  Step control per design (``opts.step_tol``) except for the linearized
-    model and warm-started tip solves (:class:`TipSolver`), which use the base grid."""
-    edges0, _, out0 = _step_grid(fractions_out, opts.max_step)
-    if opts.linearized or warm is not None:
-        sol, _ = _solve_on_grid(designs, fractions_out, edges0, out0, opts, jacobian=jacobian, warm=warm)
-        return _finish_status(sol, np.full(designs.n_designs, np.nan), len(edges0) - 1, opts, estimated=False)
-    if not jacobian:
+    model and warm-started tip solves (:class:`TipSolver`), which use the base grid.  The
+    vectorised path (Jacobian, linearized, tip solves) runs designs with the same tendon ends
+    together, on their grid."""
+    edges0, _, out0 = _step_grid(np.append(fractions_out, 1.0), opts.max_step)  # to the tip: the path lengths
+    out0 = out0[:-1]
+    if not (jacobian or opts.linearized or warm is not None):
         return _solve_compiled(designs, fractions_out, edges0, opts, threads)
-    return _solve_adaptive(designs, fractions_out, edges0, out0, opts, jacobian)
+    ends = designs.end_fractions
+    groups = np.unique(ends, axis=0, return_inverse=True)[1].reshape(-1) if designs.segmented.any() else None
+    if groups is not None and groups.max() > 0:
+        parts = [np.nonzero(groups == g)[0] for g in range(groups.max() + 1)]
+        sols = [_solve_tendon_only(designs.take(rows), fractions_out, opts, jacobian=jacobian, warm=None)
+                for rows in parts]
+        order = np.argsort(np.concatenate(parts), kind="stable")
+        return RodSolution(**{f.name: None if getattr(sols[0], f.name) is None
+                              else np.concatenate([getattr(x, f.name) for x in sols])[order]
+                              for f in dataclasses.fields(RodSolution)})
+    end_step = None
+    if designs.segmented.any():
+        edges0, out0, end_step = _grid_with_ends(edges0, out0, ends[0])
+    if opts.linearized or warm is not None:
+        sol, _ = _solve_on_grid(designs, fractions_out, edges0, out0, opts, jacobian=jacobian, warm=warm,
+                                end_step=end_step)
+        return _finish_status(sol, np.full(designs.n_designs, np.nan), len(edges0) - 1, opts, estimated=False)
+    return _solve_adaptive(designs, fractions_out, edges0, out0, opts, jacobian, end_step=end_step)
 
 
 def _refine(edges: np.ndarray) -> np.ndarray:
@@ -618,11 +705,11 @@ def _coarse_estimate(designs: DesignBatch, x: np.ndarray, edges: np.ndarray, out
 
 
 def _solve_adaptive(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.ndarray, out0: np.ndarray,
-                    opts: SolverOptions, jacobian: bool) -> RodSolution:
+                    opts: SolverOptions, jacobian: bool, *, end_step: np.ndarray | None = None) -> RodSolution:
     """The vectorised path (for the Jacobian) with the kernel's step control: the base grid with the
     free estimate, then, for the designs above ``step_tol``, the grid halved (Richardson against the
     last level)."""
-    sol, x = _solve_on_grid(designs, fractions_out, edges0, out0, opts, jacobian=jacobian)
+    sol, x = _solve_on_grid(designs, fractions_out, edges0, out0, opts, jacobian=jacobian, end_step=end_step)
     rho_out, _ = tendon_routing(designs, fractions_out, derivative=False)
     estimate = _coarse_estimate(designs, x, edges0, out0, rho_out, sol.tendons)
     fields = {f.name: getattr(sol, f.name) for f in dataclasses.fields(RodSolution)
@@ -635,7 +722,9 @@ def _solve_adaptive(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
         if active.size == 0:
             break
         edges, out_step = _refine(edges), 2 * out_step
-        finer, _ = _solve_on_grid(designs.take(active), fractions_out, edges, out_step, opts, jacobian=jacobian)
+        end_step = None if end_step is None else np.where(end_step >= 0, 2 * end_step, end_step)
+        finer, _ = _solve_on_grid(designs.take(active), fractions_out, edges, out_step, opts, jacobian=jacobian,
+                                  end_step=end_step)
         estimate[active] = _richardson(finer.tendons, fields["tendons"][active])
         for name in fields:
             fields[name][active] = getattr(finer, name)
@@ -645,7 +734,7 @@ def _solve_adaptive(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
 
 
 def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fractions_out: np.ndarray,
-                   opts: SolverOptions, *, loaded: bool):
+                   opts: SolverOptions, *, loaded: bool, shortcut: bool = False):
     """The kernels' grouped arguments (:mod:`tdcr.physics._kernel`'s named tuples): the rods, the
     base grid, the tolerances and the preallocated outputs."""
     from tdcr.physics._compiled import kernel
@@ -653,17 +742,20 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     b, n, n_t = designs.n_designs, fractions_out.shape[0], designs.n_tendons
     rods = kernel.Rods(kse=f64(mat.kse), kbt=f64(mat.kbt), radius=f64(designs.r), length=f64(designs.L),
-                       offset=f64(designs.offset), pitch=f64(designs.pitch), tension=f64(designs.tension))
+                       offset=f64(designs.offset), pitch=f64(designs.pitch), tension=f64(designs.tension),
+                       angle=f64(designs.angles), end=f64(designs.end_fractions))
     grid = kernel.Grid(edges=f64(edges0), out_step=np.searchsorted(edges0, fractions_out).astype(np.int64),
                        fractions=f64(fractions_out))
     tols = kernel.Tolerances(newton_tol=float(opts.newton_tol), max_newton=int(opts.max_newton),
                              step_tol=float(opts.step_tol), max_level=int(opts.max_level),
-                             shooting_tol=float(opts.shooting_tol), max_shooting=int(opts.max_shooting))
+                             shooting_tol=float(opts.shooting_tol), max_shooting=int(opts.max_shooting),
+                             shortcut=bool(shortcut))
     per_design = lambda dtype=np.float64: np.empty(b, dtype=dtype)  # noqa: E731
     out = kernel.Shapes(backbone=np.empty((b, n, 3)), rotation=np.empty((b, n, 3, 3)), strains=np.empty((b, n, 6)),
                         tendons=np.empty((b, n, n_t, 3)), status=per_design(np.int64), residual=per_design(),
                         iterations=per_design(np.int64), level=per_design(np.int64), estimate=per_design(),
-                        m0=np.empty((b if loaded else 0, 3)), shoot_jac=np.empty((b if loaded else 0, 3, 3)))
+                        m0=np.empty((b if loaded else 0, 3)), shoot_jac=np.empty((b if loaded else 0, 3, 3)),
+                        displacement=np.empty((b, n_t)))
     return kernel, rods, grid, tols, out
 
 
@@ -700,25 +792,56 @@ def _from_kernel(designs: DesignBatch, mat: _Material, fractions_out: np.ndarray
         s=designs.L[:, None] * fractions_out[None, :], backbone=out.backbone, rotation=out.rotation,
         tendons=out.tendons, force=force, moment=moment, converged=status == 0, residual=out.residual,
         iterations=out.iterations, status=status, error_estimate=out.estimate,
-        steps=(len(edges0) - 1) * 2**out.level,
+        steps=(len(edges0) - 1) * 2**out.level, tension=designs.tension.copy(), displacement=out.displacement,
     )
 
 
 def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
-                           threads: int) -> RodSolution:
+                           threads: int, *, shortcut: bool = False) -> RodSolution:
     """The loaded shooting kernel (:func:`tdcr.physics._kernel.solve_loaded_design`) on ``threads``
     threads (0: all): variational shooting Jacobian, load continuation when needed, RK4 with the
     step controlled per design like the tendon-only kernel."""
     mat = material(designs)
     f_g, f_tip, m_tip = loads.resolved(designs.n_designs, mat.area)
     edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step_loads)
-    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=True)
+    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=True,
+                                                   shortcut=shortcut)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     _run_kernel(kernel.solve_loaded_batch, threads, designs.n_designs, rods,
                 kernel.Loads(f_g=f64(f_g), f_tip=f64(f_tip), m_tip=f64(m_tip)), grid, tols, out)
     status = out.status.astype(np.int8)
     status[(status == Status.CONVERGED) & several_equilibria(out.shoot_jac)] = Status.MULTIPLE_EQUILIBRIA
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
+
+
+def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: SolverOptions,
+                        threads: int) -> RodSolution:
+    """Displacement actuation: the tensions that pull in the displacement-driven tendons' lengths
+    (:func:`tdcr.physics._kernel.find_tensions`: Newton with the exact Jacobian of the path
+    lengths, tau >= 0, slack tendons flagged), then the tendon-only solve at those tensions."""
+    edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step)
+    mat = material(designs)
+    kernel, rods, grid, tols, _ = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
+    start = np.where(designs.displacement_driven, 0.0, designs.tension)
+    rods = rods._replace(tension=np.ascontiguousarray(start, dtype=np.float64).copy())
+    b, n_t = designs.n_designs, designs.n_tendons
+    slack, found = np.zeros((b, n_t), dtype=np.bool_), np.empty(b, dtype=np.int64)
+    iterations = np.empty(b, dtype=np.int64)
+    wanted = np.where(designs.displacement_driven, designs.displacement, np.nan)
+    target = np.ascontiguousarray(wanted)
+    for correction in range(2):
+        # the tensions on the base grid; then, once, again for the target moved by what the solve's
+        # finer grid (step control) still misses (the grids' lengths differ by O(h^4))
+        _run_kernel(kernel.find_tensions_batch, threads, b, rods, target, grid, tols, slack, found, iterations)
+        sol = _solve_compiled(designs.replace(tension=rods.tension, displacement=None), fractions_out, edges0, opts,
+                              threads)
+        miss = np.where(slack, 0.0, wanted - sol.displacement)
+        if correction or not (np.nan_to_num(np.abs(miss)) > DISPLACEMENT_TOL).any():
+            break
+        target = np.ascontiguousarray(target + np.nan_to_num(miss))
+    status = sol.status.copy()
+    status[(status == Status.CONVERGED) & (found != 0)] = Status.DISPLACEMENT_NOT_MET
+    return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
 
 
 def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOptions, *,
@@ -733,9 +856,10 @@ def _finish_status(sol: RodSolution, estimate: np.ndarray, steps, opts: SolverOp
 
 
 def _solve_on_grid(designs: DesignBatch, fractions_out: np.ndarray, edges: np.ndarray, out_step: np.ndarray,
-                   opts: SolverOptions, *, jacobian: bool = False, warm: _WarmStart | None = None
-                   ) -> tuple[RodSolution, np.ndarray]:
-    """Tendon-only solve on one step grid (``edges`` fractions of L, outputs at edges ``out_step``);
+                   opts: SolverOptions, *, jacobian: bool = False, warm: _WarmStart | None = None,
+                   end_step: np.ndarray | None = None) -> tuple[RodSolution, np.ndarray]:
+    """Tendon-only solve on one step grid (``edges`` fractions of L, outputs at edges ``out_step``;
+    designs with tendon ends share them, at the edges ``end_step`` (:func:`_grid_with_ends`));
     returns the solution and the node strains ``(B, 2K+1, 6)`` (K+1 edges, then K midpoints)."""
     b, _n = designs.n_designs, fractions_out.shape[0]
     mat = material(designs)
@@ -744,7 +868,7 @@ def _solve_on_grid(designs: DesignBatch, fractions_out: np.ndarray, edges: np.nd
     starts = edges[:-1]
     node_fractions = np.concatenate([edges, starts + 0.5 * widths])  # (2K+1,), the outputs among the edges
     m = node_fractions.shape[0]
-    nodes = _make_nodes(designs, mat, node_fractions)
+    nodes = _make_nodes(designs, mat, node_fractions, _node_activity(edges))
     if opts.linearized:
         x = _first_order_strains(nodes)
         ok, iters = np.ones(x.shape[0], dtype=bool), np.zeros(x.shape[0], dtype=np.int64)
@@ -777,7 +901,15 @@ def _solve_on_grid(designs: DesignBatch, fractions_out: np.ndarray, edges: np.nd
     x_out = x[:, out_step]
     rho_out, _ = tendon_routing(designs, fractions_out)
     tendons = p[:, :, None, :] + np.einsum("bnij,bntj->bnti", R, rho_out)
+    if end_step is not None:  # beyond its end a tendon holds its termination point
+        ends = designs.end_fractions[0]
+        for i in np.nonzero(end_step >= 0)[0]:
+            rho_end, _ = tendon_routing(designs, ends[i:i + 1], derivative=False)
+            terminal = pos[:, end_step[i]] + np.einsum("bij,bj->bi", rot[:, end_step[i]], rho_end[:, 0, i])
+            beyond = fractions_out > ends[i]
+            tendons[:, beyond, i] = terminal[:, None, :]
     force, moment = internal_wrench(R, x_out, mat)
+    displacement = _displacements(designs, edges, x)
     residual = _wrench_norm(res, designs.L[:, None]).max(axis=1)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
     status = np.zeros(b, dtype=np.int8)
@@ -788,8 +920,31 @@ def _solve_on_grid(designs: DesignBatch, fractions_out: np.ndarray, edges: np.nd
     return RodSolution(
         s=designs.L[:, None] * fractions_out[None, :], backbone=p, rotation=R, tendons=tendons,
         force=force, moment=moment, converged=status == 0, residual=residual, iterations=iters,
-        jacobian=pose_jacobian, status=status,
+        jacobian=pose_jacobian, status=status, tension=designs.tension.copy(), displacement=displacement,
     ), x
+
+
+def _displacements(designs: DesignBatch, edges: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Each tendon's displacement, m, ``(B, N_t)``, from the node strains ``x`` ``(B, 2K+1, 6)`` (K+1
+    edges, then K midpoints) by the kernel's quadrature (``_kernel._path_lengths``)."""
+    from tdcr.physics._compiled import kernel
+
+    k = edges.size - 1
+    sig = np.empty(2 * k + 1)
+    sig[0::2], sig[1::2] = edges, edges[:-1] + 0.5 * np.diff(edges)
+    inter = np.empty_like(x)
+    inter[:, 0::2], inter[:, 1::2] = x[:, :k + 1], x[:, k + 1:]
+    act = kernel._node_activity(sig)
+    ends, angles = designs.end_fractions, np.ascontiguousarray(designs.angles)
+    out = np.empty((designs.n_designs, designs.n_tendons))
+    lengths, no_sens, no_dlen = np.empty(designs.n_tendons), np.empty((0, 6, designs.n_tendons)), np.empty((1, 1))
+    for b in range(designs.n_designs):
+        kernel._path_lengths(sig, act, np.ascontiguousarray(inter[b]), float(designs.L[b]), designs.offset[b],
+                             designs.pitch[b], angles[b], np.ascontiguousarray(ends[b]), no_sens, lengths, no_dlen)
+        for i in range(designs.n_tendons):
+            out[b, i] = kernel.undeformed_length(float(designs.L[b]), designs.offset[b, i], designs.pitch[b, i],
+                                                 ends[b, i]) - lengths[i]
+    return out
 
 
 def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.ndarray, opts: SolverOptions,
@@ -801,7 +956,35 @@ def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
     status = out.status.astype(np.int8)
     scale = np.maximum(designs.tension.sum(axis=1), 1.0)
     status[(status == Status.CONVERGED) & ~(out.residual <= opts.residual_tol * scale)] = Status.RESIDUAL_TOO_LARGE
+    # Newton stopped (or divided by |g_i| = 0) beside a collapsed tendon
+    failed = np.nonzero((status == Status.NEWTON_FAILED) | (status == Status.NOT_FINITE)
+                        & np.isfinite(out.tendons).all(axis=(1, 2, 3)))[0]
+    status[failed[tendon_collapsed(designs.take(failed), fractions_out, out.strains[failed])]] = \
+        Status.TENDON_COLLAPSED
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
+
+
+#: Displacement actuation: the largest miss of a tendon's displacement, m.
+DISPLACEMENT_TOL = 1e-10
+#: |g_i| (the tendon's path length per unit s) below which a tendon has collapsed.
+COLLAPSED_STRETCH = 1e-2
+
+
+def tendon_collapsed(designs: DesignBatch, fractions: np.ndarray, strains: np.ndarray) -> np.ndarray:
+    """Per design ``(B,)``: some tendon's path length per unit arclength |g_i| = |nu + kappa x rho_i +
+    rho_i'| falls below :data:`COLLAPSED_STRETCH` (or is not finite: 0 / 0 in its direction) at the
+    strains ``(B, n, 6)`` where Newton stopped.
+    The potential (eq. PHI) then has its minimum at the kink g_i = 0: the tension bends the rod
+    until the tendon would pass its centre of curvature (to first order tau o^2 / (E I) >= 1 for
+    one tendon), and no equilibrium with a taut tendon exists -- more continuation would not help."""
+    if len(designs) == 0:
+        return np.zeros(0, dtype=bool)
+    rho, drho = tendon_routing(designs, fractions)
+    g = strains[:, :, None, :3] + _cross(strains[:, :, None, 3:], rho) + drho
+    acting = designs.end_fractions[:, None, :] >= fractions[None, :, None]
+    with np.errstate(invalid="ignore"):
+        stretch = np.where(acting, np.linalg.norm(g, axis=-1), np.inf)
+        return ~(stretch.min(axis=(1, 2)) >= COLLAPSED_STRETCH)
 
 
 def _strain_sensitivities(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
@@ -810,6 +993,8 @@ def _strain_sensitivities(x: np.ndarray, nodes: _Nodes) -> np.ndarray:
     (t_i, rho_i x t_i) (the tendon tangents do not depend on the tensions).  NaN where J is not
     positive definite or not finite."""
     _, jac, a = _jacobian_parts(x, nodes)
+    if nodes.active is not None:  # an ended tendon's tension does not act at the node
+        a = a * nodes.active[..., None]
     return _solve_spd(jac, -np.swapaxes(a, 1, 2))
 
 
@@ -877,10 +1062,7 @@ class TipSolver:
 
     def __call__(self, tensions: np.ndarray) -> RodSolution:
         tensions = np.asarray(tensions, dtype=np.float64)
-        t, d = tensions.shape[0], self.design
-        designs = DesignBatch(E=np.repeat(d.E, t), r=np.repeat(d.r, t), L=np.repeat(d.L, t),
-                              offset=np.repeat(d.offset, t, axis=0), pitch=np.repeat(d.pitch, t, axis=0),
-                              tension=tensions)
+        designs = self.design.take(np.zeros(tensions.shape[0], dtype=np.int64)).replace(tension=tensions)
         return _solve_tendon_only(designs, np.ones(1), self.options, jacobian=True, warm=self._warm)
 
 

@@ -16,6 +16,8 @@ class Status(enum.IntEnum):
     RESIDUAL_TOO_LARGE = 4  # the wrench residual exceeds residual_tol times the load scale
     SHOOTING_FAILED = 5  # loads: the tip condition M(L) = M_tip was not met
     MULTIPLE_EQUILIBRIA = 6  # loads: the shooting Jacobian has a real eigenvalue <= 0 (a fold or bifurcation)
+    TENDON_COLLAPSED = 7  # a tendon's path would shrink to zero length: bent past its centre of curvature
+    DISPLACEMENT_NOT_MET = 8  # displacement actuation: no tensions >= 0 pull in the displacements asked for
 
 
 #: The status names, indexed by code (the OIP ``status`` output and /exact's ``status``).

@@ -1,7 +1,8 @@
 // The TDCR shape viewer: sliders -> debounced POST /predict and POST /exact -> three.js drawing.
 // Everything in SI units from the service; shown in friendlier units.  For tests, <body> carries
 // data-updates (answers drawn), data-design (the design drawn, JSON), data-error (relative l2) and
-// data-error-bound (the operator's calibrated bound, or "none").
+// data-error-bound (the operator's calibrated bound, or "none") and data-tendon-points (the points
+// drawn of each exact tendon path: a tendon that ends before the tip is drawn to its end).
 "use strict";
 (function () {
   const DEBOUNCE_MS = 150;
@@ -12,7 +13,8 @@
   // parameter -> [factor from SI, unit shown, decimals]
   const DISPLAY = { E: [1e-9, "GPa", 2], r: [1e3, "mm", 3], L: [1e3, "mm", 1], offset: [1e3, "mm", 2],
                     pitch: [1, "rad/m", 2], tension: [1, "N", 2], density: [1, "kg/m³", 0],
-                    tip_force: [1e3, "mN", 2] };
+                    tip_force: [1e3, "mN", 2], end: [1, "× L", 2] };
+  const END_RANGE = [0.05, 1];  // where a tendon ends, as a fraction of L (1: the tip)
   const GRAVITY = 9.81;  // m/s^2
   const AXES = ["x", "y", "z"];
   const el = (id) => document.getElementById(id);
@@ -30,6 +32,7 @@
   // -- the design --------------------------------------------------------------------------
 
   function tableRange(param) {
+    if (param === "end") return END_RANGE;
     if (param in space.loads) return loadRange(param);
     const p = space.parameters[param];
     const [lo, hi] = p.table_i;
@@ -98,6 +101,7 @@
       fs.append(legend);
       const start = { offset: mid("offset"), pitch: 0, tension: i === 0 ? 2 : 0 };
       TENDON.forEach((p) => addSlider(fs, `${p}_${i}`, p, p, start[p]));
+      addSlider(fs, `end_${i}`, "end", "ends at", 1);  // below 1: segments (the exact solver alone)
       tendons.append(fs);
     }
     const loads = el("loads");
@@ -132,7 +136,9 @@
     const value = (key) => Number(sliders[key].input.value);
     const design = { E: value("E"), r: value("r"), L: value("L"), tendons: [] };
     for (let i = 0; i < space.n_tendons; i++) {
-      design.tendons.push({ offset: value(`offset_${i}`), pitch: value(`pitch_${i}`), tension: value(`tension_${i}`) });
+      const tendon = { offset: value(`offset_${i}`), pitch: value(`pitch_${i}`), tension: value(`tension_${i}`) };
+      if (value(`end_${i}`) < 1) tendon.end = value(`end_${i}`) * design.L;
+      design.tendons.push(tendon);
     }
     return Object.assign(design, currentLoads());
   }
@@ -142,7 +148,10 @@
     if (!Array.isArray(design.tendons) || design.tendons.length !== space.n_tendons) {
       throw new Error(`a design needs "tendons": a list of ${space.n_tendons}`);
     }
-    design.tendons.forEach((t, i) => TENDON.forEach((p) => { values[`${p}_${i}`] = t[p]; }));
+    design.tendons.forEach((t, i) => {
+      TENDON.forEach((p) => { values[`${p}_${i}`] = t[p]; });
+      values[`end_${i}`] = t.end == null ? 1 : t.end / design.L;
+    });
     for (const [key, v] of Object.entries(values)) {
       if (typeof v !== "number" || !Number.isFinite(v)) throw new Error(`${key} must be a number`);
     }
@@ -193,14 +202,18 @@
     const design = currentDesign();
     const points = space.default_points;
     const model = operatorFor(Object.keys(design).some((k) => k in space.loads));
+    const segmented = design.tendons.some((t) => "end" in t);  // the operators take tendons to the tip
     try {
       const [predicted, exact] = await Promise.all([
-        post("/predict", { model, designs: [design], points }),
+        segmented ? Promise.resolve(null) : post("/predict", { model, designs: [design], points }),
         post("/exact", { designs: [design], points }),
       ]);
       if (mine !== sequence) return;  // a newer design is on its way
-      if (!el("message").textContent.startsWith("The design has loads")) el("message").textContent = "";
-      draw(design, predicted.result, exact.result);
+      if (segmented) {
+        el("message").textContent = "A tendon ends before the tip: the exact solver alone (the operators take " +
+          "tendons that end at the tip).";
+      } else if (!el("message").textContent.startsWith("The design has loads")) el("message").textContent = "";
+      draw(design, predicted && predicted.result, exact.result);
       showNumbers(predicted, exact);
       body.dataset.design = JSON.stringify(design);
       body.dataset.updates = String(Number(body.dataset.updates) + 1);
@@ -221,7 +234,15 @@
   }
 
   function showNumbers(predicted, exact) {
-    const p = predicted.result, x = exact.result;
+    const x = exact.result;
+    el("exact-time").textContent = `${exact.ms.toFixed(1)} ms`;
+    el("converged").textContent = x.converged ? "yes" : `no (residual ${x.residual})`;
+    if (predicted === null) {  // no operator answer to compare
+      body.dataset.error = body.dataset.errorBound = body.dataset.tipError = "none";
+      ["error", "error-bound", "tip-error", "predict-time", "warnings"].forEach((id) => { el(id).textContent = "–"; });
+      return;
+    }
+    const p = predicted.result;
     const error = relativeL2(p.tendons, x.tendons);
     body.dataset.error = String(error);
     el("error").textContent = `${error.toExponential(3)} (${(100 * error).toFixed(3)} %)`;
@@ -239,8 +260,6 @@
     badge.className = `badge ${p.in_distribution ? "in" : "out"}`;
     el("warnings").textContent = (p.warnings || []).join("; ");
     el("predict-time").textContent = `${predicted.model}: ${predicted.ms.toFixed(1)} ms`;
-    el("exact-time").textContent = `${exact.ms.toFixed(1)} ms`;
-    el("converged").textContent = x.converged ? "yes" : `no (residual ${x.residual})`;
   }
 
   // -- the 3-D view ------------------------------------------------------------------------
@@ -291,8 +310,13 @@
       new THREE.MeshStandardMaterial({ color, roughness: 0.5, transparent: predicted, opacity: predicted ? 0.45 : 1 }));
     group.add(tube);
     const tendonCount = result.tendons[0].length;
+    const drawnPoints = [];
     for (let i = 0; i < tendonCount; i++) {
-      const path = result.tendons.map((node) => node[i]);
+      // to its end: the answer holds a tendon's termination point at every s beyond it
+      const end = (design.tendons[i].end ?? design.L) / design.L;
+      const inside = result.s.filter((s) => s <= end + 1e-12).length;
+      const path = result.tendons.slice(0, Math.min(result.s.length, inside + 1)).map((node) => node[i]);
+      drawnPoints.push(path.length);
       const geometry = new THREE.BufferGeometry().setFromPoints(vectors(path));
       const material = predicted
         ? new THREE.LineDashedMaterial({ color, dashSize: design.L / 80, gapSize: design.L / 160 })
@@ -301,6 +325,7 @@
       if (predicted) line.computeLineDistances();
       group.add(line);
     }
+    if (!predicted) body.dataset.tendonPoints = JSON.stringify(drawnPoints);
     if (!predicted) {  // spacer disks, oriented by the frames R(s)
       const maxOffset = Math.max(...design.tendons.map((t) => t.offset));
       const disk = new THREE.CylinderGeometry(maxOffset * 1.25, maxOffset * 1.25, design.L / 300, 24);
@@ -332,7 +357,7 @@
     const robot = view.robot;
     while (robot.children.length) { const child = robot.children.pop(); dispose(child); }
     robot.add(shape(design, exact, "exact"));
-    robot.add(shape(design, predicted, "predicted"));
+    if (predicted) robot.add(shape(design, predicted, "predicted"));
     if (!drawnOnce) { fit(design); drawnOnce = true; }
     view.render();
   }

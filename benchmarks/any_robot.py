@@ -1,0 +1,185 @@
+"""Any robot (issue #27): the solver's speed on segments and displacement actuation, high tensions,
+the two termination rules, and the public examples -- measured in one run on one machine.
+
+    python benchmarks/any_robot.py [--designs 2000] [--plot docs/termination.png]
+
+* Throughput, designs/s on every core (``solve(..., workers=0)``, 42 points, best of 3 after a
+  warm-up): Table I designs with 4 tendons; two segments of 3 tendons (ends L/2 and L); the same
+  under ``termination="rucker_webster"`` (it shoots); displacement actuation (the tensions found
+  for displacements, then solved).
+* tau = 20 N on one tendon of Table I designs: how many converge, and how many are flagged.
+* The step control's own estimate on two-segment helical designs.
+* The termination rules against each other: relative l2 of the tendon positions between
+  ``exact`` and ``rucker_webster`` against the helical pitch, tdcr-modeling's default robot
+  (two segments of 0.1 m), unloaded and with a 0.05 N tip force (``--plot``: the figure).
+* The public examples (stored answers of their own code, ``benchmarks/peers/*.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import numpy as np
+
+from tdcr import design_space
+from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.metrics import relative_l2
+from tdcr.physics import STATUS, SolverOptions, solve
+
+S42 = np.linspace(0.0, 1.0, 42)
+DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests", "data")
+
+
+def rate(designs: DesignBatch, repeats: int = 3, **kwargs) -> float:
+    solve(designs.take(slice(0, 8)), S42, workers=0, **kwargs)  # compile / warm up
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        solve(designs, S42, workers=0, **kwargs)
+        best = min(best, time.perf_counter() - start)
+    return len(designs) / best
+
+
+def throughput(n: int) -> None:
+    plain = design_space.sample_designs(n, seed=2701)
+    two = design_space.sample_segmented_designs(n, seed=2702, segments=2, tendons_per_segment=3)
+    forward = solve(plain, S42, workers=0)
+    driven = plain.replace(displacement=forward.displacement, tension=np.zeros_like(plain.tension))
+    forward_two = solve(two, S42, workers=0)
+    driven_two = two.replace(displacement=forward_two.displacement, tension=np.zeros_like(two.tension))
+    rows = [("one segment, 4 tendons (Table I)", rate(plain), "-"),
+            ("two segments, 3 + 3 tendons", rate(two), ">= 20,000"),
+            ("two segments, termination rucker_webster", rate(two, repeats=1, termination="rucker_webster"), "-"),
+            ("displacement actuation, 4 tendons", rate(driven), ">= 2,000"),
+            ("displacement actuation, two segments", rate(driven_two), "-")]
+    print(f"\n### Throughput ({n} designs, 42 points, {os.cpu_count()} cores)\n")
+    print("| designs | designs/s | target |\n|---|---:|---|")
+    for name, value, target in rows:
+        print(f"| {name} | {value:,.0f} | {target} |")
+
+
+def high_tension(n: int) -> None:
+    designs = design_space.sample_designs(n, seed=2703)
+    print("\n### tau = 20 N on tendon 0 (Table I designs)\n")
+    print("| tension | designs | " + " | ".join(STATUS) + " | seconds |\n|---|---:|" + "---:|" * (len(STATUS) + 1))
+    for tau in (5.0, 20.0, 50.0):
+        d = designs.replace(tension=np.tile([tau, 0.0, 0.0, 0.0], (n, 1)))
+        start = time.perf_counter()
+        sol = solve(d, S42, workers=0)
+        seconds = time.perf_counter() - start
+        counts = np.bincount(sol.status, minlength=len(STATUS))
+        print(f"| {tau:g} N | {n} | " + " | ".join(str(c) for c in counts) + f" | {seconds:.2f} |")
+
+
+def step_control(n: int) -> None:
+    designs = design_space.sample_segmented_designs(n, seed=2704, segments=3, tendons_per_segment=2)
+    sol = solve(designs, S42, workers=0)
+    ok = sol.converged
+    print(f"\n### Step control, three segments of 2 tendons ({n} Table I designs)\n")
+    print(f"converged {ok.sum()} / {n}; estimate of the tendon positions' relative l2: median "
+          f"{np.median(sol.error_estimate[ok]):.2g}, max {sol.error_estimate[ok].max():.2g} (step_tol "
+          f"{SolverOptions().step_tol:g}); statuses "
+          f"{dict(zip(STATUS, np.bincount(sol.status, minlength=len(STATUS)).tolist(), strict=True))}")
+
+
+def tm_robot(pitch: float, tensions: np.ndarray) -> DesignBatch:
+    """tdcr-modeling's default robot (two segments of 0.1 m, E 60 GPa, r 0.5 mm, 8 and 6 mm) with
+    helical routing of ``pitch`` rad/m, for each row of ``tensions`` ``(B, 6)``."""
+    b = len(tensions)
+    angles = np.tile(np.deg2rad([90.0, -30.0, 210.0] * 2), (b, 1))
+    return DesignBatch(E=np.full(b, 60e9), r=np.full(b, 5e-4), L=np.full(b, 0.2),
+                       offset=np.tile([0.008] * 3 + [0.006] * 3, (b, 1)), pitch=np.full((b, 6), pitch),
+                       tension=tensions, angle=angles, end=np.tile([0.1] * 3 + [0.2] * 3, (b, 1)))
+
+
+def termination(plot: str | None) -> None:
+    rng = np.random.default_rng(2705)
+    tensions = rng.uniform(0.0, 2.0, (50, 6))
+    pitches = np.array([0.0, 2.5, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0])
+    force = ExternalLoads(tip_force=np.tile([0.05, 0.0, 0.0], (len(tensions), 1)))
+    rows = []
+    for pitch in pitches:
+        d = tm_robot(pitch, tensions)
+        out = []
+        for loads in (None, force):
+            a = solve(d, S42, loads=loads, workers=0)
+            b = solve(d, S42, loads=loads, workers=0, termination="rucker_webster")
+            ok = a.converged & b.converged
+            gap = relative_l2(b.tendons[ok], a.tendons[ok])
+            out.append((np.median(gap), gap.max(), int(ok.sum())))
+        rows.append((pitch, out))
+    print("\n### Termination rules: relative l2 of the tendon positions, exact vs rucker_webster\n")
+    print("tdcr-modeling's default robot with helical routing, 50 tension sets in [0, 2] N\n")
+    print("| pitch rad/m | unloaded: median | max | tip force 0.05 N: median | max | converged |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    for pitch, ((m0, x0, n0), (m1, x1, n1)) in rows:
+        print(f"| {pitch:g} | {m0:.2g} | {x0:.2g} | {m1:.2g} | {x1:.2g} | {min(n0, n1)} |")
+    if plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(5.5, 3.6), dpi=120)
+        for k, label in ((0, "tendon loads only"), (1, "with a 0.05 N tip force")):
+            ax.semilogy(pitches, [max(r[1][k][1], 1e-16) for r in rows], "o-", label=f"max, {label}")
+            ax.semilogy(pitches, [max(r[1][k][0], 1e-16) for r in rows], "s--", label=f"median, {label}")
+        ax.set_xlabel("helical pitch of every tendon, rad/m")
+        ax.set_ylabel("relative l2, tendon positions")
+        ax.set_title("Dropped kink forces: rucker_webster vs exact\n(two segments of 0.1 m, tdcr-modeling's robot)",
+                     fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(plot)
+        print(f"\nwrote {plot}")
+
+
+def peers() -> None:
+    cre = json.load(open(os.path.join(DATA, "continuum_robot_examples.json")))
+    design = cre["design"]
+    print("\n### Public examples (their own code's answers; tests/test_peers.py)\n")
+    print("| example | peer residual | ours: relative l2, tendon positions | tip mm |\n|---|---:|---:|---:|")
+    for name, case in cre["cases"].items():
+        for nu in (design["poisson"], 0.3):
+            d = DesignBatch(E=[design["E"]], r=[design["r"]], L=[design["L"]], offset=[[design["offset"]] * 4],
+                            pitch=[[design["pitch"][name]] * 4], tension=[design["tension"]], poisson=[nu])
+            loads = ExternalLoads(gravity=np.array([design["gravity"]]), density=np.array([design["density"]]))
+            sol = solve(d, np.array(case["s"]), loads=loads)
+            err = float(relative_l2(sol.tendons, np.array(case["tendons"])[None])[0])
+            tip = 1e3 * np.linalg.norm(sol.backbone[0, -1] - np.array(case["backbone"][-1]))
+            print(f"| ContinuumRobotExamples {name}, nu = {nu:g} | {case['shooting_residual']:.2g} | {err:.2g} "
+                  f"| {tip:.2g} |")
+    tm = json.load(open(os.path.join(DATA, "tdcr_modeling.json")))
+    robot = tm["robot"]
+    for case in tm["cases"]:
+        disks = np.array(case["disk_positions"])[None]
+        d = tm_robot(0.0, np.array([case["tension"]]))
+        loads = ExternalLoads(tip_force=np.array([case["tip_force"]]))
+        fr = np.linspace(0.0, 1.0, disks.shape[1])
+        errs = [float(relative_l2(solve(d, fr, loads=loads, termination=t).backbone, disks)[0])
+                for t in ("rucker_webster", "exact")]
+        print(f"| tdcr-modeling, tau {case['tension']}, F {case['tip_force']} | chi2 {case['chi2']:.2g} | "
+              f"rucker_webster {errs[0]:.2g}, exact {errs[1]:.2g} (backbone) | |")
+    assert robot["E"] == 60e9
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--designs", type=int, default=2000)
+    parser.add_argument("--plot", default=None, help="write the termination figure here (PNG)")
+    args = parser.parse_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
+    throughput(args.designs)
+    high_tension(args.designs)
+    step_control(500)
+    termination(args.plot)
+    peers()
+
+
+if __name__ == "__main__":
+    main()

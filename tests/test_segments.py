@@ -1,0 +1,186 @@
+"""Any robot: tendons that end before the tip (segments), any tendon angles, the Poisson ratio and
+displacement actuation -- against closed forms and an independent formulation of the solver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tdcr.designs import DesignBatch, ExternalLoads
+from tdcr.metrics import relative_l2
+from tdcr.physics import Status, solve
+from tdcr.physics.cosserat import SolverOptions, _solve_loaded_compiled
+
+FRACTIONS = np.linspace(0.0, 1.0, 21)
+
+
+def two_segments(n: int = 4, *, pitch: float = 0.0, seed: int = 0) -> DesignBatch:
+    """``n`` two-segment robots: 3 tendons ending at L/2 (8 mm), 3 at the tip (6 mm), 120 degrees apart."""
+    rng = np.random.default_rng(seed)
+    angles = np.tile(np.deg2rad([90.0, -30.0, 210.0]), 2)
+    return DesignBatch(E=rng.uniform(20e9, 60e9, n), r=np.full(n, 6e-4), L=np.full(n, 0.2),
+                       offset=np.tile([0.008] * 3 + [0.006] * 3, (n, 1)), pitch=np.full((n, 6), pitch),
+                       tension=rng.uniform(0.0, 2.0, (n, 6)), angle=np.tile(angles, (n, 1)),
+                       end=np.tile([0.1] * 3 + [0.2] * 3, (n, 1)))
+
+
+def test_a_tendon_ending_at_half_length_leaves_the_distal_half_straight_and_unstrained():
+    d = DesignBatch(E=[30e9], r=[1e-3], L=[0.2], offset=[[0.008]], pitch=[[0.0]], tension=[[2.0]], end=[[0.1]])
+    sol = solve(d, FRACTIONS)
+    assert sol.converged.all()
+    distal = FRACTIONS > 0.5
+    assert np.abs(sol.force[0, distal]).max() == 0.0 and np.abs(sol.moment[0, distal]).max() == 0.0
+    mid = np.searchsorted(FRACTIONS, 0.5)
+    # zero strain: p(s) = p(s_e) + (s - s_e) R(s_e) e3 and R(s) = R(s_e)
+    line = sol.backbone[0, mid] + np.outer(sol.s[0, distal] - 0.1, sol.rotation[0, mid][:, 2])
+    np.testing.assert_allclose(sol.backbone[0, distal], line, atol=1e-12)
+    np.testing.assert_allclose(sol.rotation[0, distal], np.broadcast_to(sol.rotation[0, mid], (distal.sum(), 3, 3)),
+                               atol=1e-12)
+    # the proximal half is bent (a constant-curvature arc: the local equation is the same at every s)
+    assert np.linalg.norm(sol.backbone[0, mid, :2]) > 1e-3
+    # beyond its end the tendon has no path: its rows hold its termination point
+    np.testing.assert_array_equal(sol.tendons[0, distal, 0], np.broadcast_to(sol.tendons[0, mid, 0], (distal.sum(), 3)))
+
+
+def test_consistent_termination_pointwise_equals_shooting_across_the_ends():
+    """Two formulations of the consistent equilibrium: the pointwise local equation with the tendon
+    sums over the tendons crossing each cut (Magnus), and shooting on M(0) with RK4 integrating
+    M' = -p' x N across the zero-width end steps."""
+    d = two_segments(pitch=8.0)
+    pointwise = solve(d, FRACTIONS)
+    shooting = _solve_loaded_compiled(d, FRACTIONS, ExternalLoads(), SolverOptions(), 1)
+    assert pointwise.converged.all() and shooting.converged.all()
+    assert relative_l2(shooting.tendons, pointwise.tendons).max() < 1e-8
+
+
+def test_the_termination_rules_agree_for_straight_routing_without_loads_and_differ_otherwise():
+    straight = two_segments()
+    exact, shortcut = solve(straight, FRACTIONS), solve(straight, FRACTIONS, termination="rucker_webster")
+    assert exact.converged.all() and shortcut.converged.all()
+    assert relative_l2(shortcut.tendons, exact.tendons).max() < 1e-9  # no kink forces for parallel tendons
+    helical = two_segments(pitch=15.0)
+    exact, shortcut = solve(helical, FRACTIONS), solve(helical, FRACTIONS, termination="rucker_webster")
+    assert shortcut.converged.all()
+    assert relative_l2(shortcut.tendons, exact.tendons).min() > 1e-4  # the dropped kink forces
+    loads = ExternalLoads(tip_force=np.tile([0.05, 0.0, 0.0], (len(straight), 1)))
+    a = solve(straight, FRACTIONS, loads=loads)
+    b = solve(straight, FRACTIONS, loads=loads, termination="rucker_webster")
+    assert 1e-7 < relative_l2(b.tendons, a.tendons).max() < 1e-3
+
+
+def test_single_segment_designs_do_not_depend_on_the_rule():
+    d = two_segments().replace(end=None)
+    shortcut = solve(d, FRACTIONS, termination="rucker_webster")
+    np.testing.assert_array_equal(solve(d, FRACTIONS).tendons, shortcut.tendons)
+
+
+def test_unknown_termination_is_refused_by_name():
+    with pytest.raises(ValueError, match="termination"):
+        solve(two_segments(1), FRACTIONS, termination="bogus")
+
+
+def test_rotating_every_tendon_angle_rotates_the_shape_about_the_axis():
+    d = two_segments(pitch=5.0)
+    phi = 0.7
+    turned = solve(d.replace(angle=d.angles + phi), FRACTIONS)
+    base = solve(d, FRACTIONS)
+    rz = np.array([[np.cos(phi), -np.sin(phi), 0.0], [np.sin(phi), np.cos(phi), 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(turned.backbone, base.backbone @ rz.T, atol=1e-10)
+
+
+def test_default_angles_and_ends_change_nothing():
+    d = two_segments().replace(end=None)
+    explicit = d.replace(angle=np.tile(2 * np.pi * np.arange(6) / 6, (len(d), 1)), end=np.tile(d.L[:, None], (1, 6)))
+    plain = d.replace(angle=None)
+    np.testing.assert_array_equal(solve(explicit, FRACTIONS).tendons, solve(plain, FRACTIONS).tendons)
+
+
+def test_the_vectorised_path_agrees_with_the_kernel_for_segments():
+    d = two_segments(pitch=6.0)
+    kernel, numpy_path = solve(d, FRACTIONS), solve(d, FRACTIONS, jacobian=True)
+    assert relative_l2(numpy_path.tendons, kernel.tendons).max() < 1e-9
+    np.testing.assert_allclose(numpy_path.displacement, kernel.displacement, atol=1e-12)
+    assert np.isfinite(numpy_path.jacobian).all()
+    # an ended tendon no longer moves the distal tip... but its pull still bends the proximal part
+    assert np.abs(numpy_path.jacobian[:, -1, :3, :3]).max() > 0
+
+
+def test_step_control_estimate_holds_with_segments():
+    sol = solve(two_segments(8, pitch=12.0, seed=3), FRACTIONS)
+    assert sol.converged.all() and (sol.error_estimate <= SolverOptions().step_tol).all()
+
+
+def test_poisson_ratio_sets_the_shear_modulus():
+    """Torsion of a straight rod by a tip moment: twist rate M / (G J), G = E / (2 (1 + nu))."""
+    moment = 1e-3
+    for nu in (0.25, 0.33):
+        d = DesignBatch(E=[50e9], r=[1e-3], L=[0.2], offset=[[0.005]], pitch=[[0.0]], tension=[[0.0]], poisson=[nu])
+        sol = solve(d, np.array([1.0]), loads=ExternalLoads(tip_moment=np.array([[0.0, 0.0, moment]])))
+        g_j = 50e9 / (2 * (1 + nu)) * np.pi * 1e-3**4 / 2
+        angle = np.arctan2(sol.rotation[0, 0, 1, 0], sol.rotation[0, 0, 0, 0])
+        assert angle == pytest.approx(moment * 0.2 / g_j, rel=1e-9)
+
+
+def test_displacement_round_trip_returns_the_tensions():
+    """tension -> displacement -> tension.  Co-contraction (all tendons together) only compresses
+    the rod, d ~ L / (E A) per newton, so a displacement known to 1e-11 m fixes the tensions to
+    about 1e-5 N."""
+    rng = np.random.default_rng(7)
+    d = two_segments(6, pitch=4.0).replace(tension=rng.uniform(0.2, 2.0, (6, 6)))
+    forward = solve(d, FRACTIONS)
+    driven = d.replace(displacement=forward.displacement, tension=np.zeros((6, 6)))
+    back = solve(driven, FRACTIONS)
+    assert back.converged.all() and not back.slack.any()
+    np.testing.assert_allclose(back.tension, d.tension, atol=2e-5)
+    np.testing.assert_allclose(back.displacement, forward.displacement, atol=1e-10)
+    assert relative_l2(back.tendons, forward.tendons).max() < 1e-6
+
+
+def test_displacement_closed_form_for_one_straight_tendon():
+    """One straight tendon: constant strains, so its path length is L |nu + kappa x rho|."""
+    d = DesignBatch(E=[30e9], r=[8e-4], L=[0.25], offset=[[0.007]], pitch=[[0.0]], tension=[[1.5]])
+    sol = solve(d, np.array([0.5]))
+    strain_force = sol.rotation[0, 0].T @ sol.force[0, 0]
+    strain_moment = sol.rotation[0, 0].T @ sol.moment[0, 0]
+    area, inertia = np.pi * 8e-4**2, np.pi * 8e-4**4 / 4
+    nu = np.array([0.0, 0.0, 1.0]) + strain_force / np.array([30e9 / 2.6 * area, 30e9 / 2.6 * area, 30e9 * area])
+    kappa = strain_moment / np.array([30e9 * inertia, 30e9 * inertia, 30e9 / 2.6 * 2 * inertia])
+    g = nu + np.cross(kappa, [0.007, 0.0, 0.0])
+    assert sol.displacement[0, 0] == pytest.approx(0.25 * (1.0 - np.linalg.norm(g)), rel=1e-9)
+
+
+def test_a_displacement_that_would_need_a_push_leaves_the_tendon_slack():
+    d = DesignBatch(E=[30e9] * 2, r=[8e-4] * 2, L=[0.2] * 2, offset=[[0.008] * 4] * 2, pitch=[[0.0] * 4] * 2,
+                    tension=[[0.0, 0.0, 0.0, 0.0]] * 2, displacement=[[-1e-3, 2e-3, np.nan, np.nan]] * 2)
+    sol = solve(d, FRACTIONS)
+    assert sol.converged.all()
+    assert sol.slack[:, 0].all() and not sol.slack[:, 1].any()
+    assert (sol.tension[:, 0] == 0).all() and (sol.tension[:, 1] > 0).all()
+    np.testing.assert_allclose(sol.displacement[:, 1], 2e-3, atol=1e-10)
+    assert (sol.displacement[:, 0] > -1e-3).all()  # it shortened on its own less than it was let out
+
+
+def test_high_tension_converges_or_is_flagged():
+    from tdcr.design_space import sample_designs
+
+    d = sample_designs(300, seed=3)
+    d = d.replace(tension=np.tile([20.0, 0.0, 0.0, 0.0], (300, 1)))
+    sol = solve(d, np.linspace(0.0, 1.0, 42))
+    assert set(np.unique(sol.status)) <= {Status.CONVERGED, Status.TENDON_COLLAPSED}
+    assert (sol.status == Status.TENDON_COLLAPSED).any()
+
+
+def test_inverse_kinematics_reaches_a_target_of_a_two_segment_robot():
+    """The exact inverse (tip Jacobian of the vectorised path, with the ends) on a segmented design:
+    the tensions it returns put the tip on the target in the forward solver."""
+    from tdcr.inverse import answer_exact
+    from tdcr.validation import validate_inverse
+
+    robot = two_segments(1)
+    target = solve(robot, np.array([1.0])).backbone[0, 0]
+    body = {"design": robot.replace(tension=np.zeros((1, 6))).to_dicts()[0],
+            "targets": [{"position": target.tolist()}], "tension_max": 5.0}
+    (result,) = answer_exact(validate_inverse(body))
+    assert result["status"] == "reached"
+    reached = solve(robot.replace(tension=np.array([result["tensions"]])), np.array([1.0])).backbone[0, 0]
+    assert np.linalg.norm(reached - target) < 1e-4 * 0.2

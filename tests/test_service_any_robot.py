@@ -1,0 +1,152 @@
+"""Any robot through the served entry points: ``/exact`` JSON, the OIP v2 ``exact`` model over REST
+and gRPC (tritonclient, in a process of its own), ``tdcr solve``, and the operators' refusals."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import httpx
+import numpy as np
+import pytest
+
+from tdcr import design_space
+from tdcr.designs import DesignBatch
+from tdcr.metrics import relative_l2
+from tdcr.physics import solve
+from tdcr.runtime import DEFAULT_MODELS_DIR
+
+S = np.linspace(0.0, 1.0, 11)
+
+
+def robots() -> DesignBatch:
+    """Two two-segment robots (3 + 3 tendons), one with a displacement-driven tendon and nu = 0.25."""
+    d = design_space.sample_segmented_designs(2, seed=2710, segments=2, tendons_per_segment=3)
+    displacement = np.full((2, 6), np.nan)
+    displacement[1, 4] = 1e-3
+    return d.replace(displacement=displacement, poisson=np.array([0.3, 0.25]),
+                     tension=np.where(np.isnan(displacement), d.tension, 0.0))
+
+
+@pytest.fixture(scope="module")
+def server():
+    from service.process import ServerProcess
+
+    srv = ServerProcess(DEFAULT_MODELS_DIR, ready_timeout_s=300)  # a first start compiles the kernels
+    yield srv
+    srv.stop()
+
+
+def test_exact_json_takes_any_robot_and_answers_tensions_and_displacements(server):
+    d = robots()
+    body = {"s": S.tolist(), "designs": d.to_dicts()}
+    for termination in ("exact", "rucker_webster"):
+        if termination == "rucker_webster":  # displacement actuation is the consistent model's
+            body = {"s": S.tolist(), "designs": d.take([0]).to_dicts(), "termination": termination}
+        answer = httpx.post(server.url + "/exact", json=body, timeout=60)
+        assert answer.status_code == 200, answer.text
+        results = answer.json()["results"]
+        designs = d if termination == "exact" else d.take([0])
+        local = solve(designs, S, termination=termination)
+        for j, r in enumerate(results):
+            assert r["status"] == "converged"
+            assert float(relative_l2(np.array(r["tendons"])[None], local.tendons[j:j + 1])[0]) < 1e-12
+            np.testing.assert_allclose(r["tension"], local.tension[j], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(r["displacement"], local.displacement[j], rtol=1e-12, atol=1e-15)
+    assert results[0]["slack"] is None if "slack" in results[0] else True
+    first = httpx.post(server.url + "/exact", json={"s": S.tolist(), "designs": d.to_dicts()}).json()["results"]
+    assert first[1]["displacement"][4] == pytest.approx(1e-3, abs=1e-10) and first[1]["slack"] == [False] * 6
+
+
+@pytest.mark.parametrize(("change", "field", "words"), [
+    (lambda t: t[0].update(end=9.0), "designs[0].tendons[0].end", "(0, L]"),
+    (lambda t: t[0].update(displacement=1e-3), "designs[0].tendons[0].tension", "not both"),
+    (lambda t: t[0].pop("tension"), "designs[0].tendons[0].tension", "tension (N) or its displacement"),
+])
+def test_exact_refuses_bad_layouts_by_name(server, change, field, words):
+    design = robots().take([0]).to_dicts()[0]
+    change(design["tendons"])
+    answer = httpx.post(server.url + "/exact", json={"points": 5, "designs": [design]})
+    assert answer.status_code == 422, answer.text
+    assert field in answer.text and words in answer.text
+
+
+def test_displacement_with_loads_and_a_bad_termination_are_refused(server):
+    design = robots().take([1]).to_dicts()[0] | {"tip_force": [0.01, 0.0, 0.0]}
+    answer = httpx.post(server.url + "/exact", json={"points": 5, "designs": [design]})
+    assert answer.status_code == 422 and "designs[0].tendons[4].displacement" in answer.text
+    answer = httpx.post(server.url + "/exact", json={"points": 5, "designs": robots().take([0]).to_dicts(),
+                                                     "termination": "tip"})
+    assert answer.status_code == 422 and "termination" in answer.text
+
+
+@pytest.mark.parametrize(("extra", "field"), [({"poisson": 0.25}, "designs[0].poisson"),
+                                              ({"end": 0.05}, "designs[0].tendons[1].end"),
+                                              ({"angle": 0.3}, "designs[0].tendons[1].angle")])
+def test_the_operators_refuse_other_layouts_by_name(server, extra, field):
+    design = design_space.sample_designs(1, seed=2711).to_dicts()[0]
+    if "poisson" in extra:
+        design |= extra
+    else:
+        design["tendons"][1] |= extra
+    answer = httpx.post(server.url + "/predict", json={"designs": [design]})
+    assert answer.status_code == 422, answer.text
+    assert field in answer.text and "the exact solver takes it" in answer.text
+
+
+TRITON_SCRIPT = """
+import json, sys
+import numpy as np
+import tritonclient.grpc as grpcclient
+import tritonclient.http as httpclient
+
+protocol, url, path = sys.argv[1:4]
+module = httpclient if protocol == "http" else grpcclient
+arrays = np.load(path)
+client = module.InferenceServerClient(url)
+inputs = []
+for name in ("design", "layout", "poisson", "s"):
+    tensor = module.InferInput(name, list(arrays[name].shape), "FP64")
+    tensor.set_data_from_numpy(arrays[name])
+    inputs.append(tensor)
+names = ("tendons", "tension", "displacement", "slack", "status")
+out = {}
+for termination in ("exact", "rucker_webster"):
+    rows = inputs if termination == "exact" else inputs[:1] + inputs[3:]  # no displacement: the shortcut
+    result = client.infer("exact", rows, outputs=[module.InferRequestedOutput(n) for n in names],
+                          parameters={"termination": termination})
+    out.update({f"{termination}_{n}": result.as_numpy(n) for n in names})
+errors = []
+try:
+    client.infer("exact", inputs, parameters={"termination": "tip"})
+except Exception as exc:
+    errors.append(str(exc))
+np.savez(path + ".npz", **out)
+print(json.dumps(errors))
+"""
+
+
+@pytest.mark.parametrize("protocol", ["http", "grpc"])
+def test_oip_exact_model_takes_the_layout_tensor_and_termination(server, tmp_path, protocol):
+    d = robots()
+    layout = np.stack([d.angles, d.ends, np.nan_to_num(d.displacement), d.displacement_driven.astype(float)], axis=-1)
+    path = tmp_path / "robots.npz"
+    np.savez(path, design=d.features(), layout=layout, poisson=d.poissons, s=S)
+    script = tmp_path / "client.py"
+    script.write_text(TRITON_SCRIPT)
+    url = server.url.removeprefix("http://") if protocol == "http" else server.grpc_target
+    run = subprocess.run([sys.executable, str(script), protocol, url, str(path)], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    got = np.load(str(path) + ".npz")
+    exact = solve(d, S)
+    assert (got["exact_status"] == 0).all()
+    assert relative_l2(got["exact_tendons"].astype(np.float64), exact.tendons).max() < 1e-6  # FP32 on the wire
+    np.testing.assert_allclose(got["exact_tension"], exact.tension, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got["exact_displacement"], exact.displacement, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(got["exact_slack"], exact.slack)
+    # without the layout tensor: 6 evenly spaced tendons to the tip, nu 0.3 (its own defaults)
+    plain = solve(DesignBatch.from_features(d.features()), S, termination="rucker_webster")
+    assert relative_l2(got["rucker_webster_tendons"].astype(np.float64), plain.tendons).max() < 1e-6
+    assert "termination" in json.loads(run.stdout)[0]
