@@ -488,13 +488,17 @@ def _magnus(edges, x_edge, x_mid, length, out_step, pos_out, rot_out):
 
 @njit(cache=True, error_model="numpy")
 def _output_offsets(fractions_out, length, offset, pitch, angle):
-    """rho_i at the outputs (x, y; z is 0), m, (n, N_t, 2)."""
+    """rho_i at the outputs (x, y; z is 0), m, (n, N_t, 2) (angles by :func:`_advance_angles`:
+    equispaced outputs cost one rotation each)."""
     n_t = offset.shape[0]
     out = np.empty((fractions_out.shape[0], n_t, 2))
+    cos_phi, sin_phi, cos_d, sin_d = np.empty(n_t), np.empty(n_t), np.empty(n_t), np.empty(n_t)
+    last_delta = np.inf  # none yet
     for j in range(fractions_out.shape[0]):
+        last_delta = _advance_angles(j, fractions_out[j], fractions_out[j - 1] if j else 0.0, length, angle, pitch,
+                                     cos_phi, sin_phi, cos_d, sin_d, last_delta)
         for i in range(n_t):
-            phi = _tendon_angle(angle[i], pitch[i], fractions_out[j] * length)
-            out[j, i, 0], out[j, i, 1] = offset[i] * math.cos(phi), offset[i] * math.sin(phi)
+            out[j, i, 0], out[j, i, 1] = offset[i] * cos_phi[i], offset[i] * sin_phi[i]
     return out
 
 
@@ -579,6 +583,34 @@ def undeformed_length(length, offset, pitch, end):
     return end * length * math.sqrt(1.0 + (offset * pitch) ** 2)
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _advance_angles(j, fraction, previous, length, angle, pitch, cos_phi, sin_phi, cos_d, sin_d, last_delta):
+    """cos and sin of every tendon's angle angle_i + pitch_i s at the ``j``-th node of a walk along s
+    (at ``fraction``, the node before at ``previous``): by angle addition from the node before (a
+    rotation per distinct spacing, ``cos_d``, ``sin_d``), recomputed exactly every ``_RESYNC``
+    nodes.  Returns the spacing whose rotation ``cos_d``, ``sin_d`` now hold."""
+    n_t = angle.shape[0]
+    if j % _RESYNC == 0:
+        for i in range(n_t):
+            phi = _tendon_angle(angle[i], pitch[i], fraction * length)
+            cos_phi[i], sin_phi[i] = math.cos(phi), math.sin(phi)
+        return last_delta
+    delta = fraction - previous
+    if abs(delta - last_delta) > 1e-14 * abs(delta):
+        for i in range(n_t):
+            cos_d[i], sin_d[i] = math.cos(pitch[i] * delta * length), math.sin(pitch[i] * delta * length)
+        last_delta = delta
+    for i in range(n_t):
+        c = cos_phi[i] * cos_d[i] - sin_phi[i] * sin_d[i]
+        sin_phi[i] = sin_phi[i] * cos_d[i] + cos_phi[i] * sin_d[i]
+        cos_phi[i] = c
+    return last_delta
+
+
+#: the walks along s recompute the tendon angles exactly every this many nodes (between: angle addition)
+_RESYNC = 16
+
+
 @njit(cache=True, error_model="numpy")
 def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen):
     """Each tendon's deformed path length ``lengths`` (N_t,) m, int_0^end |g_i| ds by Simpson's rule
@@ -591,6 +623,8 @@ def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths
     n_t = offset.shape[0]
     k_steps = (sig.shape[0] - 1) // 2
     rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
+    cos_phi, sin_phi, cos_d, sin_d = np.empty(n_t), np.empty(n_t), np.empty(n_t), np.empty(n_t)
+    last_delta = np.inf  # none yet
     want = sens.shape[0] > 0
     for i in range(n_t):
         lengths[i] = 0.0
@@ -598,6 +632,8 @@ def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths
             for k in range(n_t):
                 dlen[i, k] = 0.0
     for node in range(sig.shape[0]):
+        last_delta = _advance_angles(node, sig[node], sig[node - 1] if node else 0.0, length, angle, pitch, cos_phi,
+                                     sin_phi, cos_d, sin_d, last_delta)
         if node % 2 == 1:  # a midpoint
             w = 4.0 * (sig[node + 1] - sig[node - 1]) * length / 6.0
         else:
@@ -609,7 +645,9 @@ def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths
                 w += (sig[node + 2] - sig[node]) * length / 6.0
         if w == 0.0:
             continue
-        _routing(sig[node], length, offset, pitch, angle, rho, drho)
+        for i in range(n_t):
+            rho[i, 0], rho[i, 1] = offset[i] * cos_phi[i], offset[i] * sin_phi[i]
+            drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sin_phi[i], offset[i] * pitch[i] * cos_phi[i]
         x = xs[node]
         for i in range(n_t):
             if not end[i] > act[node]:
@@ -875,8 +913,6 @@ def solve_design(kse, kbt, r, length, offset, pitch, angle, tau, end, grid, tols
     return status, worst, iters, level, estimate
 
 
-#: the chain recomputes the tendon angles exactly every this many nodes (between: angle addition)
-_RESYNC = 16
 
 
 @njit(cache=True, error_model="numpy")
@@ -894,26 +930,14 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, length, offset, pitch, angl
     work, jac, low = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
     cos_phi, sin_phi = np.empty(n_t), np.empty(n_t)
     cos_d, sin_d = np.empty(n_t), np.empty(n_t)
-    last_delta = -1.0
+    last_delta = np.inf  # none yet
     ok = True
     iters = 0
     worst = 0.0
     for j in range(order.shape[0]):
         k = order[j]
-        if j % _RESYNC == 0:
-            for i in range(n_t):
-                phi = _tendon_angle(angle[i], pitch[i], node_fractions[k] * length)
-                cos_phi[i], sin_phi[i] = math.cos(phi), math.sin(phi)
-        else:
-            delta = node_fractions[k] - node_fractions[order[j - 1]]
-            if abs(delta - last_delta) > 1e-14 * abs(delta):
-                for i in range(n_t):
-                    cos_d[i], sin_d[i] = math.cos(pitch[i] * delta * length), math.sin(pitch[i] * delta * length)
-                last_delta = delta
-            for i in range(n_t):
-                c = cos_phi[i] * cos_d[i] - sin_phi[i] * sin_d[i]
-                sin_phi[i] = sin_phi[i] * cos_d[i] + cos_phi[i] * sin_d[i]
-                cos_phi[i] = c
+        last_delta = _advance_angles(j, node_fractions[k], node_fractions[order[j - 1]] if j else 0.0, length, angle,
+                                     pitch, cos_phi, sin_phi, cos_d, sin_d, last_delta)
         for i in range(n_t):
             rho[i, 0], rho[i, 1] = offset[i] * cos_phi[i], offset[i] * sin_phi[i]
             drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sin_phi[i], offset[i] * pitch[i] * cos_phi[i]
