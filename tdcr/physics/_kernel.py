@@ -137,15 +137,17 @@ def _with_ends(edges0, out_step0, end):
     falls on that edge).  Returns ``(edges, out_step, end_step)``: the outputs' edges (an output at
     an end: the left edge) and each tendon's end edge (the left one; -1 for the tip)."""
     n_t = end.shape[0]
+    snapped = end.copy()  # each end, on the edge it falls on (1e-9)
+    for i in range(n_t):
+        for k in range(edges0.shape[0]):
+            if abs(edges0[k] - end[i]) <= 1e-9:
+                snapped[i] = edges0[k]
     cuts = np.empty(n_t)
     n_cut = 0
     for i in range(n_t):
-        e = end[i]
-        if e >= 1.0 - 1e-12:
+        e = snapped[i]
+        if end[i] >= 1.0 - 1e-12:
             continue
-        for k in range(edges0.shape[0]):
-            if abs(edges0[k] - e) <= 1e-9:
-                e = edges0[k]
         dup = False
         for c in range(n_cut):
             dup = dup or cuts[c] == e
@@ -173,11 +175,7 @@ def _with_ends(edges0, out_step0, end):
     end_step = np.full(n_t, -1, dtype=np.int64)
     for i in range(n_t):
         if end[i] < 1.0 - 1e-12:
-            e = end[i]
-            for k in range(edges0.shape[0]):
-                if abs(edges0[k] - e) <= 1e-9:
-                    e = edges0[k]
-            end_step[i] = np.searchsorted(edges, e)
+            end_step[i] = np.searchsorted(edges, snapped[i])
     return edges, out_step, end_step
 
 
@@ -1086,7 +1084,7 @@ def _tendon_wrench(x, rho, drho, tau, sign, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _jump(x, rot, mom, force, rho, drho, tau_left, tau_right, kse, kbt, dt):
+def _jump(x, rot, mom, force, rho, drho, tau_right, kse, kbt, dt):
     """Rucker & Webster's rule at a tendon end (termination ``"rucker_webster"``), in place on the
     totals ``force`` N and ``mom`` M (base frame): only the ending tendons' pull -tau_e t_e is
     applied to the rod there, so its internal wrench jumps by it alone,
@@ -1191,7 +1189,7 @@ def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse,
         if h == 0.0:  # a tendon end: the totals are continuous, or jump by Rucker & Webster's rule
             if shortcut and k > 0 and edges[k] > edges[k - 1]:
                 _active_tensions(tau, end, edges[k], tau_right)
-                _jump(x, rot, mom, force, ws[0], ws[1], tau_step, tau_right, kse, kbt, ws[5])
+                _jump(x, rot, mom, force, ws[0], ws[1], tau_right, kse, kbt, ws[5])
             continue
         xs[:] = x
         for st in range(1, 4):
