@@ -140,6 +140,14 @@ def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[P
     return problems
 
 
+#: Why a surrogate refuses a general design's field (it was trained on one layout): field -> reason.
+LAYOUT_REASONS = {"poisson": f"the operators were trained at nu = {DEFAULT_POISSON}",
+                  "angle": f"the operators take tendons at 2 pi i / {N_TENDONS}",
+                  "end": "the operators take tendons that end at the tip",
+                  "displacement": "the operators take tensions",
+                  "termination": "the operators' tendons all end at the tip"}
+
+
 def check_standard_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[Problem]:
     """Problems of designs for a surrogate, which takes only the layout it was trained on
     (:meth:`DesignBatch.is_standard`): one per design, naming its first other field."""
@@ -148,18 +156,18 @@ def check_standard_layout(designs: DesignBatch, rows: np.ndarray | None = None) 
     problems = []
     for b in np.nonzero(~designs.is_standard())[0]:
         where: tuple = ("poisson",)
-        why = f"the operators were trained at nu = {DEFAULT_POISSON}"
         for i in range(designs.n_tendons):
             if designs.displacement_driven[b, i]:
-                where, why = ("tendons", i, "displacement"), "the operators take tensions"
+                where = ("tendons", i, "displacement")
             elif designs.end_fractions[b, i] < 1.0:
-                where, why = ("tendons", i, "end"), "the operators take tendons that end at the tip"
+                where = ("tendons", i, "end")
             elif not np.isclose(designs.angles[b, i], angles[i], rtol=0.0, atol=1e-12):
-                where, why = ("tendons", i, "angle"), f"the operators take tendons at 2 pi i / {designs.n_tendons}"
+                where = ("tendons", i, "angle")
             else:
                 continue
             break
-        problems.append(Problem(("designs", int(rows[b])) + where, f"{why}; {EXACT_ROUTES}", "layout"))
+        problems.append(Problem(("designs", int(rows[b])) + where, f"{LAYOUT_REASONS[where[-1]]}; {EXACT_ROUTES}",
+                                "layout"))
     return problems
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.designs import LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
 
 #: Tendons of the trained surrogates (the solver takes any number >= 1).
 N_TENDONS = 4
@@ -82,21 +82,23 @@ class LayoutBound(LoadBound):
 
     exclusive_max: bool = False
     description: str = ""
+    default: object = None  #: what a design that gives none means (in words where it depends on the design)
 
 
 #: The general design's optional fields and their admissible bounds (the surrogates take only the
 #: defaults: angles 2 pi i / N_t, every tendon ending at the tip, nu = 0.3, tensions).
 LAYOUT_FIELDS: dict[str, LayoutBound] = {
     "angle": LayoutBound("angle", "rad", (-50.0, 50.0), description="body-frame angle of the tendon at s = 0 "
-                         "(default 2 pi i / N_t)"),
+                         "(default 2 pi i / N_t)", default="2 pi i / N_t"),
     "end": LayoutBound("end", "m", (0.0, TABLE_I["L"].admissible[1]), exclusive_min=True,
                        description="arclength where the tendon terminates, 0 < end <= L (default L): tendons "
-                                   "with distinct ends make segments"),
+                                   "with distinct ends make segments", default="L"),
     "displacement": LayoutBound("displacement", "m", (-1.0, 1.0), description="length pulled in (its path "
                                 "length on the straight rod minus its deformed path length), instead of a "
                                 "tension: the solver finds the tension (0 where the tendon would go slack)"),
     "poisson": LayoutBound("poisson", "", (0.0, 0.5), exclusive_min=True, exclusive_max=True,
-                           description="Poisson ratio nu of the backbone, G = E / (2 (1 + nu)) (default 0.3)"),
+                           description="Poisson ratio nu of the backbone, G = E / (2 (1 + nu)) (default 0.3)",
+                           default=DEFAULT_POISSON),
 }
 
 
@@ -114,14 +116,11 @@ def describe() -> dict:
     trained = TRAINING_LOADS.ranges()
     return {"parameters": {k: bounds(p) | {"table_i": [p.low, p.high]} for k, p in TABLE_I.items()},
             "loads": {k: bounds(b) | {"trained": trained[k]} for k, b in LOADS.items()},
-            "layout": {k: bounds(b) | {"exclusive_max": b.exclusive_max, "default": _LAYOUT_DEFAULTS[k]}
+            "layout": {k: bounds(b) | {"exclusive_max": b.exclusive_max, "default": b.default}
                        for k, b in LAYOUT_FIELDS.items()},
             "n_tendons": N_TENDONS, "max_tendons": MAX_TENDONS, "feature_order": feature_names(),
             "default_points": DEFAULT_POINTS}
 
-
-#: The defaults of the general design's optional fields, in words.
-_LAYOUT_DEFAULTS = {"angle": "2 pi i / N_t", "end": "L", "displacement": None, "poisson": 0.3}
 
 
 def feature_names(n_tendons: int = N_TENDONS) -> list[str]:

@@ -24,6 +24,7 @@ from pydantic import ValidationError
 
 from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's vocabulary
     EXACT_ROUTES,
+    LAYOUT_REASONS,
     LOADED_EXAMPLE,
     MAX_QUOTED,
     InvalidRequest,
@@ -315,17 +316,10 @@ def _what_to_do(problem: Problem, target: Target) -> Problem:
         return problem
     if loc[2:] == ("tendons",) and problem.type in ("too_short", "too_long"):
         return problem._replace(msg=f"{problem.msg}: the operators take {N_TENDONS} tendons; {EXACT_ROUTES}")
-    if problem.type == "extra_forbidden" and loc[-1] in _LAYOUT_WORDS:
-        return problem._replace(msg=f"{_LAYOUT_WORDS[loc[-1]]}; {EXACT_ROUTES}")
+    if problem.type == "extra_forbidden" and loc[-1] in LAYOUT_REASONS:
+        return problem._replace(msg=f"{LAYOUT_REASONS[loc[-1]]}; {EXACT_ROUTES}")
     return problem
 
-
-#: Why a surrogate refuses a general design's field (it was trained on one layout).
-_LAYOUT_WORDS = {"poisson": "the operators were trained at nu = 0.3",
-                 "angle": f"the operators take tendons at 2 pi i / {N_TENDONS}",
-                 "end": "the operators take tendons that end at the tip",
-                 "displacement": "the operators take tensions",
-                 "termination": "the operators' tendons all end at the tip"}
 
 
 def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | None = None) -> DesignGroup:
