@@ -1,6 +1,6 @@
-"""The compiled kernels (numba) against the vectorised numpy path that computes Jacobians (the same
-method and step control), per-design step control against a 20x finer solve, status codes,
-threads, every output written, and the several-equilibria test."""
+"""The compiled kernels (numba): the Jacobian path leaves the shapes as they are, per-design step
+control against a 20x finer solve, status codes, threads, warm starts, every output written, and
+the several-equilibria test."""
 
 from __future__ import annotations
 
@@ -9,16 +9,9 @@ import pytest
 
 from tdcr import sample_designs
 from tdcr.metrics import relative_l2
-from tdcr.physics import SolverOptions, Status, cosserat, solve
+from tdcr.physics import SolverOptions, Status, TipSolver, cosserat, solve
 
 FRACTIONS = np.linspace(0.0, 1.0, 42)
-#: the kernel and the vectorised path differ only in Newton's starting points and summation order
-SAME_METHOD_RTOL = 1e-10
-
-
-def vectorised(designs, fractions, **kwargs):
-    """The vectorised numpy path: the one that also computes the tension Jacobian."""
-    return solve(designs, fractions, jacobian=True, **kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -29,17 +22,30 @@ def designs():
 @pytest.mark.parametrize("fractions", [FRACTIONS, np.array([1.0, 0.0, 0.37, 0.37, 0.5, 0.05, 0.9]), np.ones(1),
                                    np.concatenate([np.linspace(0, 0.2, 30), np.linspace(0.25, 1, 4)])],
                          ids=["42-points", "unsorted-duplicates", "tip", "non-uniform"])
-def test_kernel_equals_the_vectorised_path(designs, fractions):
-    fast, slow = solve(designs, fractions), vectorised(designs, fractions)
-    assert fast.status is not None and fast.error_estimate is not None
-    np.testing.assert_array_equal(fast.status, slow.status)
-    np.testing.assert_array_equal(fast.steps, slow.steps)
-    assert relative_l2(fast.tendons, slow.tendons).max() < SAME_METHOD_RTOL
-    assert relative_l2(fast.rotation, slow.rotation).max() < SAME_METHOD_RTOL
-    np.testing.assert_allclose(fast.force, slow.force, rtol=1e-7, atol=1e-9)
-    np.testing.assert_allclose(fast.moment, slow.moment, rtol=1e-7, atol=1e-11)
-    np.testing.assert_allclose(fast.error_estimate, slow.error_estimate, rtol=1e-5, atol=1e-14)
-    np.testing.assert_allclose(fast.s, slow.s, rtol=0, atol=0)
+def test_the_jacobian_leaves_every_other_output_as_it_is(designs, fractions):
+    """One implementation: asking for the Jacobian adds it and changes no bit of the rest."""
+    plain, with_jacobian = solve(designs, fractions), solve(designs, fractions, jacobian=True)
+    assert plain.jacobian is None and with_jacobian.jacobian.shape == (300, fractions.size, 6, 4)
+    assert np.isfinite(with_jacobian.jacobian).all()
+    for name in ("status", "steps", "tendons", "rotation", "force", "moment", "error_estimate", "s", "displacement"):
+        np.testing.assert_array_equal(getattr(with_jacobian, name), getattr(plain, name), err_msg=name)
+
+
+def test_warm_started_tip_solves_equal_cold_solves():
+    """TipSolver starts Newton at every node from its last solve's strains: the same answers as a
+    cold solve to Newton's tolerance, for new tensions and for a new number of rows."""
+    design = sample_designs(1, seed=7)
+    tip = TipSolver(design)
+    rng = np.random.default_rng(0)
+    for rows in (3, 3, 5):
+        tensions = design.tension * rng.uniform(0.8, 1.2, (rows, 4))
+        warm = tip(tensions)
+        cold = solve(design.take(np.zeros(rows, dtype=np.int64)).replace(tension=tensions), np.ones(1),
+                     jacobian=True)
+        assert warm.converged.all()
+        np.testing.assert_allclose(warm.backbone, cold.backbone, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(warm.jacobian, cold.jacobian, rtol=1e-8, atol=1e-12)
+    assert tip._warm.valid and tip._warm.nodes.shape[0] == 5
 
 
 def test_step_control_meets_1e_6_on_every_design_and_estimates_its_error(designs):
@@ -60,16 +66,13 @@ def test_step_control_meets_1e_6_on_every_design_and_estimates_its_error(designs
     assert relative_l2(base.tendons, fine.tendons).max() > 1e-6
 
 
-def test_the_vectorised_path_continues_along_s_where_newton_fails_from_the_base_strains():
+def test_continuation_in_s_solves_a_strongly_bent_helical_design():
     """Design 48,464 of ``sample_designs(100_000, seed=0)`` (r 0.5 mm, L 0.118 m, 4.8 N, pitches
-    up to 20 rad/m; bending angle 5.9 rad): Newton from the strains at s = 0 failed at some node
-    (60 iterations, `newton_failed`) on the vectorised path, which the kernel's continuation in s
-    solves in 4; the vectorised path now retries such designs by continuation in s."""
+    up to 20 rad/m; bending angle 5.9 rad): Newton from the strains at s = 0 fails at some node;
+    the kernel's chain (each node from the nodes before) solves it, with its Jacobian too."""
     design = sample_designs(100_000, seed=0).take(slice(48_464, 48_465))
-    fast, slow = solve(design, FRACTIONS), vectorised(design, FRACTIONS)
-    assert fast.status[0] == slow.status[0] == Status.CONVERGED
-    np.testing.assert_array_equal(slow.steps, fast.steps)
-    assert relative_l2(slow.tendons, fast.tendons)[0] < SAME_METHOD_RTOL
+    sol = solve(design, FRACTIONS, jacobian=True)
+    assert sol.status[0] == Status.CONVERGED and np.isfinite(sol.jacobian).all()
 
 
 def test_a_status_per_design():
@@ -97,7 +100,9 @@ def test_every_output_of_the_kernels_is_written(loaded):
     mat = cosserat.material(d)
     edges0, _, _ = cosserat._step_grid(np.append(fractions, 1.0) if loaded else fractions,
                                        opts.max_step_loads if loaded else opts.max_step)
-    kernel, rods, grid, tols, out = cosserat._kernel_inputs(d, mat, edges0, fractions, opts, loaded=loaded)
+    kernel, rods, grid, tols, out = cosserat._kernel_inputs(d, mat, edges0, fractions, opts, loaded=loaded,
+                                                            jacobian=not loaded,
+                                                            warm=None if loaded else cosserat._WarmStart())
     for array in out:
         array[...] = -7
     if loaded:

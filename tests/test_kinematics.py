@@ -10,14 +10,29 @@ torch = pytest.importorskip("torch")
 from tdcr import design_space, relative_l2  # noqa: E402
 from tdcr.designs import DesignBatch  # noqa: E402
 from tdcr.physics import SolverOptions, solve  # noqa: E402
-from tdcr.physics._lie import se3_exp as se3_exp_numpy  # noqa: E402
-from tdcr.physics.cosserat import body_strains  # noqa: E402
 from training.operators import kinematics as K  # noqa: E402
 from training.operators.models import TENDON_ONLY, build_model  # noqa: E402
 
 GRID = np.linspace(0.0, 1.0, 42)
 MID = 0.5 * (GRID[1:] + GRID[:-1])
 BASE_ANGLE = torch.arange(4, dtype=torch.float64) * (np.pi / 2)
+
+
+def body_strains(designs, fractions):
+    """The solver's body strains (nu, kappa) at ``fractions`` ``(M,)``: ``((B, M, 6), converged (B,))``."""
+    sol = solve(designs, np.asarray(fractions))
+    return sol.strains, sol.converged
+
+
+def se3_exp_numpy(v, w):
+    """The solver's exponential on SE(3) (``tdcr.physics._kernel._se3_exp``), twist by twist:
+    ``(R (K, 3, 3), p (K, 3))``."""
+    from tdcr.physics._compiled import kernel
+
+    rot, pos = np.empty((len(v), 3, 3)), np.empty((len(v), 3))
+    for k in range(len(v)):
+        kernel._se3_exp(np.concatenate([v[k], w[k]]), rot[k], pos[k])
+    return rot, pos
 
 
 def _batch_first(backbone, rotation):

@@ -237,17 +237,28 @@ def test_the_python_api_refuses_bad_designs_with_the_services_words(column, valu
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), start=st.integers(0, 2**31 - 1))
 def test_local_equation_has_one_root(seed, start):
-    """(W1, W2) is the gradient of a strictly convex potential: Newton from anywhere finds the same root."""
+    """(W1, W2) is the gradient of a strictly convex potential: the kernel's Newton from anywhere
+    finds the same root."""
+    from tdcr.physics._compiled import kernel
+
     d = design_space.sample_designs(1, seed=seed)
     mat = material(d)
-    nodes = _c._make_nodes(d, mat, np.array([0.0, 0.37, 1.0]))
     opts = SolverOptions()
-    x_ref, ok_ref, _ = _c._newton(_c._undeformed(3), nodes, opts)
     rng = np.random.default_rng(start)
-    x0 = _c._undeformed(3) + np.concatenate([rng.normal(0, 0.05, (3, 3)), rng.normal(0, 30.0, (3, 3))], axis=1)
-    x, ok, _ = _c._newton(x0, nodes, opts)
-    assert ok_ref.all() and ok.all()
-    np.testing.assert_allclose(x, x_ref, rtol=1e-9, atol=1e-9)
+    rho, drho = np.empty((4, 2)), np.empty((4, 2))
+    work, jac, low = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+
+    def newton(x, fraction):
+        kernel._routing(fraction, float(d.L[0]), d.offset[0], d.pitch[0], d.angles[0], rho, drho)
+        ok, _, _ = kernel._newton(x, rho, drho, d.tension[0], mat.kse[0], mat.kbt[0], float(d.r[0]), float(d.L[0]),
+                                  opts.newton_tol, opts.max_newton, work, jac, low, np.zeros(6), False)
+        return ok
+
+    for fraction in (0.0, 0.37, 1.0):
+        x_ref = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+        x = x_ref + np.concatenate([rng.normal(0, 0.05, 3), rng.normal(0, 30.0, 3)])
+        assert newton(x_ref, fraction) and newton(x, fraction)
+        np.testing.assert_allclose(x, x_ref, rtol=1e-9, atol=1e-9)
 
 
 def test_a_batch_split_over_threads_equals_one_thread():

@@ -95,14 +95,14 @@ def test_default_angles_and_ends_change_nothing():
     np.testing.assert_array_equal(solve(explicit, FRACTIONS).tendons, solve(plain, FRACTIONS).tendons)
 
 
-def test_the_vectorised_path_agrees_with_the_kernel_for_segments():
+def test_the_jacobian_leaves_the_shapes_of_segments_as_they_are():
     d = two_segments(pitch=6.0)
-    kernel, numpy_path = solve(d, FRACTIONS), solve(d, FRACTIONS, jacobian=True)
-    assert relative_l2(numpy_path.tendons, kernel.tendons).max() < 1e-9
-    np.testing.assert_allclose(numpy_path.displacement, kernel.displacement, atol=1e-12)
-    assert np.isfinite(numpy_path.jacobian).all()
+    plain, with_jacobian = solve(d, FRACTIONS), solve(d, FRACTIONS, jacobian=True)
+    np.testing.assert_array_equal(with_jacobian.tendons, plain.tendons)
+    np.testing.assert_array_equal(with_jacobian.displacement, plain.displacement)
+    assert np.isfinite(with_jacobian.jacobian).all()
     # an ended tendon no longer moves the distal tip... but its pull still bends the proximal part
-    assert np.abs(numpy_path.jacobian[:, -1, :3, :3]).max() > 0
+    assert np.abs(with_jacobian.jacobian[:, -1, :3, :3]).max() > 0
 
 
 def test_step_control_estimate_holds_with_segments():

@@ -58,6 +58,28 @@ class Rods(NamedTuple):
     end: np.ndarray
 
 
+class Rod(NamedTuple):
+    """One design of :class:`Rods` (:func:`_rod`): ``kse``, ``kbt`` (3,), ``radius`` and ``length``
+    m, tendon ``offset``, ``pitch``, ``tension``, ``angle`` and ``end`` (N_t,)."""
+
+    kse: np.ndarray
+    kbt: np.ndarray
+    radius: float
+    length: float
+    offset: np.ndarray
+    pitch: np.ndarray
+    tension: np.ndarray
+    angle: np.ndarray
+    end: np.ndarray
+
+
+@njit(cache=True, error_model="numpy")
+def _rod(rods, b):
+    """Design ``b`` of :class:`Rods` ``rods`` as a :class:`Rod` (views, no copies)."""
+    return Rod(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
+               rods.tension[b], rods.angle[b], rods.end[b])
+
+
 class Grid(NamedTuple):
     """The base step grid: ``edges`` (K+1,) fractions of L, the outputs at edges ``out_step`` (n,)
     and the output fractions ``fractions`` (n,)."""
@@ -78,6 +100,8 @@ class Tolerances(NamedTuple):
     shooting_tol: float
     max_shooting: int
     shortcut: bool  #: termination "rucker_webster": only the ending tendon's pull at each end (see _jump)
+    linearized: bool  #: the first-order strains at every node instead of Newton (the operators' reference robot)
+    warm: bool  #: level 0's Newton starts from ``Shapes.nodes`` (the last solve's strains) instead of the chain
 
 
 class Loads(NamedTuple):
@@ -93,7 +117,11 @@ class Shapes(NamedTuple):
     (B, n, 6), ``tendons`` (B, n, N_t, 3); per design ``status``, ``residual`` N, ``iterations``
     (Newton iterations, or shooting passes), ``level`` (halvings) and ``estimate``; loaded only,
     ``m0`` (B, 3) M(0) and ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise); ``displacement``
-    (B, N_t) m: each tendon's undeformed minus deformed path length (:func:`_path_lengths`)."""
+    (B, N_t) m: each tendon's undeformed minus deformed path length (:func:`_path_lengths`);
+    ``jacobian`` (B, n, 6, N_t) the pose's sensitivity to the tensions, base frame (rows 0-2 dp/dtau
+    m/N, 3-5 the rotation vector of dR R^T / dtau rad/N; :func:`_pose_tangent`), or (0, ...) when
+    not wanted; ``nodes`` (B, 2 K0 + 1, 6) level 0's node strains (in: the warm starts of
+    ``Tolerances.warm``; out: this solve's), or (0, 0, 6) when not kept."""
 
     backbone: np.ndarray
     rotation: np.ndarray
@@ -107,6 +135,8 @@ class Shapes(NamedTuple):
     m0: np.ndarray
     shoot_jac: np.ndarray
     displacement: np.ndarray
+    jacobian: np.ndarray
+    nodes: np.ndarray
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -383,12 +413,41 @@ def _routing(fraction, length, offset, pitch, angle, rho, drho):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes(node_fractions, act, x_nodes, length, offset, pitch, angle, tau, end, kse, kbt, radius, tol,
-                 max_iter, order):
-    """Newton at the nodes ``node_fractions[order]`` (their tendons those acting at ``act``, see
-    :func:`_node_activity`), each from the start in ``x_nodes`` (M, 6).  Returns (all converged,
-    max iterations, max residual)."""
-    n_t = offset.shape[0]
+def _first_order(x, rho, drho, tau, kse, kbt, length, work):
+    """The first-order strains at one node, in place on ``x`` (6,): the root of (W1, W2) with the
+    tendon tangents of the undeformed rod, x = x0 - K^-1 res(x0) with x0 = (e3, 0) and K =
+    diag(K_se, K_bt) ((W1, W2) are K (x - x0) plus the tendon terms, frozen at x0).  Exact to first
+    order in the tensions (the neural operators' reference robot).  Returns the residual of (W1,
+    W2) at the result, sqrt(|F|^2 + |M / L|^2) N.  ``work`` (6, 6) is workspace."""
+    res, av = work[0], work[3]
+    for a in range(6):
+        x[a] = 0.0
+    x[2] = 1.0
+    _residual_jacobian(x, rho, drho, tau, kse, kbt, res, work, False, av, _NO_TARGET)
+    for a in range(3):
+        x[a] -= res[a] / kse[a]
+        x[3 + a] -= res[3 + a] / kbt[a]
+    _residual_jacobian(x, rho, drho, tau, kse, kbt, res, work, False, av, _NO_TARGET)
+    return math.sqrt(res[0] ** 2 + res[1] ** 2 + res[2] ** 2
+                     + (res[3] ** 2 + res[4] ** 2 + res[5] ** 2) / (length * length))
+
+
+@njit(cache=True, error_model="numpy")
+def _node_strains(x, rho, drho, tau_node, rod, tols, work, jac, low):
+    """The strains at one node, in place on ``x`` (6,) (the start): Newton on (W1, W2) or, with
+    ``tols.linearized``, :func:`_first_order`.  Returns ``(converged, iterations, residual N)``."""
+    if tols.linearized:
+        return True, 0, _first_order(x, rho, drho, tau_node, rod.kse, rod.kbt, rod.length, work)
+    return _newton(x, rho, drho, tau_node, rod.kse, rod.kbt, rod.radius, rod.length, tols.newton_tol,
+                   tols.max_newton, work, jac, low, _NO_TARGET, False)
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_nodes(node_fractions, act, x_nodes, rod, tols, order):
+    """The strains at the nodes ``node_fractions[order]`` of :class:`Rod` ``rod`` (their tendons those
+    acting at ``act``, see :func:`_node_activity`), each from the start in ``x_nodes`` (M, 6).
+    Returns (all converged, max iterations, max residual)."""
+    n_t = rod.offset.shape[0]
     rho = np.empty((n_t, 2))
     drho = np.empty((n_t, 2))
     tau_node = np.empty(n_t)
@@ -398,10 +457,9 @@ def _solve_nodes(node_fractions, act, x_nodes, length, offset, pitch, angle, tau
     worst = 0.0
     for j in range(order.shape[0]):
         k = order[j]
-        _routing(node_fractions[k], length, offset, pitch, angle, rho, drho)
-        _active_tensions(tau, end, act[k], tau_node)
-        conv, it, r = _newton(x_nodes[k], rho, drho, tau_node, kse, kbt, radius, length, tol, max_iter, work, jac,
-                              low, _NO_TARGET, False)
+        _routing(node_fractions[k], rod.length, rod.offset, rod.pitch, rod.angle, rho, drho)
+        _active_tensions(rod.tension, rod.end, act[k], tau_node)
+        conv, it, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):  # NaN-propagating max
@@ -417,6 +475,50 @@ def _exp_coefficients(theta):
                 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0)
     s, c = math.sin(theta), math.cos(theta)
     return s / theta, (1.0 - c) / (theta * theta), (theta - s) / (theta * theta * theta)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _magnus_omega(h, a0, a1, m, omega):
+    """eq. (MAG)'s Omega (6,) = h/6 (xi_0 + 4 xi_m + xi_1) + h^2/12 [xi_0, xi_1] of one step of length
+    ``h`` m from the twists ``a0``, ``m``, ``a1`` (6,) at its start, middle and end, with the bracket
+    [xi_0, xi_1] = (w0 x v1 - w1 x v0, w0 x w1)."""
+    cv0 = a0[4] * a1[2] - a0[5] * a1[1] - (a1[4] * a0[2] - a1[5] * a0[1])
+    cv1 = a0[5] * a1[0] - a0[3] * a1[2] - (a1[5] * a0[0] - a1[3] * a0[2])
+    cv2 = a0[3] * a1[1] - a0[4] * a1[0] - (a1[3] * a0[1] - a1[4] * a0[0])
+    cw0 = a0[4] * a1[5] - a0[5] * a1[4]
+    cw1 = a0[5] * a1[3] - a0[3] * a1[5]
+    cw2 = a0[3] * a1[4] - a0[4] * a1[3]
+    h12 = h * h / 12.0
+    omega[0] = h * (a0[0] + 4.0 * m[0] + a1[0]) / 6.0 + h12 * cv0
+    omega[1] = h * (a0[1] + 4.0 * m[1] + a1[1]) / 6.0 + h12 * cv1
+    omega[2] = h * (a0[2] + 4.0 * m[2] + a1[2]) / 6.0 + h12 * cv2
+    omega[3] = h * (a0[3] + 4.0 * m[3] + a1[3]) / 6.0 + h12 * cw0
+    omega[4] = h * (a0[4] + 4.0 * m[4] + a1[4]) / 6.0 + h12 * cw1
+    omega[5] = h * (a0[5] + 4.0 * m[5] + a1[5]) / 6.0 + h12 * cw2
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _se3_exp(omega, ex, step_p):
+    """exp of the twist ``omega`` = (v, w) (6,) on SE(3): rotation ``ex`` (3, 3) = I + A W + B W^2 and
+    translation ``step_p`` (3,) = (I + B W + C W^2) v with W = hat(w), A = sin t / t, B = (1 - cos t)
+    / t^2, C = (t - sin t) / t^3, t = |w| (:func:`_exp_coefficients`)."""
+    v0, v1, v2, w0, w1, w2 = omega[0], omega[1], omega[2], omega[3], omega[4], omega[5]
+    theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    ca, cb, cc = _exp_coefficients(theta)
+    ww00, ww11, ww22 = -(w1 * w1 + w2 * w2), -(w0 * w0 + w2 * w2), -(w0 * w0 + w1 * w1)
+    ww01, ww02, ww12 = w0 * w1, w0 * w2, w1 * w2
+    ex[0, 0] = 1.0 + cb * ww00
+    ex[1, 1] = 1.0 + cb * ww11
+    ex[2, 2] = 1.0 + cb * ww22
+    ex[0, 1] = -ca * w2 + cb * ww01
+    ex[1, 0] = ca * w2 + cb * ww01
+    ex[0, 2] = ca * w1 + cb * ww02
+    ex[2, 0] = -ca * w1 + cb * ww02
+    ex[1, 2] = -ca * w0 + cb * ww12
+    ex[2, 1] = ca * w0 + cb * ww12
+    step_p[0] = (1.0 + cc * ww00) * v0 + (-cb * w2 + cc * ww01) * v1 + (cb * w1 + cc * ww02) * v2
+    step_p[1] = (cb * w2 + cc * ww01) * v0 + (1.0 + cc * ww11) * v1 + (-cb * w0 + cc * ww12) * v2
+    step_p[2] = (-cb * w1 + cc * ww02) * v0 + (cb * w0 + cc * ww12) * v1 + (1.0 + cc * ww22) * v2
 
 
 @njit(cache=True, error_model="numpy")
@@ -437,41 +539,11 @@ def _magnus(edges, x_edge, x_mid, length, out_step, pos_out, rot_out):
         pos_out[order[q], :] = 0.0
         rot_out[order[q]] = np.eye(3)
         q += 1
+    omega, step_p = np.empty(6), np.empty(3)
     for k in range(k_steps):
-        h = (edges[k + 1] - edges[k]) * length
-        a0, a1 = x_edge[k], x_edge[k + 1]
-        m = x_mid[k]
-        # bracket [xi0, xi1] = (w0 x v1 - w1 x v0, w0 x w1)
-        cv0 = a0[4] * a1[2] - a0[5] * a1[1] - (a1[4] * a0[2] - a1[5] * a0[1])
-        cv1 = a0[5] * a1[0] - a0[3] * a1[2] - (a1[5] * a0[0] - a1[3] * a0[2])
-        cv2 = a0[3] * a1[1] - a0[4] * a1[0] - (a1[3] * a0[1] - a1[4] * a0[0])
-        cw0 = a0[4] * a1[5] - a0[5] * a1[4]
-        cw1 = a0[5] * a1[3] - a0[3] * a1[5]
-        cw2 = a0[3] * a1[4] - a0[4] * a1[3]
-        h12 = h * h / 12.0
-        v0 = h * (a0[0] + 4.0 * m[0] + a1[0]) / 6.0 + h12 * cv0
-        v1 = h * (a0[1] + 4.0 * m[1] + a1[1]) / 6.0 + h12 * cv1
-        v2 = h * (a0[2] + 4.0 * m[2] + a1[2]) / 6.0 + h12 * cv2
-        w0 = h * (a0[3] + 4.0 * m[3] + a1[3]) / 6.0 + h12 * cw0
-        w1 = h * (a0[4] + 4.0 * m[4] + a1[4]) / 6.0 + h12 * cw1
-        w2 = h * (a0[5] + 4.0 * m[5] + a1[5]) / 6.0 + h12 * cw2
-        theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-        ca, cb, cc = _exp_coefficients(theta)
-        # W = hat(w), W2 = W W: R = I + A W + B W^2, V = I + B W + C W^2, step p = V v
-        ww00, ww11, ww22 = -(w1 * w1 + w2 * w2), -(w0 * w0 + w2 * w2), -(w0 * w0 + w1 * w1)
-        ww01, ww02, ww12 = w0 * w1, w0 * w2, w1 * w2
-        ex[0, 0] = 1.0 + cb * ww00
-        ex[1, 1] = 1.0 + cb * ww11
-        ex[2, 2] = 1.0 + cb * ww22
-        ex[0, 1] = -ca * w2 + cb * ww01
-        ex[1, 0] = ca * w2 + cb * ww01
-        ex[0, 2] = ca * w1 + cb * ww02
-        ex[2, 0] = -ca * w1 + cb * ww02
-        ex[1, 2] = -ca * w0 + cb * ww12
-        ex[2, 1] = ca * w0 + cb * ww12
-        p0 = (1.0 + cc * ww00) * v0 + (-cb * w2 + cc * ww01) * v1 + (cb * w1 + cc * ww02) * v2
-        p1 = (cb * w2 + cc * ww01) * v0 + (1.0 + cc * ww11) * v1 + (-cb * w0 + cc * ww12) * v2
-        p2 = (-cb * w1 + cc * ww02) * v0 + (cb * w0 + cc * ww12) * v1 + (1.0 + cc * ww22) * v2
+        _magnus_omega((edges[k + 1] - edges[k]) * length, x_edge[k], x_edge[k + 1], x_mid[k], omega)
+        _se3_exp(omega, ex, step_p)
+        p0, p1, p2 = step_p[0], step_p[1], step_p[2]
         for a in range(3):
             pos[a] += rot[a, 0] * p0 + rot[a, 1] * p1 + rot[a, 2] * p2
         for a in range(3):
@@ -610,7 +682,7 @@ _RESYNC = 16
 
 
 @njit(cache=True, error_model="numpy")
-def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen):
+def _path_lengths(sig, act, xs, rod, sens, lengths, dlen):
     """Each tendon's deformed path length ``lengths`` (N_t,) m, int_0^end |g_i| ds by Simpson's rule
     on every step of non-zero width (its edge, midpoint and edge nodes ``xs`` of the interleaved
     layout ``sig``, 4th order like the Magnus steps), over the steps where the tendon acts: one
@@ -618,6 +690,7 @@ def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths
     one step only, and acts as that step, :func:`_node_activity`).  With ``sens`` (2K+1, 6, N_t)
     the strains' sensitivities dx/dtau_k, also ``dlen`` (N_t, N_t) = d length_i / d tau_k =
     int t_i . (dnu_k + dkappa_k x rho_i) ds = int a_i . dx_k ds."""
+    length, offset, pitch, angle, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.end
     n_t = offset.shape[0]
     k_steps = (sig.shape[0] - 1) // 2
     rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
@@ -663,10 +736,12 @@ def _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths
 
 
 @njit(cache=True, error_model="numpy")
-def _sensitivities(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, sens):
+def _sensitivities(sig, act, xs, rod, sens):
     """dx/dtau_k at every node, ``sens`` (2K+1, 6, N_t), by the implicit-function theorem on (W1, W2):
     J dx_k = -a_k with J the Hessian of Phi and a_k = (t_k, rho_k x t_k) for a tendon acting at the
     node (0 otherwise).  False where J is not positive definite."""
+    length, offset, pitch, angle, tau, end, kse, kbt = (rod.length, rod.offset, rod.pitch, rod.angle, rod.tension,
+                                                        rod.end, rod.kse, rod.kbt)
     n_t = offset.shape[0]
     rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
     tau_node = np.empty(n_t)
@@ -704,7 +779,7 @@ MAX_DISPLACEMENT_ITERATIONS = 50
 
 
 @njit(cache=True, error_model="numpy")
-def find_tensions(kse, kbt, r, length, offset, pitch, angle, tau, end, target, grid, tols, slack):
+def find_tensions(rod, target, grid, tols, slack):
     """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
     (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
     with the ends (:func:`_with_ends`).  The displacement d_i = l0_i - l_i(tau) has the Jacobian
@@ -712,14 +787,11 @@ def find_tensions(kse, kbt, r, length, offset, pitch, angle, tau, end, target, g
     with the exact Jacobian (:func:`_path_lengths`), projected onto tau >= 0.  A tendon whose
     displacement would need a push (d_i > target_i at tau_i = 0: its path shortened more than it
     was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged, iterations)."""
+    length, offset, pitch, end, tau = rod.length, rod.offset, rod.pitch, rod.end, rod.tension
     edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
     k0 = edges.shape[0] - 1
     n_t = offset.shape[0]
-    sig = np.empty(2 * k0 + 1)
-    for k in range(k0):
-        sig[2 * k] = edges[k]
-        sig[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
-    sig[2 * k0] = edges[k0]
+    sig = _interleaved(edges)
     act = _node_activity(sig)
     order = np.arange(2 * k0 + 1)
     xs = np.zeros((2 * k0 + 1, 6))
@@ -733,11 +805,10 @@ def find_tensions(kse, kbt, r, length, offset, pitch, angle, tau, end, target, g
     for it in range(MAX_DISPLACEMENT_ITERATIONS):
         xs[:, :] = 0.0
         xs[0, 2] = 1.0
-        ok, _, _ = _solve_nodes_chain(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, r,
-                                      tols.newton_tol, tols.max_newton, order)
-        if not ok or not _sensitivities(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, sens):
+        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order)
+        if not ok or not _sensitivities(sig, act, xs, rod, sens):
             return False, it + 1
-        _path_lengths(sig, act, xs, length, offset, pitch, angle, end, sens, lengths, dlen)
+        _path_lengths(sig, act, xs, rod, sens, lengths, dlen)
         # residual and the free set: driven tendons that pull, or at zero tension but short of their target
         n_free, worst = 0, 0.0
         for i in range(n_t):
@@ -777,17 +848,16 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations):
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
     targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED."""
     for b in prange(rods.length.shape[0]):
-        ok, it = find_tensions(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b],
-                               rods.pitch[b], rods.angle[b], rods.tension[b], rods.end[b], target[b], grid, tols,
-                               slack[b])
+        ok, it = find_tensions(_rod(rods, b), target[b], grid, tols, slack[b])
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
 
 
 @njit(cache=True, error_model="numpy")
-def _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle):
+def _terminal_points(edges, xs, rod, end_step):
     """Each tendon's termination point p(s_e) + R(s_e) rho_i(s_e), (N_t, 3) (rows of tendons that
     end at the tip are not written), from the converged nodes ``xs`` (2K+1, 6) on ``edges``."""
+    length, offset, pitch, angle, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.end
     n_t = end.shape[0]
     pos, rot = np.zeros((n_t, 3)), np.zeros((n_t, 3, 3))
     terminal = np.zeros((n_t, 3))
@@ -821,67 +891,186 @@ def _clamp_ended(fractions_out, end, terminal, tendons_out):
                 tendons_out[j, i, :] = terminal[i]
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _ad_apply(xi, u, out):
+    """``out`` (6,) = ad_xi u = [[hat(w), hat(v)], [0, hat(w)]] u = (w x u_v + v x u_w, w x u_w) for the
+    twist ``xi`` = (v, w) (6,) and ``u`` (6,) (``out`` must not be ``u``)."""
+    v0, v1, v2, w0, w1, w2 = xi[0], xi[1], xi[2], xi[3], xi[4], xi[5]
+    a0, a1, a2, b0, b1, b2 = u[0], u[1], u[2], u[3], u[4], u[5]
+    out[0] = w1 * a2 - w2 * a1 + v1 * b2 - v2 * b1
+    out[1] = w2 * a0 - w0 * a2 + v2 * b0 - v0 * b2
+    out[2] = w0 * a1 - w1 * a0 + v0 * b1 - v1 * b0
+    out[3] = w1 * b2 - w2 * b1
+    out[4] = w2 * b0 - w0 * b2
+    out[5] = w0 * b1 - w1 * b0
+
+
+#: the series of dexp stops at the first term below this fraction of the tangent it is applied to
+_DEXP_TOL = 1e-17
+
+
 @njit(cache=True, error_model="numpy")
-def solve_design(kse, kbt, r, length, offset, pitch, angle, tau, end, grid, tols, pos_out, rot_out, x_out,
-                 tendons_out, displacement_out):
-    """One design (SI units; ``kse``, ``kbt`` (3,), ``offset``, ``pitch``, ``angle``, ``tau`` (N_t,),
-    ``end`` (N_t,) fractions of L) on the base :class:`Grid` ``grid`` with every tendon end added
-    (:func:`_with_ends`) and :class:`Tolerances` ``tols``.  Writes backbone (n, 3), frames
-    (n, 3, 3), strains (n, 6) and tendon positions (n, N_t, 3) at the outputs; returns ``(status,
-    residual N, Newton iterations, level, error estimate)``."""
-    fractions_out = grid.fractions
-    edges, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
-    tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
-    n_out = fractions_out.shape[0]
-    n_t = offset.shape[0]
+def _pose_tangent(edges, xs, sens, length, out_step, rot_out, jac_out):
+    """The pose's sensitivity to the tensions at the output edges ``out_step`` (n,), base frame, into
+    ``jac_out`` (n, 6, N_t): rows 0-2 R eta_v (dp/dtau, m/N), rows 3-5 R eta_w (the rotation vector
+    of dR R^T / dtau, rad/N), from the node strains ``xs`` (2K+1, 6) on ``edges`` (K+1,) and their
+    sensitivities ``sens`` (2K+1, 6, N_t) (:func:`_sensitivities`), frames ``rot_out`` (n, 3, 3).
+
+    Differentiating eq. (MAG), Omega = h mean + h^2/12 [xi_0, xi_1] and g_{k+1} = g_k exp(Omega), for the
+    body-frame tangents eta_k = (g_k^-1 dg_k / dtau)^v (eta_0 = 0: the base is clamped):
+      d Omega = h (dxi_0 + 4 dxi_m + dxi_1) / 6 + h^2/12 (ad_{xi_0} dxi_1 - ad_{xi_1} dxi_0),
+      eta_{k+1} = Ad_{exp(-Omega)} eta_k + dexp_{-Omega} d Omega,
+    with dexp_{-Omega} = sum_j (-ad_Omega)^j / (j+1)! (summed until a term is below ``_DEXP_TOL``) and
+    Ad_{exp(-Omega)} (u_v, u_w) = (R^T (u_v - p x u_w), R^T u_w) for exp(Omega) = (R, p)."""
+    k_steps = edges.shape[0] - 1
+    n_t = sens.shape[2]
+    eta = np.zeros((6, n_t))
+    omega, step_p, ex = np.empty(6), np.empty(3), np.empty((3, 3))
+    d_om, t1, t2, term, nxt, carry, u = (np.empty(6), np.empty(6), np.empty(6), np.empty(6), np.empty(6),
+                                         np.empty(6), np.empty(6))
+    dx0, dxm, dx1 = np.empty(6), np.empty(6), np.empty(6)
+    order = np.argsort(out_step)
+    n_out = out_step.shape[0]
+    q = 0
+    while q < n_out and out_step[order[q]] < 0:
+        q += 1
+    while q < n_out and out_step[order[q]] == 0:  # at the clamped base the pose does not move
+        jac_out[order[q]] = 0.0
+        q += 1
+    for k in range(k_steps):
+        h = (edges[k + 1] - edges[k]) * length
+        a0, am, a1 = xs[2 * k], xs[2 * k + 1], xs[2 * k + 2]
+        _magnus_omega(h, a0, a1, am, omega)
+        _se3_exp(omega, ex, step_p)
+        for c in range(n_t):
+            for a in range(6):
+                dx0[a], dxm[a], dx1[a] = sens[2 * k, a, c], sens[2 * k + 1, a, c], sens[2 * k + 2, a, c]
+            _ad_apply(a0, dx1, t1)
+            _ad_apply(a1, dx0, t2)
+            scale = 0.0
+            for a in range(6):
+                d_om[a] = h * (dx0[a] + 4.0 * dxm[a] + dx1[a]) / 6.0 + h * h / 12.0 * (t1[a] - t2[a])
+                term[a], carry[a] = d_om[a], d_om[a]
+                scale = max(scale, abs(d_om[a]))
+            for j in range(1, 80):
+                _ad_apply(omega, term, nxt)
+                big = 0.0
+                for a in range(6):
+                    term[a] = -nxt[a] / (j + 1)
+                    carry[a] += term[a]
+                    big = max(big, abs(term[a]))
+                if not (big > _DEXP_TOL * scale):  # converged, zero, or not finite
+                    break
+            ev0, ev1, ev2, ew0, ew1, ew2 = eta[0, c], eta[1, c], eta[2, c], eta[3, c], eta[4, c], eta[5, c]
+            p0, p1, p2 = step_p[0], step_p[1], step_p[2]
+            u[0], u[1], u[2] = ev0 - (p1 * ew2 - p2 * ew1), ev1 - (p2 * ew0 - p0 * ew2), ev2 - (p0 * ew1 - p1 * ew0)
+            u[3], u[4], u[5] = ew0, ew1, ew2
+            for a in range(3):
+                eta[a, c] = ex[0, a] * u[0] + ex[1, a] * u[1] + ex[2, a] * u[2] + carry[a]
+                eta[3 + a, c] = ex[0, a] * u[3] + ex[1, a] * u[4] + ex[2, a] * u[5] + carry[3 + a]
+        while q < n_out and out_step[order[q]] == k + 1:
+            j = order[q]
+            for c in range(n_t):
+                for a in range(3):
+                    jac_out[j, a, c] = rot_out[j, a, 0] * eta[0, c] + rot_out[j, a, 1] * eta[1, c] + \
+                        rot_out[j, a, 2] * eta[2, c]
+                    jac_out[j, 3 + a, c] = rot_out[j, a, 0] * eta[3, c] + rot_out[j, a, 1] * eta[4, c] + \
+                        rot_out[j, a, 2] * eta[5, c]
+            q += 1
+
+
+@njit(cache=True, error_model="numpy")
+def _interleaved(edges):
+    """The nodes of a step grid ``edges`` (K+1,), in order of s: edge 0, mid 0, edge 1, ..., (2K+1,)."""
     k0 = edges.shape[0] - 1
-    ok = True
-    iters = 0
-    worst = 0.0
-    # level 0: edges and midpoints in order of s, the first from the undeformed strains
-    sig = np.empty(2 * k0 + 1)  # interleaved: edge 0, mid 0, edge 1, ...
+    sig = np.empty(2 * k0 + 1)
     for k in range(k0):
         sig[2 * k] = edges[k]
         sig[2 * k + 1] = 0.5 * (edges[k] + edges[k + 1])
     sig[2 * k0] = edges[k0]
+    return sig
+
+
+class DesignShapes(NamedTuple):
+    """One design's outputs of :class:`Shapes` (views, :func:`_design_shapes`), written in place."""
+
+    backbone: np.ndarray
+    rotation: np.ndarray
+    strains: np.ndarray
+    tendons: np.ndarray
+    displacement: np.ndarray
+    jacobian: np.ndarray
+    nodes: np.ndarray
+
+
+@njit(cache=True, error_model="numpy")
+def _design_shapes(out, b):
+    """Design ``b``'s views of the :class:`Shapes` ``out``."""
+    return DesignShapes(out.backbone[b], out.rotation[b], out.strains[b], out.tendons[b], out.displacement[b],
+                        out.jacobian[b], out.nodes[b])
+
+
+@njit(cache=True, error_model="numpy")
+def solve_design(rod, grid, tols, view):
+    """One design, the :class:`Rod` ``rod``, on the base :class:`Grid` ``grid`` with every tendon end
+    added (:func:`_with_ends`) and :class:`Tolerances` ``tols``.  Writes into the :class:`DesignShapes`
+    ``view``: backbone (n, 3), frames (n, 3, 3), strains (n, 6), tendon positions (n, N_t, 3) and
+    displacements (N_t,) at the outputs, the pose Jacobian (n, 6, N_t) where ``view.jacobian`` has
+    rows, level 0's node strains where ``view.nodes`` has rows (read first with ``tols.warm``).
+    Returns ``(status, residual N, Newton iterations, level, error estimate)``; with
+    ``tols.linearized`` the first-order strains on the base grid (level 0, no estimate)."""
+    length, offset, pitch, angle, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.end
+    fractions_out = grid.fractions
+    edges, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
+    step_tol, max_level = tols.step_tol, tols.max_level
+    n_out = fractions_out.shape[0]
+    n_t = offset.shape[0]
+    ok = True
+    iters = 0
+    worst = 0.0
+    # level 0: edges and midpoints in order of s, the first from the undeformed strains
+    sig = _interleaved(edges)
     act = _node_activity(sig)
-    xs = np.zeros((2 * k0 + 1, 6))
-    xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
-    order = np.arange(2 * k0 + 1)
-    n_ok, it, res = _solve_nodes_chain(sig, act, xs, length, offset, pitch, angle, tau, end, kse, kbt, r, tol,
-                                       max_iter, order)
+    order = np.arange(sig.shape[0])
+    keep = view.nodes.shape[0] == sig.shape[0]
+    if tols.warm and keep:  # Newton at every node from the last solve's strains
+        xs = view.nodes.copy()
+        n_ok, it, res = _solve_nodes(sig, act, xs, rod, tols, order)
+    else:
+        xs = np.zeros((sig.shape[0], 6))
+        xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
+        n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order)
+    if keep:
+        view.nodes[:, :] = xs
     ok = ok and n_ok
     iters = max(iters, it)
     worst = max(worst, res) if res == res else res
     out_step = out_step0.copy()
+    pos_out, rot_out, tendons_out = view.backbone, view.rotation, view.tendons
     _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
     rho_out = _output_offsets(fractions_out, length, offset, pitch, angle)
     prev = np.empty((n_out, n_t, 3))
     _tendon_positions(pos_out, rot_out, rho_out, prev)
     tendons_out[:, :, :] = prev
     level = 0
-    estimate = _coarse_estimate(edges, xs, length, out_step, rho_out, prev)
-    while level < max_level and not (estimate <= step_tol):
+    estimate = np.nan if tols.linearized else _coarse_estimate(edges, xs, length, out_step, rho_out, prev)
+    while level < max_level and not (estimate <= step_tol) and not tols.linearized:
         # refine: the new edges are the old edges and midpoints; new midpoints by Newton
         level += 1
         k_steps = sig.shape[0] - 1
         edges = sig.copy()
-        new_sig = np.empty(2 * k_steps + 1)
+        new_sig = _interleaved(sig)
         new_xs = np.empty((2 * k_steps + 1, 6))
         for k in range(k_steps):
-            new_sig[2 * k] = sig[k]
-            new_sig[2 * k + 1] = 0.5 * (sig[k] + sig[k + 1])
             new_xs[2 * k] = xs[k]
             new_xs[2 * k + 1] = 0.5 * (xs[k] + xs[k + 1])  # start: the neighbours' mean (error O(h^2))
-        new_sig[2 * k_steps] = sig[k_steps]
         new_xs[2 * k_steps] = xs[k_steps]
         act = _node_activity(new_sig)
         for k in range(k_steps):  # beside a zero-width step (an end) the neighbours' strains jump
             if sig[k + 1] == sig[k]:
                 new_xs[2 * k + 1] = xs[k + 1]
         mids = np.arange(1, 2 * k_steps + 1, 2)
-        n_ok, it, res = _solve_nodes(new_sig, act, new_xs, length, offset, pitch, angle, tau, end, kse, kbt, r, tol,
-                                     max_iter, mids)
+        n_ok, it, res = _solve_nodes(new_sig, act, new_xs, rod, tols, mids)
         ok = ok and n_ok
         iters = max(iters, it)
         worst = max(worst, res) if res == res else res
@@ -894,19 +1083,24 @@ def solve_design(kse, kbt, r, length, offset, pitch, angle, tau, end, grid, tols
         prev[:, :, :] = tendons_out
     # strains at the outputs: the output edges of the last level (node 2 e is edge e)
     for j in range(n_out):
-        x_out[j, :] = xs[2 * out_step[j]]
-    _path_lengths(sig, act, xs, length, offset, pitch, angle, end, np.empty((0, 6, n_t)), displacement_out,
-                  np.empty((n_t, n_t)))
+        view.strains[j, :] = xs[2 * out_step[j]]
+    if view.jacobian.shape[0] > 0:  # the exact Jacobian: the implicit-function theorem, then eq. (MAG)'s tangent
+        sens = np.empty((sig.shape[0], 6, n_t))
+        if _sensitivities(sig, act, xs, rod, sens):
+            _pose_tangent(edges, xs, sens, length, out_step, rot_out, view.jacobian)
+        else:
+            view.jacobian[:, :, :] = np.nan
+    displacement_out = view.displacement
+    _path_lengths(sig, act, xs, rod, np.empty((0, 6, n_t)), displacement_out, np.empty((n_t, n_t)))
     for i in range(n_t):
         displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
-    _clamp_ended(fractions_out, end, _terminal_points(edges, xs, length, end_step, end, offset, pitch, angle),
-                 tendons_out)
+    _clamp_ended(fractions_out, end, _terminal_points(edges, xs, rod, end_step), tendons_out)
     status = OK
     if not _all_finite(worst, tendons_out):
         status = NOT_FINITE
     elif not ok:
         status = NEWTON_FAILED
-    elif not (estimate <= step_tol):
+    elif not (estimate <= step_tol) and not tols.linearized:
         status = STEP_TOL_NOT_MET
     return status, worst, iters, level, estimate
 
@@ -914,12 +1108,12 @@ def solve_design(kse, kbt, r, length, offset, pitch, angle, tau, end, grid, tols
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes_chain(node_fractions, act, x_nodes, length, offset, pitch, angle, tau, end, kse, kbt, radius, tol,
-                       max_iter, order):
+def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order):
     """As :func:`_solve_nodes`, each node starting from the solved strains of the nodes before
     (Lagrange extrapolation from the last three since the last end, where the strains jump).  The
     tendon angles advance by angle addition between nodes (a rotation per distinct spacing),
     recomputed exactly every ``_RESYNC`` nodes."""
+    length, offset, pitch, angle, tau, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.tension, rod.end
     n_t = offset.shape[0]
     rho = np.empty((n_t, 2))
     drho = np.empty((n_t, 2))
@@ -965,8 +1159,7 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, length, offset, pitch, angl
                 l1, l2, l3 = 1.0, 0.0, 0.0
             for a in range(6):
                 x_nodes[k, a] = l1 * x_nodes[k1, a] + l2 * x_nodes[k2, a] + l3 * x_nodes[k3, a]
-        conv, it, r = _newton(x_nodes[k], rho, drho, tau_node, kse, kbt, radius, length, tol, max_iter, work, jac,
-                              low, _NO_TARGET, False)
+        conv, it, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):
@@ -979,9 +1172,7 @@ def solve_batch(rods, grid, tols, out):
     """:func:`solve_design` for every design of :class:`Rods` ``rods``, over numba's threads, into
     the :class:`Shapes` ``out``."""
     for b in prange(rods.length.shape[0]):
-        res = solve_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
-                           rods.angle[b], rods.tension[b], rods.end[b], grid, tols, out.backbone[b], out.rotation[b],
-                           out.strains[b], out.tendons[b], out.displacement[b])
+        res = solve_design(_rod(rods, b), grid, tols, _design_shapes(out, b))
         _store_summary(out, b, res)
 
 
