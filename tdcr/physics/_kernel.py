@@ -16,7 +16,7 @@ the nodes before, and the step is chosen per design:
   midpoints).
 
 Floating-point errors follow IEEE (``error_model='numpy'``): a division by zero gives inf or NaN,
-which the status flags, as in the vectorised path; it never raises.
+which the status flags; it never raises.
 
 Arguments come grouped as named tuples (:class:`Rods`, :class:`Grid`, :class:`Tolerances`,
 :class:`Shapes`, :class:`Loads`), built by :mod:`tdcr.physics.cosserat` and read by field name.
@@ -374,7 +374,7 @@ def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, ja
         size = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
         size += radius * math.sqrt(step[3] ** 2 + step[4] ** 2 + step[5] ** 2)
         alpha = 1.0
-        if size > 1e-3:  # Armijo on Phi, only far from the root (as the vectorised path)
+        if size > 1e-3:  # Armijo on Phi, only far from the root (small steps are in the quadratic basin)
             phi0 = _potential(x, rho, drho, tau, kse, kbt, target)
             slope = 0.0
             for a in range(6):

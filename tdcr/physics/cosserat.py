@@ -254,8 +254,7 @@ def solve(
         loads: optional gravity and tip loads; ``None`` means tendon loads only.
         options: numerical settings.
         workers: threads of the compiled kernels (0: one per core).  Designs are independent,
-            so the result equals ``workers=1`` bit for bit.  The numpy path (``jacobian``,
-            ``linearized``) runs on the calling thread.
+            so the result equals ``workers=1`` bit for bit.
         jacobian: also the pose's sensitivity to the tensions (``RodSolution.jacobian``), exact
             by the implicit-function theorem at every node and a tangent carried through the
             Magnus steps (no finite differences).  Tendon loads only.
