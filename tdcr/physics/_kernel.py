@@ -112,6 +112,20 @@ class Loads(NamedTuple):
     m_tip: np.ndarray
 
 
+class Load(NamedTuple):
+    """One design's external loads of :class:`Loads` (:func:`_load`), base frame, (3,) each."""
+
+    f_g: np.ndarray
+    f_tip: np.ndarray
+    m_tip: np.ndarray
+
+
+@njit(cache=True, error_model="numpy")
+def _load(loads, b):
+    """Design ``b``'s :class:`Load` of :class:`Loads` ``loads`` (views)."""
+    return Load(loads.f_g[b], loads.f_tip[b], loads.m_tip[b])
+
+
 class Shapes(NamedTuple):
     """The outputs, written in place: ``backbone`` (B, n, 3), ``rotation`` (B, n, 3, 3), ``strains``
     (B, n, 6), ``tendons`` (B, n, N_t, 3); per design ``status``, ``residual`` N, ``iterations``
@@ -1205,11 +1219,15 @@ def _store(array, index, value):
 #   dp' = dR nu + R dnu,  dR' = dR hat(kappa) + R hat(dkappa),  dM' = -dp' x N.
 
 @njit(cache=True, error_model="numpy")
-def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, angle, tau, kse, kbt, radius, force,
-           tol, max_iter, ws, fp, frot, fmom, fdp, fdrot, fdmom):
-    """Derivatives of (p, R, M) (and their tangents) at arclength ``s`` m under the total force
-    ``force`` N(s) (3,) of the loads beyond s, with the tendons' tensions ``tau`` acting there;
-    strains into ``x`` (warm).  Returns (converged, residual)."""
+def _stage(s, state, x, want_var, rod, tau, force, tols, ws, deriv):
+    """Derivatives ``deriv`` = (p', R', M', dp', dR', dM') of the ``state`` (p (3,), R (3, 3), M (3,)
+    and their tangents to M(0), dp (3, 3), dR (3, 3, 3), dM (3, 3)) at arclength ``s`` m of the
+    :class:`Rod` ``rod`` under the total force ``force`` N(s) (3,) of the loads beyond s, with the
+    tendons' tensions ``tau`` (N_t,) acting there; strains into ``x`` (warm).  Returns (converged,
+    residual)."""
+    p, rot, mom, dp, drot, dmom = state
+    fp, frot, fmom, fdp, fdrot, fdmom = deriv
+    offset, pitch, angle = rod.offset, rod.pitch, rod.angle
     rho, drho, work, jac, low, target, dtarget, dx = ws
     n_t = offset.shape[0]
     for i in range(n_t):
@@ -1221,7 +1239,8 @@ def _stage(s, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, a
     for a in range(3):
         target[a] = rot[0, a] * n0 + rot[1, a] * n1 + rot[2, a] * n2
         target[3 + a] = rot[0, a] * mom[0] + rot[1, a] * mom[1] + rot[2, a] * mom[2]
-    conv, _, res = _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low, target, want_var)
+    conv, _, res = _newton(x, rho, drho, tau, rod.kse, rod.kbt, rod.radius, rod.length, tols.newton_tol,
+                           tols.max_newton, work, jac, low, target, want_var)
     for a in range(3):
         fp[a] = rot[a, 0] * x[0] + rot[a, 1] * x[1] + rot[a, 2] * x[2]
     k0, k1, k2 = x[3], x[4], x[5]
@@ -1324,16 +1343,19 @@ def _step_act(edges, k):
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_g, tol, max_iter,
-                want_var, shortcut, out_step, pos_out, rot_out, x_out, jac_out, lengths):
-    """One RK4 integration from M(0) = ``m0`` and N(0) = ``n_start`` over ``edges`` (fractions of
+def _shoot_pass(m0, n_start, edges, rod, f_g, tols, want_var, shortcut, record, jac_out, lengths):
+    """One RK4 integration of the :class:`Rod` ``rod`` under the weight per length ``f_g`` (3,) N/m
+    from M(0) = ``m0`` and N(0) = ``n_start`` over ``edges`` (fractions of
     L; a tendon end is a zero-width step, :func:`_with_ends`), N' = -f_g between ends and, with
     ``shortcut``, the jump of :func:`_jump` at each.  Writes the tip moment's Jacobian
-    dM(L)/dM(0) into ``jac_out`` (3, 3) (if ``want_var``) and poses and strains at the edges
-    ``out_step`` (entries < 0 skipped).  With ``lengths`` of size N_t (else empty), the tendons'
-    path lengths int |g_i| ds, m, integrated as one more state by the same RK4 stages.
+    dM(L)/dM(0) into ``jac_out`` (3, 3) (if ``want_var``) and, ``record`` = (out_step (n,), pos (n, 3),
+    rot (n, 3, 3), x (n, 6)), poses and strains at the edges ``out_step`` (entries < 0 skipped).  With ``lengths`` of
+    size N_t (else empty), the tendons' path lengths int |g_i| ds, m, integrated as one more state by the same RK4
+    stages.
     Returns (M(L) (3,), N(L) (3,), converged, residual)."""
-    n_t = offset.shape[0]
+    length, tau, end, kse, kbt = rod.length, rod.tension, rod.end, rod.kse, rod.kbt
+    out_step, pos_out, rot_out, x_out = record
+    n_t = rod.offset.shape[0]
     ws = (np.empty((n_t, 2)), np.empty((n_t, 2)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)),
           np.empty(6), np.empty(6), np.empty(6))
     p, rot, mom = np.zeros(3), np.eye(3), m0.copy()
@@ -1362,8 +1384,7 @@ def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse,
         s0 = edges[k] * length
         # stage 1 (also the strains at the edge, for the outputs)
         _active_tensions(tau, end, _step_act(edges, k), tau_step)
-        c, r = _stage(s0, length, p, rot, mom, dp, drot, dmom, x, want_var, offset, pitch, angle, tau_step, kse, kbt,
-                      radius, force, tol, max_iter, ws, f[0][0], f[0][1], f[0][2], f[0][3], f[0][4], f[0][5])
+        c, r = _stage(s0, (p, rot, mom, dp, drot, dmom), x, want_var, rod, tau_step, force, tols, ws, f[0])
         ok = ok and c
         if not (r <= worst):
             worst = r
@@ -1400,9 +1421,8 @@ def _shoot_pass(m0, n_start, edges, length, offset, pitch, angle, tau, end, kse,
                         for j2 in range(3):
                             tdrot[q, i, j2] = drot[q, i, j2] + a * prev[4][q, i, j2]
             cur = f[st]
-            c, r = _stage(s0 + a, length, tp, trot, tmom, tdp, tdrot, tdmom, xs, want_var, offset, pitch, angle,
-                          tau_step, kse, kbt, radius, f_stage, tol, max_iter, ws,
-                          cur[0], cur[1], cur[2], cur[3], cur[4], cur[5])
+            c, r = _stage(s0 + a, (tp, trot, tmom, tdp, tdrot, tdmom), xs, want_var, rod, tau_step, f_stage, tols,
+                          ws, cur)
             ok = ok and c
             if not (r <= worst):
                 worst = r
@@ -1480,18 +1500,18 @@ def _solve_dense(a, b, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot_residual(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip, f_g, m_tip, tol,
-                    max_iter, shortcut, out_step, pos, rot, x, jac, resid):
-    """One pass from the unknowns ``y`` = (N(0), M(0)) (6,), loads scaled by ``lam``: the tip
+def _shoot_residual(y, lam, edges, rod, load, tols, record, jac, resid):
+    """One pass of :func:`_shoot_pass` (``tols.shortcut``: Rucker & Webster's rule) from the unknowns
+    ``y`` = (N(0), M(0)) (6,), the :class:`Load` ``load`` scaled by ``lam``: the tip
     conditions' mismatch into ``resid`` (6,) = (L (N(L) - F_tip), M(L) - M_tip), N m.  Without
     ``shortcut`` N(0) is known (F_tip + f_g L, written into ``y``) and ``jac`` receives dM(L)/dM(0)
     from the variational equations.  Returns (converged, largest local residual)."""
+    length, f_g, f_tip, m_tip, shortcut = rod.length, load.f_g, load.f_tip, load.m_tip, tols.shortcut
     fg = lam * f_g
     if not shortcut:
         for i in range(3):
             y[i] = lam * (f_tip[i] + f_g[i] * length)
-    mom, force, ok, worst = _shoot_pass(y[3:], y[:3], edges, length, offset, pitch, angle, tau, end, kse, kbt, radius,
-                                        fg, tol, max_iter, not shortcut, shortcut, out_step, pos, rot, x, jac,
+    mom, force, ok, worst = _shoot_pass(y[3:], y[:3], edges, rod, fg, tols, not shortcut, shortcut, record, jac,
                                         np.empty(0))
     for i in range(3):
         resid[i] = length * (force[i] - lam * f_tip[i])
@@ -1500,17 +1520,18 @@ def _shoot_residual(y, lam, edges, length, offset, pitch, angle, tau, end, kse, 
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip, f_g, m_tip, tol, max_iter,
-           shoot_tol, max_shoot, shortcut, scale, out_step, pos, rot, x, info, jac):
-    """Newton on the tip conditions for the unknowns ``y`` = (N(0), M(0)) (in place), loads
-    scaled by ``lam``, with backtracking when a step does not reduce the mismatch.  Consistent
-    termination: N(0) is known, M(0) alone is shot with the variational Jacobian dM(L)/dM(0);
+def _shoot(y, lam, edges, rod, load, tols, scale, record, info, jac):
+    """Newton on the tip conditions of the :class:`Rod` ``rod`` for the unknowns ``y`` = (N(0), M(0))
+    (in place), the :class:`Load` ``load`` scaled by ``lam``, with backtracking when a step does not reduce the
+    mismatch.  Consistent termination: N(0) is known, M(0) alone is shot with the variational Jacobian dM(L)/dM(0);
     Rucker & Webster's rule (``shortcut``): the jumps at the ends make N(0) unknown too, and the
     6 x 6 Jacobian comes from one-sided differences (6 more passes).  Every pass
-    records the poses and strains at ``out_step`` (< 0: skipped), so on success they are those of
-    the result; ``info`` (3,) receives the mismatch (N m), the pass's local flag (1/0) and its
+    records the poses and strains into ``record`` (:func:`_shoot_pass`), so on success they are those
+    of the result; ``info`` (3,) receives the mismatch (N m), the pass's local flag (1/0) and its
     largest local residual (N), ``jac`` (3, 3) dM(L)/dM(0) of the last pass.
     Returns (converged, passes, det of the shooting Jacobian)."""
+    length, shortcut, shoot_tol, max_shoot = rod.length, tols.shortcut, tols.shooting_tol, tols.max_shooting
+    out_step, pos, rot, x = record
     first = 0 if shortcut else 3
     step, y_prev = np.zeros(6), y.copy()
     resid, r_q, y_q = np.empty(6), np.empty(6), np.empty(6)
@@ -1519,8 +1540,7 @@ def _shoot(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radi
     err_prev, alpha, det = np.inf, 1.0, np.nan
     passes = 0
     for it in range(max_shoot):
-        ok, worst = _shoot_residual(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip,
-                                    f_g, m_tip, tol, max_iter, shortcut, out_step, pos, rot, x, jac, resid)
+        ok, worst = _shoot_residual(y, lam, edges, rod, load, tols, record, jac, resid)
         passes += 1
         err = 0.0
         for i in range(first, 6):
@@ -1539,8 +1559,7 @@ def _shoot(y, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radi
                 delta = 1e-7 * (scale / length if q < 3 else scale) + 1e-14
                 y_q[:] = y
                 y_q[q] += delta
-                _shoot_residual(y_q, lam, edges, length, offset, pitch, angle, tau, end, kse, kbt, radius, f_tip,
-                                f_g, m_tip, tol, max_iter, shortcut, none, pos, rot, x, jac, r_q)
+                _shoot_residual(y_q, lam, edges, rod, load, tols, (none, pos, rot, x), jac, r_q)
                 for i in range(6):
                     full[i, q] = (r_q[i] - resid[i]) / delta
             passes += 6
@@ -1594,18 +1613,22 @@ def _masked_richardson(fine, coarse, out_step):
 
 
 @njit(cache=True, error_model="numpy")
-def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g, f_tip, m_tip, grid, tols,
-                        pos_out, rot_out, x_out, tendons_out, shoot_jac, displacement_out):
-    """One design under its distributed weight ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N),
-    ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges must end at 1: the tip condition) with
-    every tendon end added (:func:`_with_ends`); with ``tols.shortcut`` Rucker & Webster's rule at
+def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
+    """One design, the :class:`Rod` ``rod``, under its :class:`Load` ``load``: distributed weight
+    ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N), ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges
+    must end at 1: the tip condition) with every tendon end added (:func:`_with_ends`); with ``tols.shortcut`` Rucker &
+    Webster's rule at
     the ends (:func:`_jump`).  ``shoot_jac`` (3, 3) receives the shooting Jacobian dM(L)/dM(0) at the
     result (the identity for the unloaded rod; the caller judges several equilibria from it).
+    Writes backbone, frames, strains, tendons and displacements into the :class:`DesignShapes` ``view``.
     Returns (status, residual N, shooting passes, level, error estimate, M(0) x 3)."""
+    length, offset, pitch, angle, tau, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.tension, rod.end
+    f_g, f_tip, m_tip = load.f_g, load.f_tip, load.m_tip
+    pos_out, rot_out, x_out, tendons_out, displacement_out = (view.backbone, view.rotation, view.strains,
+                                                              view.tendons, view.displacement)
     fractions_out = grid.fractions
     edges0, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
-    tol, max_iter, step_tol, max_level = tols.newton_tol, tols.max_newton, tols.step_tol, tols.max_level
-    shoot_tol, max_shoot, shortcut = tols.shooting_tol, tols.max_shooting, tols.shortcut
+    step_tol, max_level = tols.step_tol, tols.max_level
     scale = 0.0
     for i in range(offset.shape[0]):
         scale += tau[i] * offset[i]
@@ -1624,8 +1647,8 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
     tip_p, tip_r, tip_x = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6))
     zero3 = np.zeros(3)
     jac = np.empty((3, 3))
-    _shoot_pass(zero3.copy(), zero3.copy(), edges0, length, offset, pitch, angle, tau, end, kse, kbt, r, zero3, tol,
-                max_iter, False, False, tip_step, tip_p, tip_r, tip_x, jac, np.empty(0))
+    _shoot_pass(zero3.copy(), zero3.copy(), edges0, rod, zero3, tols, False, False, (tip_step, tip_p, tip_r, tip_x),
+                jac, np.empty(0))
     tip = tip_p[0]
     y = np.zeros(6)
     half = 0.5 * length
@@ -1637,9 +1660,7 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
     start = y.copy()
     info = np.empty(3)
     none = np.full(n_ext, -1, dtype=np.int64)  # continuation steps record nothing
-    ok, passes, det = _shoot(y, 1.0, edges0, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip, f_g, m_tip,
-                             tol, max_iter, shoot_tol, max_shoot, shortcut, scale, steps0, pos, rot, xo, info,
-                             shoot_jac)
+    ok, passes, det = _shoot(y, 1.0, edges0, rod, load, tols, scale, (steps0, pos, rot, xo), info, shoot_jac)
     for n_steps in (4, 16):  # load continuation from the tendon-only state when the direct Newton fails
         if ok:
             break
@@ -1647,9 +1668,8 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
         for k in range(1, n_steps + 1):
             for i in range(6):
                 y[i] += start[i] / n_steps  # predictor: the first guess scales with the loads
-            ok, used, det = _shoot(y, k / n_steps, edges0, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip,
-                                   f_g, m_tip, tol, max_iter, shoot_tol, max_shoot, shortcut, scale,
-                                   steps0 if k == n_steps else none, pos, rot, xo, info, shoot_jac)
+            ok, used, det = _shoot(y, k / n_steps, edges0, rod, load, tols, scale,
+                                   (steps0 if k == n_steps else none, pos, rot, xo), info, shoot_jac)
             passes += used
             if not ok:
                 break
@@ -1675,8 +1695,7 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
                                  np.zeros((n_out, n_t, 3)))
     c_y = y.copy()
     c_info = np.empty(3)
-    c_ok, used, _ = _shoot(c_y, 1.0, c_edges, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip, f_g, m_tip,
-                           tol, max_iter, shoot_tol, max_shoot, shortcut, scale, c_out, c_pos, c_rot, c_x, c_info, jac)
+    c_ok, used, _ = _shoot(c_y, 1.0, c_edges, rod, load, tols, scale, (c_out, c_pos, c_rot, c_x), c_info, jac)
     passes += used
     _loaded_outputs(c_out, rho_out, c_pos, c_rot, coarse)
     estimate = _masked_richardson(tendons_out, coarse, c_out) if c_ok else np.inf
@@ -1692,9 +1711,7 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
         finer[-1] = edges[-1]
         edges = finer
         steps = np.where(steps >= 0, steps * 2, steps)
-        ok, used, det = _shoot(y, 1.0, edges, length, offset, pitch, angle, tau, end, kse, kbt, r, f_tip, f_g, m_tip,
-                               tol, max_iter, shoot_tol, max_shoot, shortcut, scale, steps, pos, rot, xo, info,
-                               shoot_jac)
+        ok, used, det = _shoot(y, 1.0, edges, rod, load, tols, scale, (steps, pos, rot, xo), info, shoot_jac)
         passes += used
         _loaded_outputs(steps[:n_out], rho_out, pos[:n_out], rot[:n_out], tendons_out)
         mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
@@ -1704,8 +1721,8 @@ def solve_loaded_design(kse, kbt, r, length, offset, pitch, angle, tau, end, f_g
     rot_out[:, :, :] = rot[:n_out]
     x_out[:, :] = xo[:n_out]
     # the path lengths on the final grid: one more pass from the result, recording nothing
-    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, length, offset, pitch, angle, tau, end, kse, kbt, r, f_g, tol,
-                max_iter, False, shortcut, none, pos, rot, xo, jac, displacement_out)
+    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, rod, f_g, tols, False, tols.shortcut, (none, pos, rot, xo), jac,
+                displacement_out)
     for i in range(n_t):
         displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
     terminal = np.zeros((n_t, 3))
@@ -1731,10 +1748,7 @@ def solve_loaded_batch(rods, loads, grid, tols, out):
     """:func:`solve_loaded_design` for every design of :class:`Rods` ``rods`` under :class:`Loads`
     ``loads``, over numba's threads, into the :class:`Shapes` ``out`` (``iterations``: passes)."""
     for b in prange(rods.length.shape[0]):
-        res = solve_loaded_design(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b],
-                                  rods.pitch[b], rods.angle[b], rods.tension[b], rods.end[b], loads.f_g[b],
-                                  loads.f_tip[b], loads.m_tip[b], grid, tols, out.backbone[b], out.rotation[b],
-                                  out.strains[b], out.tendons[b], out.shoot_jac[b], out.displacement[b])
+        res = solve_loaded_design(_rod(rods, b), _load(loads, b), grid, tols, _design_shapes(out, b), out.shoot_jac[b])
         _store_summary(out, b, res)
         m0 = out.m0[b]
         m0[0], m0[1], m0[2] = res[5], res[6], res[7]
