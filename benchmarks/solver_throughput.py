@@ -33,7 +33,7 @@ SIGMA = np.linspace(0.0, 1.0, 42)
 
 
 def reference_error(options: SolverOptions) -> float:
-    path = ROOT.parent / "shared" / "reference" / "cosserat_cases.json"
+    path = ROOT / "tests" / "data" / "cosserat_cases.json"
     if not path.exists():
         return float("nan")
     worst = 0.0

@@ -12,6 +12,8 @@ import pytest
 from tdcr.validation import Limits, validate_json
 
 ROOT = Path(__file__).resolve().parents[1]
+#: the small reference files the suite reads (copies of shared/'s, tests/data/README.md)
+DATA = ROOT / "tests" / "data"
 SHARED = Path(os.environ.get("TDCR_SHARED", ROOT.parent / "shared"))
 
 #: Small hyperparameters that train in seconds, per model.
@@ -32,11 +34,15 @@ def root() -> Path:
 
 
 @pytest.fixture(scope="session")
-def shared() -> Path:
-    """The shared/ folder beside the checkout (or ``$TDCR_SHARED``)."""
-    if not SHARED.exists():
-        pytest.fail(f"shared/ not found at {SHARED} (set TDCR_SHARED)")
-    return SHARED
+def data() -> Path:
+    """tests/data: the reference files (the suite needs nothing outside the clone)."""
+    return DATA
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path | None:
+    """The shared/ folder beside the checkout (or ``$TDCR_SHARED``), None where there is none."""
+    return SHARED if SHARED.exists() else None
 
 
 @pytest.fixture(scope="session")
@@ -46,9 +52,9 @@ def example_request(root) -> dict:
 
 
 @pytest.fixture(scope="session")
-def reference_cases(shared) -> list[dict]:
+def reference_cases(data) -> list[dict]:
     """The independent solver's cases (there are 22; an empty file fails here, not silently later)."""
-    cases = json.loads((shared / "reference" / "cosserat_cases.json").read_text())["cases"]
+    cases = json.loads((data / "cosserat_cases.json").read_text())["cases"]
     assert len(cases) >= 20, f"expected the 22 reference cases, found {len(cases)}"
     return cases
 

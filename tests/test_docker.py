@@ -15,9 +15,9 @@ import pytest
 import yaml
 
 
-def test_compose_file_is_valid_and_limited(root, shared):
+def test_compose_file_is_valid_and_limited(root, data):
     compose = yaml.safe_load((root / "docker" / "compose.yaml").read_text())
-    schema = json.loads((shared / "schemas" / "compose-spec.json").read_text())
+    schema = json.loads((data / "compose-spec.json").read_text())
     jsonschema.validate(compose, schema)
     svc = compose["services"]["tdcr"]
     assert "/readyz" in " ".join(svc["healthcheck"]["test"])
@@ -28,10 +28,10 @@ def test_compose_file_is_valid_and_limited(root, shared):
     assert svc["ports"] == ["127.0.0.1::8000", "127.0.0.1::8001"]
 
 
-def test_invalid_compose_is_rejected_by_the_schema(root, shared):
+def test_invalid_compose_is_rejected_by_the_schema(root, data):
     compose = yaml.safe_load((root / "docker" / "compose.yaml").read_text())
     compose["services"]["tdcr"]["healthchek"] = compose["services"]["tdcr"].pop("healthcheck")  # a typo
-    schema = json.loads((shared / "schemas" / "compose-spec.json").read_text())
+    schema = json.loads((data / "compose-spec.json").read_text())
     try:
         jsonschema.validate(compose, schema)
     except jsonschema.ValidationError:

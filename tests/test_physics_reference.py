@@ -41,3 +41,13 @@ def test_rotations_are_orthonormal(reference_cases, designs_from_json, max_step)
     gram = np.einsum("bnji,bnjk->bnik", R, R)
     assert np.abs(gram - np.eye(3)).max() < ORTHO_TOL
     assert np.abs(np.linalg.det(R) - 1.0).max() < ORTHO_TOL
+
+
+@pytest.mark.parametrize("copy, original", [("cosserat_cases.json", "reference/cosserat_cases.json"),
+                                            ("compose-spec.json", "schemas/compose-spec.json")])
+def test_the_reference_copy_is_the_shared_file(data, shared, copy, original):
+    """tests/data holds copies so that the suite runs on a clone alone; where shared/ is beside the
+    checkout the copies must still be its files."""
+    if shared is None:
+        pytest.skip("no shared/ beside the checkout: the copies in tests/data are used as they are")
+    assert (data / copy).read_bytes() == (shared / original).read_bytes()

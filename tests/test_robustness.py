@@ -88,6 +88,26 @@ def test_the_solver_answers_numbers_or_flags_the_design(unit):
     _assert_numbers(solve_request(validate_json({"designs": designs, "points": 5}, target="solver")).results(), designs)
 
 
+def test_the_solver_flags_only_designs_it_has_a_reason_to_flag():
+    """The property test above would pass if every design were flagged: here the flags must have
+    their physical reason.  Of 400 seeded admissible designs, every one that bends gently (linearised
+    angle < 2 rad, :func:`tdcr.bounds.bending_angle`) with every tendon's tau o^2 / (E I) < 0.3 (far
+    from the collapse at ~1, :func:`tdcr.physics.cosserat.tendon_collapsed`) converges, and a
+    ``tendon_collapsed`` design pulls at least that hard."""
+    from tdcr import solve
+    from tdcr.bounds import bending_angle
+    from tdcr.physics import Status
+
+    designs = ds.DesignBatch.from_features(_admissible(np.random.default_rng(0).uniform(0, 1, (400, 15))))
+    pull = (designs.tension * designs.offset**2).max(axis=1) / (designs.E * np.pi * designs.r**4 / 4)
+    gentle = (bending_angle(designs.features()) < 2.0) & (pull < 0.3)
+    sol = solve(designs, np.linspace(0.0, 1.0, 5))
+    assert gentle.sum() >= 80, gentle.sum()
+    assert sol.converged[gentle].all(), sol.status[gentle & ~sol.converged]
+    assert (pull[sol.status == Status.TENDON_COLLAPSED] >= 0.3).all()
+    assert 0 < sol.converged.sum() < len(designs)  # the sample has both
+
+
 #: The extremes of the admissible loads.  (Some interior loaded designs take the shooting solver
 #: minutes; /exact's deadline kills such work, tests/test_service_hardening.py.)
 EXTREME_LOADS = [{"gravity": [100.0, -100.0, 100.0], "density": 25_000.0, "tip_force": [100.0, 0.0, -100.0],
