@@ -142,7 +142,7 @@ def termination(plot: str | None) -> None:
 def peers() -> None:
     cre = json.load(open(os.path.join(DATA, "continuum_robot_examples.json")))
     design = cre["design"]
-    print("\n### Public examples (their own code's answers; tests/test_peers.py)\n")
+    print("\n### Public examples (their own code's answers; tests/peers/test_peers.py)\n")
     print("| example | peer residual | ours: relative l2, tendon positions | tip mm |\n|---|---:|---:|---:|")
     for name, case in cre["cases"].items():
         for nu in (design["poisson"], 0.3):

@@ -1,5 +1,6 @@
-"""Shared fixtures: paths, the independent C++ reference solutions, design batches from JSON, and
-tiny trained models.  Test modules import nothing from each other: what they share is here."""
+"""Shared fixtures of the three groups (tests/unit, tests/service, tests/peers): paths, the
+independent C++ reference solutions, design batches from JSON, and tiny trained models.  Test
+modules import nothing from each other: what they share is here."""
 
 from __future__ import annotations
 
@@ -25,6 +26,19 @@ TINY = {
     "deeponet_pose_loaded": {"branch_width": 16, "trunk_width": 16, "p": 8},
     "fno_pose_loaded": {"width": 16},
 }
+
+
+#: each folder of tests/ is a group, marked by its name (``pytest -m unit``, ``-m "not service"``)
+GROUPS = ("unit", "service", "peers")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark every test with its folder's group; a test outside the groups' folders is an error."""
+    for item in items:
+        group = Path(str(item.fspath)).parent.name
+        if group not in GROUPS:
+            raise pytest.UsageError(f"{item.nodeid}: tests live in tests/{{{','.join(GROUPS)}}}/")
+        item.add_marker(getattr(pytest.mark, group))
 
 
 @pytest.fixture(scope="session")

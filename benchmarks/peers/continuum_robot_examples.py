@@ -1,5 +1,5 @@
 """Build and run ContinuumRobotExamples' tendon-robot statics (J. Till, public C++ examples) and store
-their answers as the reference of ``tests/test_peers.py``.
+their answers as the reference of ``tests/peers/test_peers.py``.
 
 The two examples of issue #27: ``01_Statics/05_Tendon_Robot`` (straight routing) and the helical
 variant ``01_Statics/06_Tendon_Robot_Variants/Cpp_2``: E = 200 GPa, G = 80 GPa (nu = 0.25),

@@ -1,5 +1,5 @@
 """Build and run tdcr-modeling's Cosserat-rod model (Rao et al. 2021, C++, public) on its own default
-robot and store its answers as the reference of ``tests/test_peers.py``.
+robot and store its answers as the reference of ``tests/peers/test_peers.py``.
 
 The default robot of ``TendonDrivenRobot``: two segments of 0.1 m, E = 60 GPa, nu = 0.3, backbone
 radius 0.5 mm, three tendons per segment at 90, -30 and 210 degrees, pitch radii 8 mm (segment 1,

@@ -1204,7 +1204,7 @@ def _store_summary(out, b, res):
 def _store(array, index, value):
     """``array[index] = value``.  Inside a parallel loop numba 0.68 drops a plain item assignment
     to an array that is a field of a tuple argument (views passed to a function are written); this
-    call is written (tests/test_kernel.py checks every output)."""
+    call is written (tests/unit/test_kernel.py checks every output)."""
     array[index] = value
 
 

@@ -109,7 +109,7 @@ def test_the_solver_flags_only_designs_it_has_a_reason_to_flag():
 
 
 #: The extremes of the admissible loads.  (Some interior loaded designs take the shooting solver
-#: minutes; /exact's deadline kills such work, tests/test_service_hardening.py.)
+#: minutes; /exact's deadline kills such work, tests/service/test_service_hardening.py.)
 EXTREME_LOADS = [{"gravity": [100.0, -100.0, 100.0], "density": 25_000.0, "tip_force": [100.0, 0.0, -100.0],
                   "tip_moment": [0.0, 10.0, 0.0]},
                  {"gravity": [0.0, 0.0, -9.81], "density": 1.0, "tip_force": [0.0, 0.0, 0.0],

@@ -18,7 +18,7 @@ from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
 
-DATA = pathlib.Path(__file__).parent / "data"
+DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 
 
 def _cre_design(design: dict, name: str, poisson: float) -> DesignBatch:

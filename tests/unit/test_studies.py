@@ -19,7 +19,7 @@ from tdcr.cli import main  # noqa: E402
 from training import studies  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
