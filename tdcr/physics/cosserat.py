@@ -43,6 +43,7 @@ turns their outputs into a :class:`RodSolution`.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from dataclasses import dataclass
 
@@ -150,7 +151,7 @@ class RodSolution:
 
 
 __all__ = ["POISSON_RATIO", "STATUS", "TERMINATIONS", "RodSolution", "SolverOptions", "Status", "TipSolver",
-           "internal_wrench", "material", "solve", "tendon_routing"]
+           "internal_wrench", "material", "section_stiffness", "solve", "tendon_routing"]
 
 
 @dataclass(frozen=True)
@@ -160,16 +161,25 @@ class _Material:
     area: np.ndarray  # (B,) m^2
 
 
+def section_stiffness(E, r, poisson):
+    """The one place of the material law: the section stiffnesses ``(G A, E A, E I, G J)`` of a solid
+    circular rod, N and N m^2, with G = E / (2 (1 + nu)), A = pi r^2, I = pi r^4 / 4, J = 2 I, from
+    Young's modulus ``E`` Pa, radius ``r`` m and Poisson ratio ``poisson`` (each ``(B,)``, or a
+    scalar).  Plain arithmetic, so numpy arrays and torch tensors alike (the operators' graphs
+    take it from here)."""
+    g = E / (2.0 * (1.0 + poisson))
+    area = math.pi * r**2
+    inertia = (math.pi / 4.0) * r**4
+    return g * area, E * area, E * inertia, 2.0 * g * inertia
+
+
 def material(designs: DesignBatch) -> _Material:
-    """Stiffnesses K_se (N) and K_bt (N m^2) as diagonals, ``(B, 3)`` each: the one place of the
-    material law, G = E / (2 (1 + nu)) with each design's Poisson ratio nu (default
-    :data:`POISSON_RATIO`), for every path (the kernels receive these)."""
-    g = designs.E / (2.0 * (1.0 + designs.poissons))
-    area = np.pi * designs.r**2
-    inertia = np.pi * designs.r**4 / 4.0
-    kse = np.stack([g * area, g * area, designs.E * area], axis=-1)
-    kbt = np.stack([designs.E * inertia, designs.E * inertia, g * 2.0 * inertia], axis=-1)
-    return _Material(kse=kse, kbt=kbt, area=area)
+    """Stiffnesses K_se (N) and K_bt (N m^2) as diagonals, ``(B, 3)`` each, of each design's Poisson
+    ratio nu (default :data:`POISSON_RATIO`), by :func:`section_stiffness`, for every path (the
+    kernels receive these)."""
+    ga, ea, ei, gj = section_stiffness(designs.E, designs.r, designs.poissons)
+    return _Material(kse=np.stack([ga, ga, ea], axis=-1), kbt=np.stack([ei, ei, gj], axis=-1),
+                     area=np.pi * designs.r**2)
 
 
 def internal_wrench(rotation: np.ndarray, strains: np.ndarray, mat: _Material) -> tuple[np.ndarray, np.ndarray]:

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import torch
 
 from tdcr.designs import LOAD_COLUMNS
-from tdcr.physics.cosserat import POISSON_RATIO
+from tdcr.physics.cosserat import POISSON_RATIO, section_stiffness
 
 
 def cross3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -346,13 +346,11 @@ class Stiffness(NamedTuple):
     gj: torch.Tensor
 
     @classmethod
-    def of(cls, features: torch.Tensor) -> Stiffness:
-        """From raw SI designs ``(B, F)``: a solid circular section of radius r (the solver's
-        ``material()``: G = E / (2 (1 + nu)), I = pi r^4 / 4, J = 2 I)."""
-        e, r = features[:, 0], features[:, 1]
-        g = e / (2.0 * (1.0 + POISSON_RATIO))
-        area, inertia = math.pi * r * r, (math.pi / 4.0) * r**4
-        return cls(g * area, e * area, e * inertia, 2.0 * g * inertia)
+    def of(cls, features: torch.Tensor, poisson: torch.Tensor | float = POISSON_RATIO) -> Stiffness:
+        """From raw SI designs ``(B, F)`` and their Poisson ratios ``(B,)`` (default the core's
+        :data:`tdcr.physics.POISSON_RATIO`, the operators' training value): the core's material
+        law, :func:`tdcr.physics.cosserat.section_stiffness`."""
+        return cls(*section_stiffness(features[:, 0], features[:, 1], poisson))
 
 
 def external_wrench(features: torch.Tensor, loads: torch.Tensor, backbone: torch.Tensor, grid: torch.Tensor
