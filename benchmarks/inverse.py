@@ -25,7 +25,7 @@ import numpy as np
 from service.process import ROOT
 from tdcr import design_space
 from tdcr.designs import DesignBatch
-from tdcr.inverse import exact_forward, inverse, model_forward, tip_by_differences
+from tdcr.inverse import exact_forward, inverse, model_forward, model_tip_pose, tip_by_differences
 from tdcr.physics import solve
 from tdcr.runtime import Surrogate
 
@@ -108,9 +108,7 @@ def operators(designs: DesignBatch) -> None:
     for name in OPERATORS:
         model = Surrogate.load(ROOT / "models", name)
 
-        def tip_pose(features, model=model):
-            out = model.predict(features, TIP, pose=True)
-            return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
+        tip_pose = model_tip_pose(model.predict)
 
         _, _, jac = tip_by_differences(designs.features(), tip_pose)
         jac_error = np.linalg.norm(jac - exact_jacobian, axis=(1, 2)) / np.linalg.norm(exact_jacobian, axis=(1, 2))

@@ -13,7 +13,7 @@ from service.model import InferenceRequest, InferenceResponse, Model
 from service.oip import LOAD_INPUTS, SURROGATE_INPUTS, SURROGATE_OUTPUTS
 from tdcr import engine
 from tdcr.checks import InvalidRequest, check_model_loads
-from tdcr.inverse import answer, model_forward
+from tdcr.inverse import answer, model_forward, model_tip_pose
 from tdcr.runtime import Surrogate
 from tdcr.validation import InverseProblem, Limits
 
@@ -69,14 +69,9 @@ class SurrogateModel(Model):
         if problem.loads is not None and not self.surrogate.takes_loads:
             raise InvalidRequest([p._replace(loc=("design",) + p.loc[2:]) for p in
                                   check_model_loads(problem.loads, np.zeros(1, dtype=int), model=self.name)])
-        row = None if problem.loads is None else problem.loads.matrix(1)
-
-        def tip_pose(features: np.ndarray):
-            loads = None if row is None else np.repeat(row, len(features), axis=0)
-            # validated; the differences may leave the bounds
-            out = self.batcher.predict(features, np.ones(1), loads=loads, pose=True)
-            return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
-
+        # validated; the differences may leave the bounds
+        tip_pose = model_tip_pose(self.batcher.predict,
+                                  load_row=None if problem.loads is None else problem.loads.matrix(1))
         return answer(problem, model_forward(problem.design, tip_pose))
 
     def close(self) -> None:

@@ -45,9 +45,8 @@ def _cmd_solve(args) -> int:
 
 
 def _cmd_inverse(args) -> int:
-    import numpy as np
 
-    from tdcr.inverse import answer, answer_exact, finish, model_forward
+    from tdcr.inverse import answer, answer_exact, finish, model_forward, model_tip_pose
     from tdcr.runtime import ManifestError, Surrogate
     from tdcr.schemas import EXACT_MODEL
     from tdcr.validation import InvalidRequest, validate_inverse
@@ -64,10 +63,7 @@ def _cmd_inverse(args) -> int:
         except ManifestError as exc:
             raise UsageError(f"{args.models_dir}: {exc}") from None
 
-        def tip_pose(features):
-            out = model.predict(features, np.ones(1), pose=True, check=False)  # differences may leave the bounds
-            return out["backbone"][:, -1].astype(float), out["rotation"][:, -1].astype(float)
-
+        tip_pose = model_tip_pose(model.predict, check=False)  # the differences may leave the bounds
         results = finish(problem, answer(problem, model_forward(problem.design, tip_pose)))
     json.dump({"model": problem.model, "results": results}, sys.stdout)
     sys.stdout.write("\n")

@@ -29,7 +29,7 @@ import numpy as np
 
 from tdcr.design_space import LAYOUT, N_TENDONS, TABLE_I
 from tdcr.designs import DesignBatch
-from tdcr.inverse import answer, exact_forward, tip_by_differences
+from tdcr.inverse import answer, exact_forward, model_tip_pose, tip_by_differences
 from tdcr.schemas import OBJECTIVES, SEARCH_PARAMETERS, DesignTask
 from tdcr.validation import InvalidRequest, Problem, check_inverse
 
@@ -161,9 +161,7 @@ TipModel = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 
 def operator_tip(surrogate) -> TipModel:
     """An operator's tip and its Jacobian by central differences (one batch of 9 B designs)."""
-    def tip_pose(features: np.ndarray):
-        out = surrogate.predict(features, ONE, pose=True, check=False)  # the differences may leave Table I
-        return out["backbone"][:, -1].astype(np.float64), out["rotation"][:, -1].astype(np.float64)
+    tip_pose = model_tip_pose(surrogate.predict, check=False)  # the differences may leave Table I
 
     def model(features: np.ndarray):
         with np.errstate(all="ignore"):

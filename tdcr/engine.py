@@ -25,7 +25,7 @@ from tdcr.checks import check_model_loads
 from tdcr.design_space import N_FEATURES, load_warnings, range_warnings
 from tdcr.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
 from tdcr.exact import ExactAnswer
-from tdcr.inverse import tip_by_differences
+from tdcr.inverse import model_tip_pose, tip_by_differences
 from tdcr.runtime import error_bound, on_grid_tendons
 from tdcr.schemas import RESPONSE_FORMAT_VERSION
 from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
@@ -181,10 +181,7 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str, guard_wi
     arclength = features[:, L_COLUMN, None] * request.fractions[None, :]
     tip_jacobian = None
     if request.jacobian:
-        def tip_pose(batch: np.ndarray):
-            out = predictor.predict(batch, np.ones(1), pose=True, check=False)  # differences may leave the bounds
-            return out["backbone"][:, -1].astype(np.float64), out["rotation"][:, -1].astype(np.float64)
-
+        tip_pose = model_tip_pose(predictor.predict, check=False)  # the differences may leave the bounds
         with np.errstate(all="ignore"):
             tip_jacobian = np.ascontiguousarray(np.nan_to_num(tip_by_differences(features, tip_pose)[2]))
     warnings = range_warnings(features)

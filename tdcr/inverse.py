@@ -90,6 +90,23 @@ def exact_forward(design: DesignBatch) -> Forward:
     return forward
 
 
+#: the tip, s = L, as the only arclength fraction
+TIP = np.ones(1)
+
+
+def model_tip_pose(predict: Callable[..., dict], *, load_row: np.ndarray | None = None,
+                   **options) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """Any operator's tip as ``tip_pose(features (K, F)) -> (positions (K, 3) m, frames (K, 3, 3))``,
+    float64, from its ``predict(features, fractions, pose=True, **options)`` at s = L (a
+    :class:`tdcr.runtime.Surrogate`'s or a batcher's); ``load_row`` ``(1, 10)``: the same loads for
+    every row.  The one tip-pose helper of inverse kinematics, design search and tip Jacobians."""
+    def tip_pose(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        loads = None if load_row is None else np.repeat(load_row, len(features), axis=0)
+        out = predict(features, TIP, pose=True, **options, **({} if loads is None else {"loads": loads}))
+        return out["backbone"][:, -1].astype(np.float64), out["rotation"][:, -1].astype(np.float64)
+    return tip_pose
+
+
 def model_forward(design: DesignBatch, tip_pose: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], *,
                   step: float = DIFFERENCE_STEP) -> Forward:
     """Any model of the tip, ``tip_pose(features (K, F)) -> (positions (K, 3), frames (K, 3, 3))``,
