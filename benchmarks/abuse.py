@@ -26,7 +26,7 @@ import numpy as np
 import orjson
 
 from service.process import ROOT, ServerProcess, solver_pids
-from tdcr.design_space import sample_designs
+from tdcr.robot.design_space import sample_designs
 
 ONE = sample_designs(1, seed=0).to_dicts()
 LOADED = {"gravity": [0.0, 9.81, 0.0], "density": 7800.0, "tip_force": [0.01, 0.0, 0.0]}

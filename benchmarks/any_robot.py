@@ -26,9 +26,9 @@ import time
 import numpy as np
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import STATUS, SolverOptions, solve
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 
 S42 = np.linspace(0.0, 1.0, 42)
 DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests", "data")

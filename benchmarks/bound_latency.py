@@ -23,8 +23,8 @@ from exact_latency import design_json  # benchmarks/ is the script's folder
 from loaded_operators import seconds
 
 from service.process import ROOT, ServerProcess
-from tdcr.design_space import sample_designs
-from tdcr.runtime import Surrogate
+from tdcr.robot.design_space import sample_designs
+from tdcr.surrogates.runtime import Surrogate
 
 ROWS = {"/predict (bound on every answer)": ("/predict", {}),
         "/predict, tolerance 0.01": ("/predict", {"tolerance": 0.01}),

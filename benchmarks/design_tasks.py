@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.design import search, validate_task
-from tdcr.designs import DesignBatch
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch
+from tdcr.search.design import search, validate_task
 
 HERE = Path(__file__).resolve().parent
 N_TASKS = 10

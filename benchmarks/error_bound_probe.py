@@ -22,8 +22,8 @@ import numpy as np
 
 from service.process import ROOT
 from tdcr import design_space
-from tdcr.bounds import Calibration, bending_angle
-from tdcr.runtime import load_manifest, takes_loads
+from tdcr.surrogates.bounds import Calibration, bending_angle
+from tdcr.surrogates.runtime import load_manifest, takes_loads
 from training.operators.calibrate import SCORE_FLOOR, Score, fit, measure
 
 

@@ -34,10 +34,10 @@ from loaded_operators import seconds  # best of n (benchmarks/ is the script's f
 
 from service.process import ROOT
 from tdcr import design_space
-from tdcr.bounds import bending_angle, calibration_grid
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
-from tdcr.runtime import Surrogate, load_manifest, takes_loads
+from tdcr.surrogates.bounds import bending_angle, calibration_grid
+from tdcr.surrogates.runtime import Surrogate, load_manifest, takes_loads
 from training.operators.calibrate import SCORES, fit, measure
 
 TOLERANCES = (0.01, 0.001)

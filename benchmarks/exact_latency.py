@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 
 from service.process import ROOT, ServerProcess
-from tdcr.design_space import sample_designs
+from tdcr.robot.design_space import sample_designs
 
 LOADS = {"gravity": [9.81, 0.0, 0.0], "density": 7800.0, "tip_force": [0.0, 0.01, 0.0], "tip_moment": [0.0, 0.0, 0.001]}
 

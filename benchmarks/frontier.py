@@ -14,7 +14,7 @@ one chunk per core), 42 points.  Guarded rows: an operator keeping a ``tolerance
 the tolerance answered by the exact solver in the same call: ``Surrogate.predict(...,
 tolerance=...)``).
 
-A second table does the same in gravity and under tip loads (``tdcr.design_space.BENCHMARK_LOADS``):
+A second table does the same in gravity and under tip loads (``tdcr.robot.design_space.BENCHMARK_LOADS``):
 the exact loaded solver, the operators that take no loads (the error of ignoring them) and the
 loaded operators, at batches of 1 and 1,000.
 """
@@ -32,7 +32,7 @@ from service.process import ROOT
 from tdcr import design_space
 from tdcr.metrics import relative_l2
 from tdcr.physics import SolverOptions, solve
-from tdcr.runtime import Surrogate
+from tdcr.surrogates.runtime import Surrogate
 
 S42 = np.linspace(0.0, 1.0, 42)
 OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose")
@@ -65,7 +65,7 @@ def main() -> None:
 
     def solver(options):
         def run(features):
-            from tdcr.designs import DesignBatch
+            from tdcr.robot.designs import DesignBatch
 
             return solve(DesignBatch.from_features(features), S42, options=options, workers=0).tendons
         return run
@@ -98,10 +98,10 @@ def main() -> None:
 
 def loaded_frontier(n: int) -> None:
     """The frontier in gravity and under tip loads: ``n`` held-out designs (seed 4242) with
-    :data:`~tdcr.design_space.BENCHMARK_LOADS`, truth at a 10x finer step; designs/s at batches
+    :data:`~tdcr.robot.design_space.BENCHMARK_LOADS`, truth at a 10x finer step; designs/s at batches
     of 1 and 1,000."""
-    from tdcr.designs import DesignBatch, ExternalLoads
-    from tdcr.runtime import load_manifest
+    from tdcr.robot.designs import DesignBatch, ExternalLoads
+    from tdcr.surrogates.runtime import load_manifest
 
     designs = design_space.sample_designs(n, seed=4242)
     loads = design_space.BENCHMARK_LOADS.sample(n, seed=4242)

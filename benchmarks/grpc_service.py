@@ -27,9 +27,9 @@ import httpx
 import numpy as np
 
 from service.process import ROOT, ServerProcess
-from tdcr.design_space import sample_designs
-from tdcr.loadtest import format_row, format_rows, grpc_request, run_cell, server_rss
+from tdcr.clients.loadtest import format_row, format_rows, grpc_request, run_cell, server_rss
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
+from tdcr.robot.design_space import sample_designs
 
 MODEL = "deeponet"
 UNLIMITED = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]

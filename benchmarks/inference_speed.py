@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.runtime import Surrogate
+from tdcr.surrogates.runtime import Surrogate
 
 
 def best_time(fn, repeats: int) -> float:

@@ -24,10 +24,10 @@ import numpy as np
 
 from service.process import ROOT
 from tdcr import design_space
-from tdcr.designs import DesignBatch
-from tdcr.inverse import exact_forward, inverse, model_forward, model_tip_pose, tip_by_differences
 from tdcr.physics import solve
-from tdcr.runtime import Surrogate
+from tdcr.robot.designs import DesignBatch
+from tdcr.search.inverse import exact_forward, inverse, model_forward, model_tip_pose, tip_by_differences
+from tdcr.surrogates.runtime import Surrogate
 
 S42 = np.linspace(0.0, 1.0, 42)
 TIP = np.array([1.0])

@@ -21,10 +21,10 @@ import numpy as np
 import orjson
 
 from service.process import ROOT, ServerProcess
-from tdcr import engine
-from tdcr.design_space import sample_designs
-from tdcr.runtime import Surrogate
-from tdcr.validation import Limits
+from tdcr.api.validation import Limits
+from tdcr.robot.design_space import sample_designs
+from tdcr.surrogates import engine
+from tdcr.surrogates.runtime import Surrogate
 
 MODEL = "deeponet_pose"
 

@@ -3,7 +3,7 @@
     python benchmarks/loaded_operators.py [--designs 1000] [--free 1000]
 
 Held-out designs: ``--designs`` Table I designs (seed 4242; the training data used seed 24) in the
-load space of :data:`tdcr.design_space.BENCHMARK_LOADS`: |g| = 9.81 m/s^2 in a uniform direction,
+load space of :data:`tdcr.robot.design_space.BENCHMARK_LOADS`: |g| = 9.81 m/s^2 in a uniform direction,
 density 6,450-8,000 kg/m^3, and on 30 % of them a tip force up to 0.02 N and a tip moment up to
 0.002 N m.  Truth: the exact loaded solver at a 10x finer step.  Rows: the exact solver with and
 without the loads, the linearised and the loaded reference robots (no network), the operators that
@@ -27,7 +27,7 @@ import numpy as np
 from service.process import ROOT
 from tdcr import design_space
 from tdcr.physics import solve
-from tdcr.runtime import Surrogate, load_manifest
+from tdcr.surrogates.runtime import Surrogate, load_manifest
 from training.operators.evaluate import FINER_SOLVER, compare, scored
 
 S42 = np.linspace(0.0, 1.0, 42)

@@ -18,7 +18,7 @@ import orjson
 
 from service.oip import HEADER_LENGTH
 from service.process import ROOT, ServerProcess
-from tdcr.design_space import sample_designs
+from tdcr.robot.design_space import sample_designs
 
 
 def binary_request(features: np.ndarray, outputs: list[str]) -> tuple[bytes, dict]:

@@ -21,7 +21,7 @@ from pathlib import Path
 import httpx
 
 from service.process import ServerProcess
-from tdcr.loadtest import Row, format_row, run_cell, server_rss
+from tdcr.clients.loadtest import Row, format_row, run_cell, server_rss
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADER = ("| encoding | batch | concurrency | requests | errors | p50 (ms) | p95 (ms) | p99 (ms) | requests/s "

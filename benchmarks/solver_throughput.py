@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch
 from tdcr.metrics import relative_l2
 from tdcr.physics import SolverOptions, solve
+from tdcr.robot.designs import DesignBatch
 
 ROOT = Path(__file__).resolve().parents[1]
 SIGMA = np.linspace(0.0, 1.0, 42)

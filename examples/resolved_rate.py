@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tdcr.designs import DesignBatch
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch
 
 TIP = np.array([1.0])
 TENSION_MAX = 5.0  # N

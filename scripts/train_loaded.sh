@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduce the shipped loaded operators (deeponet_pose_loaded, fno_pose_loaded) from scratch on a
 # CPU machine (2 cores): an 80,000-design dataset in gravity and under tip loads
-# (tdcr.design_space.TRAINING_LOADS: |g| = 9.81 m/s^2 in a uniform direction, density
+# (tdcr.robot.design_space.TRAINING_LOADS: |g| = 9.81 m/s^2 in a uniform direction, density
 # 6,450-8,000 kg/m^3, tip loads on half the designs, a fifth unloaded), both operators trained side
 # by side on one thread each (the DeepONet for 45 minutes, the FNO for 55), exported to models/,
 # and evaluated on the held-out 20 % and on load-free Table I designs.

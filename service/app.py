@@ -29,7 +29,7 @@ from service.oip import InferenceRequest
 from service.routers import design_space, exact, health, inverse, models, predict, v2, viewer
 from service.settings import Settings
 from service.state import ServiceState, start
-from tdcr.schemas import ExactRequest, InverseRequest, PredictRequest
+from tdcr.api.schemas import ExactRequest, InverseRequest, PredictRequest
 
 log = logging.getLogger("tdcr.service")
 
@@ -238,7 +238,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 
 def _openapi(app: FastAPI) -> dict:
-    """FastAPI's document plus the JSON schemas of the request bodies (parsed by tdcr.validation)."""
+    """FastAPI's document plus the JSON schemas of the request bodies (parsed by tdcr.api.validation)."""
     if app.openapi_schema:
         return app.openapi_schema
     schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tdcr.runtime import Surrogate
+from tdcr.surrogates.runtime import Surrogate
 
 
 @dataclass

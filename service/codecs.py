@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import orjson
 
 from service.model import InverseAnswer, ModelSpec
-from tdcr.engine import Prediction, encode_json, encode_npz
-from tdcr.exact import ExactAnswer
-from tdcr.schemas import RESPONSE_FORMAT_VERSION
-from tdcr.validation import InverseProblem, ShapeRequest, validate_inverse, validate_json
+from tdcr.api.schemas import RESPONSE_FORMAT_VERSION
+from tdcr.api.validation import InverseProblem, ShapeRequest, validate_inverse, validate_json
+from tdcr.physics.exact import ExactAnswer
+from tdcr.surrogates.engine import Prediction, encode_json, encode_npz
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import tdcr
 from service.metrics import Metrics
 from service.model import InferenceError, InferenceRequest, InferenceResponse, Kind, Model, ModelRepository
 from service.oip import EXTENSIONS, SERVER_NAME
-from tdcr.validation import InvalidRequest
+from tdcr.api.validation import InvalidRequest
 
 #: What /readyz and every inference say while the service starts.
 STARTING = "starting: loading the models and starting the solver processes (the first start compiles the solver)"

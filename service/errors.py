@@ -1,11 +1,11 @@
-"""Errors with a status code and a clear message; JSON bodies follow ``tdcr.schemas.ErrorResponse``."""
+"""Errors with a status code and a clear message; JSON bodies follow ``tdcr.api.schemas.ErrorResponse``."""
 
 from __future__ import annotations
 
 from collections.abc import Collection
 
 from service.model import InferenceError
-from tdcr.validation import InvalidRequest
+from tdcr.api.validation import InvalidRequest
 
 
 class ApiError(Exception):

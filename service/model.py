@@ -8,7 +8,7 @@ surrogates (:mod:`service.surrogate`), the exact solver and its inverse kinemati
 
 ``infer`` takes an :class:`InferenceRequest`: what a transport received (its ``payload``) and the
 transport's :class:`Codec`.  The model asks the codec for the task it needs (a validated
-:class:`tdcr.validation.ShapeRequest` or :class:`tdcr.validation.InverseProblem`) where its work
+:class:`tdcr.api.validation.ShapeRequest` or :class:`tdcr.api.validation.InverseProblem`) where its work
 runs (a worker thread, or a solver process for the exact solver), and has the codec encode its
 answer there, so that a transport never names a model and no tensor makes a round trip through
 another transport's format.  Errors are :class:`InferenceError` with a ``kind``; each transport
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Literal, Protocol
 
-from tdcr.validation import Limits, Problem, quote
+from tdcr.api.validation import Limits, Problem, quote
 
 #: The one version of every model.
 VERSION = "1"
@@ -36,7 +36,7 @@ ERROR_KINDS = ("invalid", "not_found", "too_large", "saturated", "unavailable", 
 class InferenceError(Exception):
     """A request the data plane cannot answer: ``kind`` (one of :data:`ERROR_KINDS`), a message
     naming the field or tensor and the reason, and for ``invalid`` / ``too_large`` the ``problems``
-    (:class:`tdcr.validation.Problem`) when they came from the validation path."""
+    (:class:`tdcr.api.validation.Problem`) when they came from the validation path."""
 
     def __init__(self, kind: str, message: str, problems: tuple[Problem, ...] = ()):
         super().__init__(message)
@@ -74,8 +74,8 @@ class Codec(Protocol):
     """A transport's decoding and encoding, run by a model where its work runs (so it must be
     picklable: a module-level class).  ``decode`` returns the decoded request (with ``.task``, the
     validated :class:`ShapeRequest` or :class:`InverseProblem`, and whatever ``encode`` needs);
-    ``encode`` turns the model's answer (:class:`tdcr.engine.Prediction`,
-    :class:`tdcr.exact.ExactAnswer` or :class:`InverseAnswer`) into what the transport sends."""
+    ``encode`` turns the model's answer (:class:`tdcr.surrogates.engine.Prediction`,
+    :class:`tdcr.physics.exact.ExactAnswer` or :class:`InverseAnswer`) into what the transport sends."""
 
     def decode(self, payload: Any, spec: ModelSpec) -> Any: ...
 
@@ -157,7 +157,7 @@ class Model(ABC):
     @abstractmethod
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         """Decode, run and encode ``request``; raises :class:`InferenceError` or the validation
-        path's :class:`tdcr.validation.InvalidRequest` (the data plane maps both)."""
+        path's :class:`tdcr.api.validation.InvalidRequest` (the data plane maps both)."""
 
     #: Whether :meth:`infer_blocking` answers on the calling thread (a transport already in a
     #: worker thread then saves a thread hop).

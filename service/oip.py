@@ -27,7 +27,7 @@ Models and their tensors:
   ``[1]``; outputs ``tensions`` FP64 ``[-1, 4]`` N, ``position`` (the tips reached), ``error`` (m)
   and ``status`` INT32 (:data:`INVERSE_STATUS`).
 
-Decoded tensors go through the one validation path (:mod:`tdcr.validation`); errors are
+Decoded tensors go through the one validation path (:mod:`tdcr.api.validation`); errors are
 :class:`service.model.InferenceError` with a message that names the tensor and the reason.
 """
 
@@ -41,13 +41,7 @@ import orjson
 from pydantic import BaseModel, Field
 
 from service.model import VERSION, InferenceError, InverseAnswer, ModelSpec, Tensors, TensorSpec
-from tdcr.client import INFERENCE_HEADER_LENGTH
-from tdcr.design_space import N_FEATURES, N_TENDONS, range_warnings
-from tdcr.designs import DesignBatch
-from tdcr.engine import Prediction
-from tdcr.exact import ExactAnswer
-from tdcr.physics.cosserat import TERMINATIONS
-from tdcr.validation import (
+from tdcr.api.validation import (
     INVERSE_DEFAULTS,
     OUTPUTS,
     InvalidRequest,
@@ -55,6 +49,12 @@ from tdcr.validation import (
     quote,
     validate_features,
 )
+from tdcr.clients.client import INFERENCE_HEADER_LENGTH
+from tdcr.physics.cosserat import TERMINATIONS
+from tdcr.physics.exact import ExactAnswer
+from tdcr.robot.design_space import N_FEATURES, N_TENDONS, range_warnings
+from tdcr.robot.designs import DesignBatch
+from tdcr.surrogates.engine import Prediction
 
 #: OIP datatypes and their little-endian numpy types.
 DATATYPES: dict[str, np.dtype] = {
@@ -329,7 +329,7 @@ class OipCodec:
 
 def _layout(inputs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
     """The ``layout`` ``[B, N_t, 4]`` and ``poisson`` ``[B]`` inputs as the general design's arrays
-    by name (:func:`tdcr.validation.validate_features`'s ``layout``), or None."""
+    by name (:func:`tdcr.api.validation.validate_features`'s ``layout``), or None."""
     out = {}
     if "layout" in inputs:
         layout = np.asarray(inputs["layout"], dtype=np.float64)

@@ -7,10 +7,10 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from tdcr.design_space import MAX_POINTS
-from tdcr.exact import WorkBudget
-from tdcr.runtime import DEFAULT_MODELS_DIR
-from tdcr.validation import Limits
+from tdcr.api.validation import Limits
+from tdcr.physics.exact import WorkBudget
+from tdcr.robot.design_space import MAX_POINTS
+from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
 
 class Settings(BaseSettings):

@@ -3,7 +3,7 @@
 admission slots and the deadline; the inverse model runs on them.
 
 A request's whole work runs in a solver process (:func:`exact_job`): the codec's decoding and
-validation, the admission by estimated work (:class:`tdcr.exact.WorkBudget`), the solve and the
+validation, the admission by estimated work (:class:`tdcr.physics.exact.WorkBudget`), the solve and the
 codec's encoding, so that a large body never costs the server's interpreter and a deadline kills
 the work with its process.
 """
@@ -21,10 +21,10 @@ from service.model import InferenceError, InferenceRequest, InferenceResponse, I
 from service.oip import EXACT_INPUTS, EXACT_OUTPUTS, INVERSE_INPUTS, INVERSE_OUTPUTS, INVERSE_STATUS
 from service.settings import Settings
 from service.solver_pool import SolverPool, WorkerDied
-from tdcr.exact import ExactAnswer, TooMuchWork, WorkBudget, admit, solve_request
-from tdcr.inverse import answer_exact, finish
-from tdcr.schemas import EXACT_MODEL
-from tdcr.validation import InvalidRequest, ShapeRequest
+from tdcr.api.schemas import EXACT_MODEL
+from tdcr.api.validation import InvalidRequest, ShapeRequest
+from tdcr.physics.exact import ExactAnswer, TooMuchWork, WorkBudget, admit, solve_request
+from tdcr.search.inverse import answer_exact, finish
 
 log = logging.getLogger("tdcr.service")
 #: The inverse-kinematics model's name.
@@ -119,9 +119,9 @@ class ExactModel(Model):
 
 
 class InverseModel(Model):
-    """Inverse kinematics (tdcr/inverse.py): the tensions that reach each target.  A request names
+    """Inverse kinematics (tdcr/search/inverse.py): the tensions that reach each target.  A request names
     its forward model: ``exact`` runs in the exact model's solver processes; an operator runs in a
-    worker thread, and its answers are then finished there (:func:`tdcr.inverse.finish`: checked in
+    worker thread, and its answers are then finished there (:func:`tdcr.search.inverse.finish`: checked in
     exact physics, a target they miss finished by exact steps; with ``polish`` every target)."""
 
     name = INVERSE_MODEL

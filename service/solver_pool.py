@@ -58,7 +58,7 @@ def _serve(conn: Connection, parent: int) -> None:
     """Worker loop: ``(fn, args, kwargs, expected exception types)`` in, ``(ok, result or exception)`` out."""
     _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server handles Ctrl-C and stops us
-    from tdcr.exact import warm_up
+    from tdcr.physics.exact import warm_up
 
     warm_up()
     conn.send((True, "ready"))

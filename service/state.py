@@ -17,8 +17,8 @@ from service.settings import Settings
 from service.solver import ExactModel, InverseModel
 from service.surrogate import SurrogateModel
 from tdcr import design_space
-from tdcr.runtime import ManifestError, Surrogate, best_model, load_manifest
-from tdcr.schemas import EXACT_MODEL
+from tdcr.api.schemas import EXACT_MODEL
+from tdcr.surrogates.runtime import ManifestError, Surrogate, best_model, load_manifest
 
 log = logging.getLogger("tdcr.service")
 

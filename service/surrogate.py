@@ -1,5 +1,5 @@
 """A neural operator as a served :class:`service.model.Model`: its ONNX session behind a dynamic
-batcher (service/batching.py), the surrogate engine of :mod:`tdcr.engine`, and its inverse
+batcher (service/batching.py), the surrogate engine of :mod:`tdcr.surrogates.engine`, and its inverse
 kinematics (Jacobian by central differences)."""
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ from starlette.concurrency import run_in_threadpool
 from service.batching import Batcher
 from service.model import InferenceRequest, InferenceResponse, Model
 from service.oip import LOAD_INPUTS, SURROGATE_INPUTS, SURROGATE_OUTPUTS
-from tdcr import engine
-from tdcr.checks import InvalidRequest, check_model_loads
-from tdcr.inverse import answer, model_forward, model_tip_pose
-from tdcr.runtime import Surrogate
-from tdcr.validation import InverseProblem, Limits
+from tdcr.api.checks import InvalidRequest, check_model_loads
+from tdcr.api.validation import InverseProblem, Limits
+from tdcr.search.inverse import answer, model_forward, model_tip_pose
+from tdcr.surrogates import engine
+from tdcr.surrogates.runtime import Surrogate
 
 
 class SurrogateModel(Model):
@@ -39,7 +39,7 @@ class SurrogateModel(Model):
     def guard_with(self, companion: SurrogateModel | None, exact) -> None:
         """Bound its answers (its calibration, scored against the served ``companion``; none
         without a calibration) and keep tolerances with ``exact`` (a sub-request ->
-        :class:`tdcr.exact.ExactAnswer`, blocking)."""
+        :class:`tdcr.physics.exact.ExactAnswer`, blocking)."""
         self.guard = engine.Guard(calibration=self.surrogate.calibration,
                                   companion=None if companion is None else companion.batcher, exact=exact)
 

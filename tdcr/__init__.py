@@ -1,7 +1,11 @@
 """tdcr-surrogates: shapes of tendon-driven continuum robots, exactly or from neural operators.
 
 Public API (re-exported here; everything else is reached through its module, e.g.
-``tdcr.physics.STATUS``, ``tdcr.validation``, ``tdcr.client.Client``)::
+``tdcr.physics.STATUS``, ``tdcr.api.validation``, ``tdcr.clients.Client``).  The core, by what
+it holds: ``tdcr.robot`` (designs, loads, the design space), ``tdcr.physics`` (the solver and its
+answers to requests), ``tdcr.api`` (schemas, checks, the one validation path), ``tdcr.surrogates``
+(the ONNX operators, their error bounds, the engine), ``tdcr.search`` (inverse kinematics, design
+search), ``tdcr.clients`` (the service's client, the load test), ``tdcr.cli``::
 
     from tdcr import DesignBatch, ExternalLoads, SolverOptions, RodSolution, solve
     from tdcr import Surrogate, sample_designs, TABLE_I, relative_l2
@@ -12,14 +16,15 @@ Importing ``tdcr`` loads numpy only: no torch, FastAPI, uvicorn or onnxruntime (
 
 from importlib.metadata import PackageNotFoundError, version
 
-from tdcr.design_space import TABLE_I, sample_designs
-from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import RodSolution, SolverOptions, solve
-from tdcr.runtime import Surrogate
+from tdcr.robot import design_space
+from tdcr.robot.design_space import TABLE_I, sample_designs
+from tdcr.robot.designs import DesignBatch, ExternalLoads
+from tdcr.surrogates.runtime import Surrogate
 
-__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "SolverOptions", "Surrogate", "relative_l2",
-           "sample_designs", "solve"]
+__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "SolverOptions", "Surrogate", "design_space",
+           "relative_l2", "sample_designs", "solve"]
 
 try:
     __version__ = version("tdcr-surrogates")

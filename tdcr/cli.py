@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from tdcr.design_space import DEFAULT_POINTS, MAX_TENDONS
+from tdcr.robot.design_space import DEFAULT_POINTS, MAX_TENDONS
 
 
 class UsageError(Exception):
@@ -23,17 +23,17 @@ def _read_text(path: str) -> str:
 
 
 def _invalid(path: str, exc) -> UsageError:
-    """A :class:`tdcr.validation.InvalidRequest` as a usage error, one problem per line."""
-    from tdcr.validation import format_location
+    """A :class:`tdcr.api.validation.InvalidRequest` as a usage error, one problem per line."""
+    from tdcr.api.validation import format_location
 
     lines = [f"{format_location(p.loc) or 'request'}: {p.msg}" for p in exc.problems]
     return UsageError(f"{path}: invalid request:\n  " + "\n  ".join(lines))
 
 
 def _cmd_solve(args) -> int:
-    from tdcr.exact import solve_request
-    from tdcr.schemas import RESPONSE_FORMAT_VERSION
-    from tdcr.validation import InvalidRequest, validate_json
+    from tdcr.api.schemas import RESPONSE_FORMAT_VERSION
+    from tdcr.api.validation import InvalidRequest, validate_json
+    from tdcr.physics.exact import solve_request
 
     try:
         request = validate_json(_read_text(args.request), target="solver", limits=_unlimited())
@@ -46,10 +46,10 @@ def _cmd_solve(args) -> int:
 
 def _cmd_inverse(args) -> int:
 
-    from tdcr.inverse import answer, answer_exact, finish, model_forward, model_tip_pose
-    from tdcr.runtime import ManifestError, Surrogate
-    from tdcr.schemas import EXACT_MODEL
-    from tdcr.validation import InvalidRequest, validate_inverse
+    from tdcr.api.schemas import EXACT_MODEL
+    from tdcr.api.validation import InvalidRequest, validate_inverse
+    from tdcr.search.inverse import answer, answer_exact, finish, model_forward, model_tip_pose
+    from tdcr.surrogates.runtime import ManifestError, Surrogate
 
     try:
         problem = validate_inverse(_read_text(args.request))
@@ -71,7 +71,7 @@ def _cmd_inverse(args) -> int:
 
 
 def _cmd_generate(args) -> int:
-    from tdcr.design_space import LoadSpace
+    from tdcr.robot.design_space import LoadSpace
     from training.dataset import DatasetMismatch, GenerateConfig, generate
 
     if args.n < 1 or args.shard_size < 1 or args.points < 2:
@@ -130,7 +130,7 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_export(args) -> int:
-    from tdcr.design_space import LoadSpace
+    from tdcr.robot.design_space import LoadSpace
     from training.operators.export import export_run
 
     meta_path = Path(args.data) / "metadata.json" if args.data else None
@@ -220,7 +220,7 @@ def _cmd_evaluate(args) -> int:
 
 
 def _surrogate_named(models_dir: str, name: str):
-    from tdcr.runtime import ManifestError, Surrogate
+    from tdcr.surrogates.runtime import ManifestError, Surrogate
 
     try:
         return Surrogate.load(models_dir, name)
@@ -229,8 +229,8 @@ def _surrogate_named(models_dir: str, name: str):
 
 
 def _cmd_design(args) -> int:
-    from tdcr.design import search, validate_task
-    from tdcr.validation import InvalidRequest
+    from tdcr.api.validation import InvalidRequest
+    from tdcr.search.design import search, validate_task
 
     try:
         task = validate_task(_read_text(args.task))
@@ -250,8 +250,8 @@ def _cmd_design(args) -> int:
 def _cmd_workspace(args) -> int:
     import time
 
-    from tdcr.design import plot_workspace, workspace
-    from tdcr.validation import InvalidRequest, validate_json
+    from tdcr.api.validation import InvalidRequest, validate_json
+    from tdcr.search.design import plot_workspace, workspace
 
     if not 4 <= args.samples <= 1_000_000 or not 0 < args.tension_max <= 1000:
         raise UsageError("--samples must be in [4, 1000000] and --tension-max in (0, 1000] N")
@@ -277,7 +277,7 @@ def _cmd_workspace(args) -> int:
 
 
 def _cmd_calibrate(args) -> int:
-    from tdcr.runtime import ManifestError, load_manifest
+    from tdcr.surrogates.runtime import ManifestError, load_manifest
     from training.operators.calibrate import SCORES, calibrate
     from training.operators.export import update_manifest
 
@@ -346,10 +346,10 @@ def _cmd_params(args) -> int:
 
 
 def _cmd_predict(args) -> int:
-    from tdcr import engine
-    from tdcr.checks import check_tolerance
-    from tdcr.runtime import ManifestError, Surrogate, best_model, load_manifest
-    from tdcr.validation import InvalidRequest
+    from tdcr.api.checks import check_tolerance
+    from tdcr.api.validation import InvalidRequest
+    from tdcr.surrogates import engine
+    from tdcr.surrogates.runtime import ManifestError, Surrogate, best_model, load_manifest
 
     text = _read_text(args.request)
     try:
@@ -388,7 +388,7 @@ def _cmd_predict(args) -> int:
 
 def _unlimited():
     """Size limits of local commands: only the hard limit of points (the machine is the user's)."""
-    from tdcr.validation import Limits
+    from tdcr.api.validation import Limits
 
     return Limits(max_designs=sys.maxsize, max_design_points=sys.maxsize)
 
@@ -419,7 +419,7 @@ def _cmd_serve(args) -> int:
 def _cmd_loadtest(args) -> int:
     import asyncio
 
-    from tdcr.loadtest import format_rows, sweep
+    from tdcr.clients.loadtest import format_rows, sweep
 
     def ints(text):
         try:
@@ -466,8 +466,8 @@ class FORMATTER(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from tdcr.bounds import CALIBRATION_DESIGNS, CALIBRATION_SEED
-    from tdcr.runtime import DEFAULT_MODELS_DIR
+    from tdcr.surrogates.bounds import CALIBRATION_DESIGNS, CALIBRATION_SEED
+    from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
     parser = argparse.ArgumentParser(prog="tdcr", description=__doc__, formatter_class=FORMATTER)
     sub = parser.add_subparsers(dest="command", required=True)

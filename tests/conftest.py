@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tdcr.validation import Limits, validate_json
+from tdcr.api.validation import Limits, validate_json
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the small reference files the suite reads (copies of shared/'s, tests/data/README.md)
@@ -128,7 +128,7 @@ def run_triton_example(root):
     import httpx
     import numpy as np
 
-    from tdcr.designs import DesignBatch
+    from tdcr.robot.designs import DesignBatch
 
     def run(protocol: str, target: str, url: str, models: list[str]) -> None:
         with tempfile.TemporaryDirectory() as tmp:

@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.designs import LOAD_COLUMNS, N_LOAD_COLUMNS, DesignBatch, ExternalLoads
 from tdcr.physics import STATUS, SolverOptions, solve
+from tdcr.robot.designs import LOAD_COLUMNS, N_LOAD_COLUMNS, DesignBatch, ExternalLoads
 
 FORMAT_VERSION = 1
 _ARRAYS = ("index", "features", "s", "tendons", "backbone", "rotation", "converged", "residual")
@@ -53,7 +53,7 @@ _OPTIONAL = ("status", "error_estimate", "gravity", "density", "tip_force", "tip
 class GenerateConfig:
     """What to generate: ``n`` Table I designs from ``seed``, at ``points`` equispaced arclengths;
     robots of ``segments`` segments with ``tendons_per_segment`` tendons each
-    (:func:`tdcr.design_space.sample_segmented_designs`; the default, one segment of 4 tendons, is
+    (:func:`tdcr.robot.design_space.sample_segmented_designs`; the default, one segment of 4 tendons, is
     the surrogates' design space)."""
 
     n: int
@@ -280,7 +280,7 @@ def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> d
 
 def load_matrix(arrays: dict[str, np.ndarray]) -> np.ndarray:
     """The loads of loaded dataset arrays as the loaded operators take them, ``(B, 10)``
-    (:data:`tdcr.designs.LOAD_COLUMNS`); zeros for a dataset made without loads."""
+    (:data:`tdcr.robot.designs.LOAD_COLUMNS`); zeros for a dataset made without loads."""
     n = len(arrays["features"])
     if "tip_force" not in arrays:
         return np.zeros((n, N_LOAD_COLUMNS))

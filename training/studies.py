@@ -38,10 +38,10 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.bounds import bending_angle
-from tdcr.designs import DesignBatch
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch
+from tdcr.surrogates.bounds import bending_angle
 
 #: Format of the study records (every JSON line carries it).
 RECORD_VERSION = 1
@@ -391,7 +391,7 @@ def design_traits(features: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def study_worst(ctx: Context) -> int:
-    from tdcr.runtime import Surrogate
+    from tdcr.surrogates.runtime import Surrogate
     from training.operators.train import load_trained
 
     path = ctx.out / "worst.jsonl"
@@ -454,7 +454,7 @@ def _epoch_seconds(spec: RunSpec, data: Path, runs: Path) -> dict:
 
 
 def study_timing(ctx: Context) -> int:
-    from tdcr.runtime import Surrogate
+    from tdcr.surrogates.runtime import Surrogate
 
     path = ctx.out / "timing.jsonl"
     have = {(r["kind"], r["preset"], r["model"], r["n"]) for r in records(path)}
@@ -491,7 +491,7 @@ def study_timing(ctx: Context) -> int:
                     times.append(time.perf_counter() - t0)
                 _append(path, {**_record_base(ctx, "timing"), "kind": "inference", "preset": "shipped",
                                "model": name, "n": n, "seconds": min(times), "repeats": b.inference_repeats,
-                               "runtime": "onnxruntime (tdcr.runtime.Surrogate.predict, 2 threads)",
+                               "runtime": "onnxruntime (tdcr.surrogates.runtime.Surrogate.predict, 2 threads)",
                                "paper_seconds": PAPER_INFERENCE_SECONDS[name].get(n),
                                "paper_hardware": PAPER_HARDWARE})
     return 0

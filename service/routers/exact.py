@@ -13,7 +13,7 @@ from fastapi import APIRouter, Request, Response
 from service.codecs import ExactCodec
 from service.deps import State
 from service.routers import json_route
-from tdcr.schemas import ErrorResponse, ExactResponse
+from tdcr.api.schemas import ErrorResponse, ExactResponse
 
 router = APIRouter(tags=["exact"])
 ROUTE = "/exact"

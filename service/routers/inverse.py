@@ -1,4 +1,4 @@
-"""POST /inverse: tensions that put a design's tip on each target of a path (tdcr/inverse.py).
+"""POST /inverse: tensions that put a design's tip on each target of a path (tdcr/search/inverse.py).
 
 A thin codec over the ``inverse`` model (service/solver.py): ``model: exact`` runs in the solver
 processes of /exact (its slots, deadline and admission); an operator runs in a worker thread,
@@ -13,7 +13,7 @@ from fastapi import APIRouter, Request, Response
 from service.codecs import InverseCodec
 from service.deps import State
 from service.routers import json_route
-from tdcr.schemas import ErrorResponse, InverseResponse
+from tdcr.api.schemas import ErrorResponse, InverseResponse
 
 router = APIRouter(tags=["inverse"])
 ROUTE = "/inverse"

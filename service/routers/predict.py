@@ -15,9 +15,9 @@ from service.deps import State
 from service.errors import from_inference, from_invalid, require_json
 from service.metrics import HTTP
 from service.model import InferenceError, InferenceRequest, InferenceResponse
-from tdcr.engine import NPY, NPZ, QUERY_FIELDS, prepare_json, prepare_npy
-from tdcr.schemas import ErrorResponse, PredictResponse
-from tdcr.validation import InvalidRequest, Limits
+from tdcr.api.schemas import ErrorResponse, PredictResponse
+from tdcr.api.validation import InvalidRequest, Limits
+from tdcr.surrogates.engine import NPY, NPZ, QUERY_FIELDS, prepare_json, prepare_npy
 
 router = APIRouter(tags=["predict"])
 

@@ -49,10 +49,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.designs import DEFAULT_POISSON, DesignBatch, ExternalLoads
 from tdcr.physics.status import STATUS, Status
+from tdcr.robot.designs import DEFAULT_POISSON, DesignBatch, ExternalLoads
 
-#: The Poisson ratio of a design that gives none (:data:`tdcr.designs.DEFAULT_POISSON`).
+#: The Poisson ratio of a design that gives none (:data:`tdcr.robot.designs.DEFAULT_POISSON`).
 POISSON_RATIO = DEFAULT_POISSON
 #: How a tendon that ends before the tip loads the rod (``solve(..., termination=)``).
 TERMINATIONS = ("exact", "rucker_webster")
@@ -302,11 +302,11 @@ def solve(
 
 
 def check_inputs(designs: DesignBatch, fractions: np.ndarray, loads: ExternalLoads | None) -> np.ndarray:
-    """The one validation path's value checks (:mod:`tdcr.checks`) for the Python API: every design
+    """The one validation path's value checks (:mod:`tdcr.api.checks`) for the Python API: every design
     and load inside its admissible bounds, the fractions in [0, 1] (clamped within rounding).
-    Returns the fractions ``(n,)``; raises :class:`tdcr.checks.InvalidRequest` (a ``ValueError``)
+    Returns the fractions ``(n,)``; raises :class:`tdcr.api.checks.InvalidRequest` (a ``ValueError``)
     with the service's words, e.g. ``designs[0].tendons[1].tension: must be in [0, 1000] N, got -2``."""
-    from tdcr.checks import (
+    from tdcr.api.checks import (
         Problem,
         check_features,
         check_fractions,

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tdcr.designs import DesignBatch
 from tdcr.physics.cosserat import tendon_routing
+from tdcr.robot.designs import DesignBatch
 
 
 def tendon_offsets(features: np.ndarray, fractions: np.ndarray) -> np.ndarray:

@@ -14,9 +14,9 @@ import pathlib
 import numpy as np
 import pytest
 
-from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 
 DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 

@@ -9,7 +9,7 @@ import pytest
 
 from service.batching import Batcher
 from tdcr import design_space
-from tdcr.runtime import Surrogate
+from tdcr.surrogates.runtime import Surrogate
 
 
 @pytest.mark.parametrize("name", ["deeponet", "fno_pose"])

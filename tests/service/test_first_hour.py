@@ -19,8 +19,8 @@ import pytest
 
 from service.process import ServerProcess, free_port
 from tdcr import DesignBatch, Surrogate, design_space, solve
-from tdcr.client import Client
-from tdcr.runtime import best_model
+from tdcr.clients import Client
+from tdcr.surrogates.runtime import best_model
 
 
 @pytest.fixture(scope="module")

@@ -20,11 +20,11 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from service.process import ServerProcess
-from tdcr.design_space import sample_designs
-from tdcr.designs import DesignBatch
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 from tdcr.physics import solve
+from tdcr.robot.design_space import sample_designs
+from tdcr.robot.designs import DesignBatch
 
 MODELS = ["deeponet", "deeponet_pose", "fno", "fno_pose"]
 SERVICE = "inference.GRPCInferenceService"

@@ -14,8 +14,8 @@ import orjson
 import pytest
 
 from service.process import ServerProcess
-from tdcr.design_space import sample_designs
-from tdcr.designs import DesignBatch
+from tdcr.robot.design_space import sample_designs
+from tdcr.robot.designs import DesignBatch
 
 MODELS = ["deeponet", "deeponet_pose", "fno", "fno_pose"]
 

@@ -18,9 +18,9 @@ from hypothesis import strategies as st
 
 from service.process import ServerProcess, child_pids
 from tdcr import design_space, relative_l2
-from tdcr.client import AsyncClient, Client, TDCRError
-from tdcr.designs import DesignBatch
+from tdcr.clients.client import AsyncClient, Client, TDCRError
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def test_health_ready_models(server):
 
 @pytest.mark.parametrize("model", ["deeponet", "deeponet_pose", "fno", "fno_pose"])
 def test_predict_json_matches_the_runtime(example_request, designs_from_json, server, tiny_models, model):
-    from tdcr.runtime import Surrogate
+    from tdcr.surrogates.runtime import Surrogate
 
     r = httpx.post(server.url + "/predict", json={**example_request, "model": model})
     assert r.status_code == 200, r.text
@@ -250,8 +250,8 @@ def test_hypothesis_never_a_server_error(server, body):
         return
     r = httpx.post(server.url + "/predict", content=payload, headers={"content-type": "application/json"})
     # the oracle: the one validation path, in process (a 404 is an unknown model, a 413 a size limit)
-    from tdcr.checks import InvalidRequest
-    from tdcr.validation import validate_json
+    from tdcr.api.checks import InvalidRequest
+    from tdcr.api.validation import validate_json
 
     try:
         validate_json(payload, target="surrogate")

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
-from tdcr.runtime import DEFAULT_MODELS_DIR
+from tdcr.robot.designs import DesignBatch
+from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
 S = np.linspace(0.0, 1.0, 11)
 

@@ -26,7 +26,7 @@ CHROMIUM_ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swi
 
 @pytest.fixture(scope="module")
 def server():
-    from tdcr.runtime import DEFAULT_MODELS_DIR
+    from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
     srv = ServerProcess(DEFAULT_MODELS_DIR)  # the shipped models: calibrated bounds to show
     yield srv

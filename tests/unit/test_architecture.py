@@ -51,9 +51,9 @@ def test_the_rule_catches_an_offending_import(tmp_path):
 @pytest.mark.parametrize("module, banned", [
     ("tdcr", ["torch", "fastapi", "uvicorn", "onnxruntime", "pydantic", "grpc"]),
     ("tdcr.cli", ["torch", "fastapi", "uvicorn", "onnxruntime", "grpc"]),
-    ("tdcr.loadtest", ["torch", "fastapi", "uvicorn", "onnxruntime", "grpc"]),
-    ("tdcr.runtime", ["torch", "fastapi", "uvicorn"]),
-    ("tdcr.validation", ["torch", "fastapi", "uvicorn", "onnxruntime"]),
+    ("tdcr.clients.loadtest", ["torch", "fastapi", "uvicorn", "onnxruntime", "grpc"]),
+    ("tdcr.surrogates.runtime", ["torch", "fastapi", "uvicorn"]),
+    ("tdcr.api.validation", ["torch", "fastapi", "uvicorn", "onnxruntime"]),
     ("service.app", ["torch", "training"]),
     ("training.dataset", ["torch", "fastapi", "service"]),
 ])
@@ -75,7 +75,7 @@ def test_no_transport_names_a_model(root, tiny_models):
     import json
 
     from service.solver import INVERSE_MODEL
-    from tdcr.schemas import EXACT_MODEL
+    from tdcr.api.schemas import EXACT_MODEL
 
     manifest = json.loads((tiny_models[1] / "manifest.json").read_text())
     names = {EXACT_MODEL, INVERSE_MODEL, *manifest["models"]}
@@ -105,9 +105,9 @@ def test_the_documented_example_model_is_served_by_every_codec(root):
     from service.metrics import Metrics
     from service.model import InferenceRequest, ModelRepository
     from service.oip import RestCodec
-    from tdcr.design_space import sample_designs
-    from tdcr.engine import prepare_json
-    from tdcr.validation import Limits
+    from tdcr.api.validation import Limits
+    from tdcr.robot.design_space import sample_designs
+    from tdcr.surrogates.engine import prepare_json
 
     text = (root / "docs" / "architecture.md").read_text()
     code = re.search(r"### Adding a model.*?```python\n(.*?)```", text, re.S).group(1)

@@ -1,4 +1,4 @@
-"""Calibrated error bounds and the tolerance the service keeps (tdcr/bounds.py): the conformal
+"""Calibrated error bounds and the tolerance the service keeps (tdcr/surrogates/bounds.py): the conformal
 quantile and the calibrated region on synthetic records, coverage of the shipped bounds on
 held-out exact solutions, and on every transport (Python, tdcr predict, /predict JSON and .npy,
 OIP REST and gRPC through tritonclient, /inverse) that the designs a tolerance sends to the exact
@@ -22,7 +22,9 @@ import numpy as np
 import pytest
 
 from tdcr import design_space
-from tdcr.bounds import (
+from tdcr.metrics import relative_l2
+from tdcr.physics import solve
+from tdcr.surrogates.bounds import (
     EXACT,
     EXACT_TOLERANCE,
     SURROGATE,
@@ -32,9 +34,7 @@ from tdcr.bounds import (
     calibration_grid,
     guard,
 )
-from tdcr.metrics import relative_l2
-from tdcr.physics import solve
-from tdcr.runtime import DEFAULT_MODELS_DIR, ManifestError, Surrogate, load_manifest
+from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR, ManifestError, Surrogate, load_manifest
 
 GRID = calibration_grid()
 SHIPPED = load_manifest(DEFAULT_MODELS_DIR)["models"]
@@ -275,7 +275,7 @@ def test_binary_predict_takes_the_tolerance_as_a_query_parameter(server):
     r = httpx.post(server.url + "/predict?tolerance=0", content=buf.getvalue(),
                    headers={"content-type": "application/x-npy"})
     assert r.status_code == 422 and "tolerance" in r.json()["message"]
-    from tdcr.client import Client
+    from tdcr.clients import Client
 
     with Client(server.url) as client:  # the binary client sends the same request
         shapes = client.predict(designs.features(), tolerance=1e-3)

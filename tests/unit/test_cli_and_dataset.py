@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from tdcr import relative_l2
-from tdcr.designs import DesignBatch
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch
 from training import dataset
 
 TDCR = [sys.executable, "-m", "tdcr.cli"]
@@ -180,8 +180,8 @@ def test_generate_with_loads_records_them_and_solves_them(tmp_path):
     kg/m^3, tip force <= 0.02 N and tip moment <= 0.002 N m; shards hold the loads, and each
     design equals a direct solve with its loads."""
     from tdcr.cli import main
-    from tdcr.designs import DesignBatch, ExternalLoads
     from tdcr.physics import solve
+    from tdcr.robot.designs import DesignBatch, ExternalLoads
     from training import dataset
 
     out = tmp_path / "loaded"

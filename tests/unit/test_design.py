@@ -1,4 +1,4 @@
-"""Design search (`tdcr design`, tdcr/design.py) and the reachable workspace (`tdcr workspace`):
+"""Design search (`tdcr design`, tdcr/search/design.py) and the reachable workspace (`tdcr workspace`):
 bad tasks name their field, a task built from a known design is solved and its answer verified by
 the exact solver here, and the workspace's tips are the solver's."""
 
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from tdcr import design_space
-from tdcr.design import features_of, inner_ik, operator_tip, validate_task, workspace
-from tdcr.designs import DesignBatch
+from tdcr.api.validation import InvalidRequest
 from tdcr.physics import solve
-from tdcr.runtime import Surrogate
-from tdcr.validation import InvalidRequest
+from tdcr.robot.designs import DesignBatch
+from tdcr.search.design import features_of, inner_ik, operator_tip, validate_task, workspace
+from tdcr.surrogates.runtime import Surrogate
 
 pytest.importorskip("cma")
 

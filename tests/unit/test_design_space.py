@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from tdcr import design_space as ds
-from tdcr.validation import check_features, format_location
+from tdcr.api.validation import check_features, format_location
 
 
 def test_sampler_is_seeded_and_inside_table_i():

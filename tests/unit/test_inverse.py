@@ -1,4 +1,4 @@
-"""Inverse kinematics (tdcr/inverse.py, POST /inverse, tdcr inverse) and the tip Jacobian of /exact
+"""Inverse kinematics (tdcr/search/inverse.py, POST /inverse, tdcr inverse) and the tip Jacobian of /exact
 and /predict: round trips (inverse, then forward, gives back the target), the least sum of squared
 tensions, unreachable targets, paths, and clear errors."""
 
@@ -14,9 +14,9 @@ import pytest
 
 from service.process import ServerProcess
 from tdcr import design_space
-from tdcr.designs import DesignBatch
-from tdcr.inverse import exact_forward, inverse, tip_by_differences
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch
+from tdcr.search.inverse import exact_forward, inverse, tip_by_differences
 
 TIP = np.array([1.0])
 

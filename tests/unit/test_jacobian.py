@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch
 from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch
 
 S42 = np.linspace(0.0, 1.0, 42)
 
@@ -74,8 +74,8 @@ def test_base_is_clamped_and_processes_agree():
 
 
 def test_loads_and_the_linearized_model_are_refused():
-    from tdcr.designs import ExternalLoads
     from tdcr.physics import SolverOptions
+    from tdcr.robot.designs import ExternalLoads
 
     designs = design_space.sample_designs(1, seed=0)
     gravity = ExternalLoads(gravity=np.array([[0.0, 0.0, -9.81]]), density=np.array([7800.0]))

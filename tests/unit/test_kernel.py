@@ -128,8 +128,8 @@ def test_several_equilibria_is_a_real_eigenvalue_at_or_below_zero():
 
 # --------------------------------------------------------------------------- external loads
 
-from tdcr.design_space import LoadSpace  # noqa: E402
-from tdcr.designs import DesignBatch, ExternalLoads  # noqa: E402
+from tdcr.robot.design_space import LoadSpace  # noqa: E402
+from tdcr.robot.designs import DesignBatch, ExternalLoads  # noqa: E402
 
 #: the issue's loaded design space: |g| = 9.81 m/s^2 in any direction, density 6,450-8,000 kg/m^3,
 #: tip force up to 0.02 N and tip moment up to 0.002 N m in any direction

@@ -8,8 +8,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from tdcr import design_space, relative_l2  # noqa: E402
-from tdcr.designs import DesignBatch  # noqa: E402
 from tdcr.physics import SolverOptions, solve  # noqa: E402
+from tdcr.robot.designs import DesignBatch  # noqa: E402
 from training.operators import kinematics as K  # noqa: E402
 from training.operators.models import TENDON_ONLY, build_model  # noqa: E402
 

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
-from tdcr.runtime import DEFAULT_MODELS_DIR, Surrogate, load_manifest
+from tdcr.robot.designs import DesignBatch, ExternalLoads
+from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR, Surrogate, load_manifest
 
 GRID = np.linspace(0.0, 1.0, 42)
 SHIPPED = load_manifest(DEFAULT_MODELS_DIR)["models"]
@@ -258,7 +258,7 @@ def test_predict_takes_load_fields_and_defaults_to_a_loaded_operator(server):
 
 
 def test_binary_predict_takes_the_loads_after_the_design(server):
-    from tdcr.client import Client
+    from tdcr.clients import Client
 
     designs, loads = _benchmark(50, seed=10)
     with Client(server.url) as client:

@@ -15,7 +15,7 @@ torch = pytest.importorskip("torch")
 from tdcr import design_space  # noqa: E402
 from tdcr.physics import solve  # noqa: E402
 from tdcr.physics.geometry import cubic_weights, rigid_fit, tendon_offsets  # noqa: E402
-from tdcr.runtime import MANIFEST_FORMAT_VERSION, ManifestError, Surrogate  # noqa: E402
+from tdcr.surrogates.runtime import MANIFEST_FORMAT_VERSION, ManifestError, Surrogate  # noqa: E402
 from training.operators.layers import SpectralConv1d, gram_schmidt  # noqa: E402
 from training.operators.models import LOADED, REGISTRY, TENDON_ONLY, build_model, count_parameters  # noqa: E402
 from training.operators.train import Schedule, make_config, train  # noqa: E402

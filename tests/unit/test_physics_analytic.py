@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tdcr import design_space
-from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.physics import SolverOptions, material, solve
 from tdcr.physics import cosserat as _c
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 
 S42 = np.linspace(0.0, 1.0, 42)
 

@@ -11,11 +11,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tdcr import design_space as ds
-from tdcr import engine
-from tdcr.exact import solve_request
+from tdcr.api.validation import validate_features, validate_json
 from tdcr.physics import STATUS, SolverOptions
-from tdcr.runtime import Surrogate
-from tdcr.validation import validate_features, validate_json
+from tdcr.physics.exact import solve_request
+from tdcr.surrogates import engine
+from tdcr.surrogates.runtime import Surrogate
 
 LOW, HIGH, _ = ds.admissible_bounds()
 
@@ -91,12 +91,12 @@ def test_the_solver_answers_numbers_or_flags_the_design(unit):
 def test_the_solver_flags_only_designs_it_has_a_reason_to_flag():
     """The property test above would pass if every design were flagged: here the flags must have
     their physical reason.  Of 400 seeded admissible designs, every one that bends gently (linearised
-    angle < 2 rad, :func:`tdcr.bounds.bending_angle`) with every tendon's tau o^2 / (E I) < 0.3 (far
+    angle < 2 rad, :func:`tdcr.surrogates.bounds.bending_angle`) with every tendon's tau o^2 / (E I) < 0.3 (far
     from the collapse at ~1, :func:`tdcr.physics.cosserat.tendon_collapsed`) converges, and a
     ``tendon_collapsed`` design pulls at least that hard."""
     from tdcr import solve
-    from tdcr.bounds import bending_angle
     from tdcr.physics import Status
+    from tdcr.surrogates.bounds import bending_angle
 
     designs = ds.DesignBatch.from_features(_admissible(np.random.default_rng(0).uniform(0, 1, (400, 15))))
     pull = (designs.tension * designs.offset**2).max(axis=1) / (designs.E * np.pi * designs.r**4 / 4)

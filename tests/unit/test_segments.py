@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tdcr.designs import DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import Status, solve
 from tdcr.physics.cosserat import SolverOptions, _solve_loaded_compiled
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 
 FRACTIONS = np.linspace(0.0, 1.0, 21)
 
@@ -161,7 +161,7 @@ def test_a_displacement_that_would_need_a_push_leaves_the_tendon_slack():
 
 
 def test_high_tension_converges_or_is_flagged():
-    from tdcr.design_space import sample_designs
+    from tdcr.robot.design_space import sample_designs
 
     d = sample_designs(300, seed=3)
     d = d.replace(tension=np.tile([20.0, 0.0, 0.0, 0.0], (300, 1)))
@@ -173,8 +173,8 @@ def test_high_tension_converges_or_is_flagged():
 def test_inverse_kinematics_reaches_a_target_of_a_two_segment_robot():
     """The exact inverse (tip Jacobian of the vectorised path, with the ends) on a segmented design:
     the tensions it returns put the tip on the target in the forward solver."""
-    from tdcr.inverse import answer_exact
-    from tdcr.validation import validate_inverse
+    from tdcr.api.validation import validate_inverse
+    from tdcr.search.inverse import answer_exact
 
     robot = two_segments(1)
     target = solve(robot, np.array([1.0])).backbone[0, 0]

@@ -115,8 +115,8 @@ def test_widened_ood_designs_leave_the_box_on_both_sides_within_admissible_bound
 def test_bending_angle_is_the_tip_angle_of_the_exact_solver_for_one_straight_tendon():
     """Independent of the formula: one straight tendon pulling bends the rod into a circle, whose tip
     tangent turns by the angle the solver returns; for a small pull it is the linear beam angle."""
-    from tdcr.designs import DesignBatch
     from tdcr.physics import solve
+    from tdcr.robot.designs import DesignBatch
 
     feats = np.array([[20e9, 1e-3, 0.2, 0.008, 0.008, 0.008, 0.008, 0, 0, 0, 0, 0.2, 0, 0, 0]])
     sol = solve(DesignBatch.from_features(feats), np.ones(1))

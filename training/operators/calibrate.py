@@ -1,14 +1,14 @@
-"""Split-conformal calibration of the exported operators' error bounds (:mod:`tdcr.bounds`).
+"""Split-conformal calibration of the exported operators' error bounds (:mod:`tdcr.surrogates.bounds`).
 
     tdcr calibrate --models-dir models [--designs 20000] [--seed 25]
 
 For each operator: ``designs`` fresh Table I designs (seed ``seed``; the training data used seeds 0
 and 24, the benchmarks 26 and up), in the loaded operators' trained load space
-(:data:`tdcr.design_space.TRAINING_LOADS`) for a loaded operator; the exact solver's tendon paths
+(:data:`tdcr.robot.design_space.TRAINING_LOADS`) for a loaded operator; the exact solver's tendon paths
 on the calibration grid as the truth; the operator's relative l2 error, its score and its bending
 angle bin; per bin, ``crepes``' normalised conformal regressor (residual = error, sigma = score +
 floor) gives the ``level`` quantile.  The record goes into the manifest entry
-(:meth:`tdcr.bounds.Calibration.sealed`).
+(:meth:`tdcr.surrogates.bounds.Calibration.sealed`).
 
 The score of each operator is chosen by measurement (``benchmarks/error_bound_probe.py``, and
 docs/results.md, "Error bounds"): :data:`SCORES`.
@@ -22,7 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.bounds import (
+from tdcr.metrics import relative_l2
+from tdcr.physics import solve
+from tdcr.robot.designs import DesignBatch, ExternalLoads
+from tdcr.surrogates.bounds import (
     CALIBRATION_DESIGNS,
     CALIBRATION_FORMAT,
     CALIBRATION_POINTS,
@@ -32,10 +35,7 @@ from tdcr.bounds import (
     calibration_grid,
     disagreement,
 )
-from tdcr.designs import DesignBatch, ExternalLoads
-from tdcr.metrics import relative_l2
-from tdcr.physics import solve
-from tdcr.runtime import Surrogate, takes_loads
+from tdcr.surrogates.runtime import Surrogate, takes_loads
 
 #: Confidence of the bounds.
 LEVEL = 0.99
@@ -147,7 +147,7 @@ def fit(error: np.ndarray, score: np.ndarray | None, theta: np.ndarray, *, level
 def calibrate(models_dir: str | Path, manifest: dict, names: list[str], *, designs: int = CALIBRATION_DESIGNS,
               seed: int = CALIBRATION_SEED,
               scores: dict[str, Score] | None = None) -> dict[str, dict]:
-    """The calibration record (:class:`tdcr.bounds.Calibration`, sealed) of each operator of
+    """The calibration record (:class:`tdcr.surrogates.bounds.Calibration`, sealed) of each operator of
     ``names``; the load-free operators share one calibration set, the loaded ones another."""
     scores = SCORES if scores is None else scores
     records = {}

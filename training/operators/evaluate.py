@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from tdcr import design_space
-from tdcr.designs import L_COLUMN, DesignBatch, ExternalLoads
 from tdcr.metrics import relative_l2
 from tdcr.physics import SolverOptions, solve
 from tdcr.physics.geometry import tendon_offsets
-from tdcr.runtime import Surrogate, load_manifest, takes_loads
+from tdcr.robot.designs import L_COLUMN, DesignBatch, ExternalLoads
+from tdcr.surrogates.runtime import Surrogate, load_manifest, takes_loads
 from training import dataset
 
 

@@ -5,7 +5,7 @@ Graph inputs / outputs (float32, SI units):
 * DeepONet models: ``design`` (B, 15) and ``s`` (n,) fractions of L  ->  outputs at those s.
 * FNO models: ``design`` (B, 15)  ->  outputs on their fixed grid s_j = j / 41 (42 points).
 * Loaded operators also take ``loads`` (B, 10): gravity (3, m/s^2), density (kg/m^3), tip force
-  (3, N), tip moment (3, N m), base frame (:data:`tdcr.designs.LOAD_COLUMNS`).
+  (3, N), tip moment (3, N m), base frame (:data:`tdcr.robot.designs.LOAD_COLUMNS`).
 * Tendon models output ``tendons`` (B, n, 4, 3) m; pose models ``backbone`` (B, n, 3) m,
   ``rotation`` (B, n, 3, 3) and ``tendons`` (B, n, 4, 3) m.
 """
@@ -23,8 +23,8 @@ import onnx
 import torch
 
 from tdcr import design_space
-from tdcr.designs import N_LOAD_COLUMNS
-from tdcr.runtime import MANIFEST_FORMAT_VERSION, MANIFEST_NAME
+from tdcr.robot.designs import N_LOAD_COLUMNS
+from tdcr.surrogates.runtime import MANIFEST_FORMAT_VERSION, MANIFEST_NAME
 from training.operators.models import DeepONet, count_parameters
 from training.operators.train import load_trained
 
@@ -259,7 +259,7 @@ def manifest_entry(model, record: dict, onnx_path: Path, *, metrics: dict | None
 
 def _load_ranges(dataset_meta: dict | None) -> dict[str, list[float]]:
     """The loads of a loaded operator's training data (``dataset_meta["loads"]``, a
-    :class:`~tdcr.design_space.LoadSpace`; :data:`~tdcr.design_space.TRAINING_LOADS` if unrecorded)."""
+    :class:`~tdcr.robot.design_space.LoadSpace`; :data:`~tdcr.robot.design_space.TRAINING_LOADS` if unrecorded)."""
     recorded = (dataset_meta or {}).get("loads")
     space = design_space.LoadSpace.from_record(recorded) if recorded else design_space.TRAINING_LOADS
     return space.ranges()

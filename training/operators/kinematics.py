@@ -18,8 +18,8 @@ from typing import NamedTuple
 
 import torch
 
-from tdcr.designs import LOAD_COLUMNS
 from tdcr.physics.cosserat import POISSON_RATIO, section_stiffness
+from tdcr.robot.designs import LOAD_COLUMNS
 
 
 def cross3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -362,7 +362,7 @@ def external_wrench(features: torch.Tensor, loads: torch.Tensor, backbone: torch
     the weight per length f = rho A g.  The integral is the trapezoid rule on ``grid``.
 
     Args:
-        features: raw SI designs ``(B, F)``; loads: ``(B, 10)`` (:data:`tdcr.designs.LOAD_COLUMNS`).
+        features: raw SI designs ``(B, F)``; loads: ``(B, 10)`` (:data:`tdcr.robot.designs.LOAD_COLUMNS`).
         backbone: the shape p(s), m, ``(3, n, B)``, on the uniform ``grid`` ``(n,)`` of fractions of L.
 
     Returns:

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from tdcr import design_space
-from tdcr.designs import LOAD_COLUMNS
+from tdcr.robot.designs import LOAD_COLUMNS
 
 
 def mlp(sizes: list[int], activation: type[nn.Module], dropout: float = 0.0) -> nn.Sequential:
@@ -110,7 +110,7 @@ _LOG_EI_HIGH = math.log(45.5e9 * math.pi * 1.5e-3**4 / 4)
 _LOG_EI_MID, _LOG_EI_HALF = (_LOG_EI_LOW + _LOG_EI_HIGH) / 2, (_LOG_EI_HIGH - _LOG_EI_LOW) / 2
 
 
-#: The trained load magnitudes ``[low, high]`` (:data:`tdcr.design_space.TRAINING_LOADS`), input scales.
+#: The trained load magnitudes ``[low, high]`` (:data:`tdcr.robot.design_space.TRAINING_LOADS`), input scales.
 _LOAD_RANGES = design_space.TRAINING_LOADS.ranges()
 #: Network inputs per load vector (:meth:`DesignGeometry.load_features`).
 N_LOAD_FEATURES = 18

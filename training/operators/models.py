@@ -13,7 +13,7 @@ ONNX graph).  The networks predict the deviation from a reference robot (``refer
                        tendons = p + R rho_i(s)    (paper eq. tend-path)
 
 ``forward`` returns ``tendons`` for tendon models and ``(backbone, rotation, tendons)`` for pose
-models; the runtime fits the pose of tendon models (``tdcr.runtime.rigid_fit``).
+models; the runtime fits the pose of tendon models (``tdcr.surrogates.runtime.rigid_fit``).
 """
 
 from __future__ import annotations

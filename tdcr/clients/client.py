@@ -15,7 +15,7 @@ import io
 import httpx
 import numpy as np
 
-from tdcr.design_space import DEFAULT_POINTS
+from tdcr.robot.design_space import DEFAULT_POINTS
 
 NPY, NPZ = "application/x-npy", "application/x-npz"
 #: The Open Inference Protocol's header giving the length of the JSON part of a binary-tensor body.
@@ -33,10 +33,10 @@ class TDCRError(RuntimeError):
 def _request(features: np.ndarray, *, model: str | None, points: int | None, s, arclength, outputs,
              loads=None, tolerance: float | None = None) -> dict:
     """The ``/predict`` call of a binary request, after the one validation path's checks (nothing
-    is sent for a bad one; the same words as the service's 422: :class:`tdcr.checks.InvalidRequest`,
+    is sent for a bad one; the same words as the service's 422: :class:`tdcr.api.checks.InvalidRequest`,
     a ``ValueError``).  With ``loads`` (:class:`tdcr.ExternalLoads`) the body is ``(B, 25)``:
     each design followed by its loads matrix row."""
-    from tdcr.checks import (
+    from tdcr.api.checks import (
         check_fractions,
         check_loads,
         check_surrogate_features,

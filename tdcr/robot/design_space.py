@@ -3,7 +3,7 @@ every input, sampling, OOD bins, normalisation, and range warnings.
 
 Feature order (shared by the dataset, the networks and the ONNX models), for N_t tendons:
 ``[E, r, L, offset_0..offset_{N_t-1}, pitch_0.., tension_0..]``, shape ``(B, 3 + 3 N_t)``
-(:class:`tdcr.designs.FeatureLayout`).
+(:class:`tdcr.robot.designs.FeatureLayout`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.robot.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
 
 #: Tendons of the trained surrogates (the solver takes any number >= 1).
 N_TENDONS = 4
@@ -345,7 +345,7 @@ _LOAD_SLACK = 1e-6
 
 def load_warnings(loads: np.ndarray, ranges: dict[str, list[float]]) -> list[list[str]]:
     """Per design, one line for each load outside the trained ``ranges`` (a manifest's
-    ``load_ranges``) of the loads matrix ``(B, 10)`` (:data:`tdcr.designs.LOAD_COLUMNS`): the
+    ``load_ranges``) of the loads matrix ``(B, 10)`` (:data:`tdcr.robot.designs.LOAD_COLUMNS`): the
     magnitudes |gravity|, |tip_force| and |tip_moment|, and the density of designs in gravity;
     e.g. ``|tip_force| = 0.05 N is outside the trained range [0, 0.02]``."""
     loads = np.asarray(loads, dtype=np.float64)

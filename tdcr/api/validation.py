@@ -7,7 +7,7 @@ everywhere.  Order of the checks, so that nothing large is allocated for a bad r
 1. structure and types (pydantic, for JSON; shape and dtype for arrays);
 2. sizes from the declared counts: designs, points, designs x points (:class:`Limits`);
 3. values, vectorised over the batch: finite, inside the admissible physical bounds of
-   :mod:`tdcr.design_space`, arclength fractions in [0, 1], density with gravity, and for the
+   :mod:`tdcr.robot.design_space`, arclength fractions in [0, 1], density with gravity, and for the
    surrogates 4 tendons and no external loads.
 
 Problems name the field as ``designs[3].tendons[1].tension`` and say why.
@@ -22,7 +22,7 @@ from typing import Literal
 import numpy as np
 from pydantic import ValidationError
 
-from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's vocabulary
+from tdcr.api.checks import (  # noqa: F401 - re-exported: the validation path's vocabulary
     EXACT_ROUTES,
     LAYOUT_REASONS,
     LOADED_EXAMPLE,
@@ -41,7 +41,8 @@ from tdcr.checks import (  # noqa: F401 - re-exported: the validation path's voc
     loaded_rows,
     quote,
 )
-from tdcr.design_space import (
+from tdcr.api.schemas import EXACT_MODEL, MAX_MODEL_NAME, MAX_TARGETS, InverseRequest, PredictRequest, SolveRequest
+from tdcr.robot.design_space import (
     DEFAULT_POINTS,
     FRACTION_ROUNDING,
     MAX_POINTS,
@@ -49,8 +50,7 @@ from tdcr.design_space import (
     N_TENDONS,
     TABLE_I,
 )
-from tdcr.designs import DEFAULT_POISSON, DesignBatch, ExternalLoads, FeatureLayout
-from tdcr.schemas import EXACT_MODEL, MAX_MODEL_NAME, MAX_TARGETS, InverseRequest, PredictRequest, SolveRequest
+from tdcr.robot.designs import DEFAULT_POISSON, DesignBatch, ExternalLoads, FeatureLayout
 
 #: What a request is for: the surrogates (4 tendons, no loads) or the physics solver.
 Target = Literal["surrogate", "solver"]
@@ -274,7 +274,7 @@ def _zero_absent(loads: ExternalLoads) -> ExternalLoads:
 
 
 def _loaded(loads: ExternalLoads) -> np.ndarray:
-    """Per design ``(b,)``: a load that is not zero (:func:`tdcr.checks.loaded_rows`; after the checks)."""
+    """Per design ``(b,)``: a load that is not zero (:func:`tdcr.api.checks.loaded_rows`; after the checks)."""
     return loaded_rows(loads.matrix(len(loads.tip_force)))
 
 
@@ -379,9 +379,9 @@ def validate_features(features: np.ndarray, *, target: Target = "surrogate", poi
     """Raw SI designs ``(B, 3 + 3 N_t)`` (e.g. a ``.npy`` body or OIP tensors) with arclengths and
     options; ``loads``: any of ``gravity`` ``(B, 3)`` m/s^2, ``density`` ``(B,)`` kg/m^3,
     ``tip_force`` ``(B, 3)`` N, ``tip_moment`` ``(B, 3)`` N m (whether the model takes them is the
-    model's check: :func:`tdcr.checks.check_model_loads`); ``tolerance``: as :class:`ShapeRequest`'s;
+    model's check: :func:`tdcr.api.checks.check_model_loads`); ``tolerance``: as :class:`ShapeRequest`'s;
     ``layout``: any of the general design's ``angle``, ``end``, ``displacement`` (NaN: tension-driven)
-    ``(B, N_t)`` and ``poisson`` ``(B,)`` (:class:`tdcr.designs.DesignBatch`); ``termination``: as
+    ``(B, N_t)`` and ``poisson`` ``(B,)`` (:class:`tdcr.robot.designs.DesignBatch`); ``termination``: as
     :func:`tdcr.solve`'s.
 
     Raises :class:`InvalidRequest`.
@@ -498,7 +498,7 @@ def validate_inverse(body: bytes | str | dict) -> InverseProblem:
                          tolerance=request.tolerance, loads=group.loads)
 
 
-#: The defaults of an inverse request (``tdcr.schemas.InverseRequest``).
+#: The defaults of an inverse request (``tdcr.api.schemas.InverseRequest``).
 INVERSE_DEFAULTS = {name: InverseRequest.model_fields[name].default for name in ("tension_max", "tolerance")}
 
 

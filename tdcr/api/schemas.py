@@ -1,9 +1,9 @@
 """JSON schemas of requests and answers (pydantic), shared by the CLI, the clients and the service.
 
 The schemas check *types and structure* only.  Every value check (finite, admissible physical
-bounds, arclengths, sizes) runs afterwards, vectorised, in :mod:`tdcr.validation`, the one
+bounds, arclengths, sizes) runs afterwards, vectorised, in :mod:`tdcr.api.validation`, the one
 validation path of every entry point; the bounds still appear in the JSON schema (and so in
-``openapi/openapi.json``), generated from :mod:`tdcr.design_space`.
+``openapi/openapi.json``), generated from :mod:`tdcr.robot.design_space`.
 
 Units are SI: E in Pa, r, L and offsets in m, pitch in rad/m, tension in N, gravity in m/s^2,
 density in kg/m^3, tip force in N, tip moment in N m, arclengths ``s`` as fractions of L.
@@ -15,8 +15,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from tdcr.bounds import EXACT_TOLERANCE
-from tdcr.design_space import (
+from tdcr.physics.cosserat import TERMINATIONS
+from tdcr.robot.design_space import (
     DEFAULT_POINTS,
     FRACTION_ROUNDING,
     LAYOUT_FIELDS,
@@ -26,7 +26,7 @@ from tdcr.design_space import (
     N_TENDONS,
     TABLE_I,
 )
-from tdcr.physics.cosserat import TERMINATIONS
+from tdcr.surrogates.bounds import EXACT_TOLERANCE
 
 #: Longest model name a request may carry.
 MAX_MODEL_NAME = 64
@@ -35,7 +35,7 @@ EXACT_MODEL = "exact"
 
 
 def _bounds(low: float, high: float, exclusive_min: bool) -> dict:
-    """JSON-schema bounds (documentation for clients and fuzzers; enforced by tdcr.validation)."""
+    """JSON-schema bounds (documentation for clients and fuzzers; enforced by tdcr.api.validation)."""
     return {"exclusiveMinimum" if exclusive_min else "minimum": low, "maximum": high}
 
 
@@ -59,7 +59,7 @@ _Fraction = Annotated[float, Field(strict=True, json_schema_extra={"minimum": -F
 
 
 def _layout(bound):
-    """An optional field of the general design (:data:`tdcr.design_space.LAYOUT_FIELDS`), with its bounds."""
+    """An optional field of the general design (:data:`tdcr.robot.design_space.LAYOUT_FIELDS`), with its bounds."""
     low, high = bound.admissible
     extra = {"exclusiveMinimum" if bound.exclusive_min else "minimum": low,
              "exclusiveMaximum" if bound.exclusive_max else "maximum": high}

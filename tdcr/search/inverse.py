@@ -29,10 +29,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tdcr.designs import DesignBatch
-from tdcr.exact import NOT_FINITE_RESIDUAL
+from tdcr.api.validation import InverseProblem
 from tdcr.physics import TipSolver, solve
-from tdcr.validation import InverseProblem
+from tdcr.physics.exact import NOT_FINITE_RESIDUAL
+from tdcr.robot.designs import DesignBatch
 
 #: Relative weight of |tau|^2 (to the Jacobian's scale) in the least-norm steps.
 LEAST_NORM_WEIGHT = 1e-10
@@ -98,7 +98,7 @@ def model_tip_pose(predict: Callable[..., dict], *, load_row: np.ndarray | None 
                    **options) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """Any operator's tip as ``tip_pose(features (K, F)) -> (positions (K, 3) m, frames (K, 3, 3))``,
     float64, from its ``predict(features, fractions, pose=True, **options)`` at s = L (a
-    :class:`tdcr.runtime.Surrogate`'s or a batcher's); ``load_row`` ``(1, 10)``: the same loads for
+    :class:`tdcr.surrogates.runtime.Surrogate`'s or a batcher's); ``load_row`` ``(1, 10)``: the same loads for
     every row.  The one tip-pose helper of inverse kinematics, design search and tip Jacobians."""
     def tip_pose(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         loads = None if load_row is None else np.repeat(load_row, len(features), axis=0)
@@ -347,9 +347,9 @@ EVALUATIONS_PER_TARGET = 20
 
 def _admit(problem: InverseProblem, max_seconds: float | None, seconds_per_design: float, *,
            evaluations: int = EVALUATIONS_PER_TARGET) -> None:
-    """:class:`tdcr.exact.TooMuchWork` if ``evaluations`` exact evaluations per target would take
+    """:class:`tdcr.physics.exact.TooMuchWork` if ``evaluations`` exact evaluations per target would take
     over ``max_seconds``."""
-    from tdcr.exact import TooMuchWork
+    from tdcr.physics.exact import TooMuchWork
 
     estimate = problem.n_targets * evaluations * 4 * seconds_per_design  # ~4 ms per evaluation
     if max_seconds is not None and estimate > max_seconds:
@@ -360,7 +360,7 @@ def answer_exact(problem: InverseProblem, *, starts: np.ndarray | None = None, m
                  seconds_per_design: float = 1e-3) -> list[dict]:
     """A validated inverse problem with the exact model, admitted by its estimated work (run in a
     solver process); ``starts`` ``(T, N_t)``: polish these answers (of an operator).  Every answer's
-    ``source`` is ``"exact"``.  Raises :class:`tdcr.exact.TooMuchWork`."""
+    ``source`` is ``"exact"``.  Raises :class:`tdcr.physics.exact.TooMuchWork`."""
     _admit(problem, max_seconds, seconds_per_design)
     results = answer(problem, exact_forward(problem.design), starts=None if starts is None else np.asarray(starts))
     return [r | {"source": "exact"} for r in results]

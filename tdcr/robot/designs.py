@@ -215,7 +215,7 @@ class DesignBatch:
         )
 
     def to_dicts(self) -> list[dict]:
-        """The designs as JSON-ready dicts of the request format (``tdcr.schemas.Design``), SI units;
+        """The designs as JSON-ready dicts of the request format (``tdcr.api.schemas.Design``), SI units;
         the optional fields only where given."""
         out = []
         for b in range(self.n_designs):

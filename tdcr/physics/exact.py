@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.design_space import DEFAULT_POINTS
+from tdcr.api.validation import ShapeRequest
 from tdcr.physics import STATUS, RodSolution, SolverOptions, Status, solve
-from tdcr.validation import ShapeRequest
+from tdcr.robot.design_space import DEFAULT_POINTS
 
 
 @dataclass(frozen=True)
@@ -171,8 +171,8 @@ def warm_up() -> bool:
     """Import and run the solver once, tendon-only, loaded, with segments under both termination
     rules and with displacement actuation (warms worker processes up; compiles the numba kernels
     into their cache on first use)."""
-    from tdcr.design_space import sample_designs, sample_segmented_designs
-    from tdcr.designs import ExternalLoads
+    from tdcr.robot.design_space import sample_designs, sample_segmented_designs
+    from tdcr.robot.designs import ExternalLoads
 
     designs, fraction = sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5)
     solve(designs, fraction)

@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.design_space import LAYOUT, load_warnings, range_warnings
 from tdcr.metrics import relative_l2
+from tdcr.robot.design_space import LAYOUT, load_warnings, range_warnings
 
 #: Calibration record format this runtime reads.
 CALIBRATION_FORMAT = 1

@@ -23,7 +23,7 @@ import numpy as np
 import orjson
 
 from tdcr import design_space
-from tdcr.client import INFERENCE_HEADER_LENGTH, NPY, NPZ, _npy
+from tdcr.clients.client import INFERENCE_HEADER_LENGTH, NPY, NPZ, _npy
 
 
 @dataclass

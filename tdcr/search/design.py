@@ -8,13 +8,13 @@ the exact solver (``tdcr design TASK.json``; :func:`search`).
   inner solve; ``cma`` is the reference implementation, with box bounds.
 * **Inner inverse kinematics**, one batch per generation for every candidate x target x start:
   box-constrained Levenberg-Marquardt on the tensions, the tip and its tension Jacobian from the
-  operator by central differences (:func:`tdcr.inverse.tip_by_differences`), or from the exact
+  operator by central differences (:func:`tdcr.search.inverse.tip_by_differences`), or from the exact
   solver with its exact Jacobian (``inner="exact"``, the baseline).
 * **Fitness**: a candidate that reaches every target within the tolerance (the operator's word)
   scores its objective (the largest tension over the targets, the sum of tensions, or L); one that
   does not, ``PENALTY`` plus its summed misses over L.
 * **Proof**: the best candidates the operator calls feasible are verified and polished with the
-  exact inverse kinematics (:func:`tdcr.inverse.answer` with :func:`tdcr.inverse.exact_forward`,
+  exact inverse kinematics (:func:`tdcr.search.inverse.answer` with :func:`tdcr.search.inverse.exact_forward`,
   started from the operator's tensions); ``overturned`` counts the candidates physics refused.
   Every reported position, error and ``reached`` is the exact solver's.
 """
@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tdcr.design_space import LAYOUT, N_TENDONS, TABLE_I
-from tdcr.designs import DesignBatch
-from tdcr.inverse import answer, exact_forward, model_tip_pose, tip_by_differences
-from tdcr.schemas import OBJECTIVES, SEARCH_PARAMETERS, DesignTask
-from tdcr.validation import InvalidRequest, Problem, check_inverse
+from tdcr.api.schemas import OBJECTIVES, SEARCH_PARAMETERS, DesignTask
+from tdcr.api.validation import InvalidRequest, Problem, check_inverse
+from tdcr.robot.design_space import LAYOUT, N_TENDONS, TABLE_I
+from tdcr.robot.designs import DesignBatch
+from tdcr.search.inverse import answer, exact_forward, model_tip_pose, tip_by_differences
 
 #: Fitness of a candidate that misses a target: above every objective value.
 PENALTY = 1e3
@@ -53,7 +53,7 @@ ONE = np.ones(1)
 class Task:
     """A validated task: ``positions`` ``(T, 3)`` m, ``directions`` ``(T, 3)`` (NaN rows: none),
     per searched parameter its bounds (``free``: name -> (low, high)), the ``fixed`` values, and
-    the options of :class:`tdcr.schemas.DesignTask`."""
+    the options of :class:`tdcr.api.schemas.DesignTask`."""
 
     positions: np.ndarray
     directions: np.ndarray
@@ -77,7 +77,7 @@ def validate_task(body: bytes | str | dict) -> Task:
     naming each field."""
     from pydantic import ValidationError
 
-    from tdcr.checks import _short
+    from tdcr.api.checks import _short
 
     try:
         task = DesignTask.model_validate(body) if isinstance(body, dict) else DesignTask.model_validate_json(body)
@@ -296,12 +296,12 @@ def verify(task: Task, features: np.ndarray, tensions: np.ndarray) -> tuple[list
 
 def search(task: Task, *, surrogate=None, inner: str = "operator", progress: bool = False) -> Result:
     """The design of ``task`` (see the module docstring): ``surrogate`` (a
-    :class:`tdcr.runtime.Surrogate`; default :data:`DEFAULT_OPERATOR`) drives the inner inverse
+    :class:`tdcr.surrogates.runtime.Surrogate`; default :data:`DEFAULT_OPERATOR`) drives the inner inverse
     kinematics, or the exact solver with ``inner="exact"``; ``progress``: a tqdm bar on stderr."""
     import cma
     from tqdm import tqdm
 
-    from tdcr.runtime import Surrogate
+    from tdcr.surrogates.runtime import Surrogate
 
     if task.objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}")
@@ -426,7 +426,7 @@ def workspace(features: np.ndarray, *, samples: int = 20_000, tension_max: float
               surrogate=None) -> Workspace:
     """Monte-Carlo reachable tips of one design ``(15,)`` (its tensions ignored): ``samples``
     tension vectors uniform in [0, ``tension_max``]^4 (seeded) through the exact solver, or
-    ``surrogate`` (a :class:`tdcr.runtime.Surrogate`)."""
+    ``surrogate`` (a :class:`tdcr.surrogates.runtime.Surrogate`)."""
     from scipy.spatial import ConvexHull
 
     rng = np.random.default_rng([seed, 0x5A])

@@ -1,12 +1,12 @@
 """The surrogate engine, shared by ``tdcr predict`` and the service: prepare -> predict -> encode.
 
 * **prepare**: a JSON body, or a ``.npy`` body with its query parameters, to a validated
-  :class:`tdcr.validation.ShapeRequest`, through the one validation path of :mod:`tdcr.validation`;
-* **predict**: the request on a surrogate (``Predictor``: a :class:`tdcr.runtime.Surrogate`, or the
+  :class:`tdcr.api.validation.ShapeRequest`, through the one validation path of :mod:`tdcr.api.validation`;
+* **predict**: the request on a surrogate (``Predictor``: a :class:`tdcr.surrogates.runtime.Surrogate`, or the
   service's dynamic batcher in front of one) to a :class:`Prediction`;
 * **encode**: a :class:`Prediction` to JSON (``PredictResponse``) or ``.npz`` bytes.
 
-Nothing here knows HTTP: errors are :class:`tdcr.validation.InvalidRequest`.
+Nothing here knows HTTP: errors are :class:`tdcr.api.validation.InvalidRequest`.
 """
 
 from __future__ import annotations
@@ -20,15 +20,15 @@ from typing import Protocol
 import numpy as np
 import orjson
 
-from tdcr.bounds import EXACT, SOURCES, Calibration, guard
-from tdcr.checks import check_model_loads
-from tdcr.design_space import N_FEATURES, load_warnings, range_warnings
-from tdcr.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
-from tdcr.exact import ExactAnswer
-from tdcr.inverse import model_tip_pose, tip_by_differences
-from tdcr.runtime import error_bound, on_grid_tendons
-from tdcr.schemas import RESPONSE_FORMAT_VERSION
-from tdcr.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
+from tdcr.api.checks import check_model_loads
+from tdcr.api.schemas import RESPONSE_FORMAT_VERSION
+from tdcr.api.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
+from tdcr.physics.exact import ExactAnswer
+from tdcr.robot.design_space import N_FEATURES, load_warnings, range_warnings
+from tdcr.robot.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
+from tdcr.search.inverse import model_tip_pose, tip_by_differences
+from tdcr.surrogates.bounds import EXACT, SOURCES, Calibration, guard
+from tdcr.surrogates.runtime import error_bound, on_grid_tendons
 
 #: Media types of the binary path.
 NPY = "application/x-npy"
@@ -38,8 +38,8 @@ QUERY_FIELDS = ("model", "points", "s", "arclength", "outputs", "tolerance")
 
 
 class Predictor(Protocol):
-    """What runs a surrogate: :meth:`tdcr.runtime.Surrogate.predict` or a batcher in front of it;
-    ``takes_loads`` and ``load_ranges`` as :class:`tdcr.runtime.Surrogate`'s."""
+    """What runs a surrogate: :meth:`tdcr.surrogates.runtime.Surrogate.predict` or a batcher in front of it;
+    ``takes_loads`` and ``load_ranges`` as :class:`tdcr.surrogates.runtime.Surrogate`'s."""
 
     takes_loads: bool
     load_ranges: dict | None
@@ -51,10 +51,10 @@ class Predictor(Protocol):
 @dataclass(frozen=True)
 class Guard:
     """What bounds an operator's answers and keeps a request's tolerance: its ``calibration``
-    (:class:`tdcr.bounds.Calibration`; None: uncalibrated, so no answer has a finite bound and a
+    (:class:`tdcr.surrogates.bounds.Calibration`; None: uncalibrated, so no answer has a finite bound and a
     tolerance sends every design to the solver), the ``companion`` predictor its score needs (None: none),
-    and ``exact``: the exact solver's answer (:class:`tdcr.exact.ExactAnswer`) to a sub-request of
-    the designs that fall back (:meth:`tdcr.validation.ShapeRequest.take`), with whatever admission
+    and ``exact``: the exact solver's answer (:class:`tdcr.physics.exact.ExactAnswer`) to a sub-request of
+    the designs that fall back (:meth:`tdcr.api.validation.ShapeRequest.take`), with whatever admission
     and deadline the caller keeps."""
 
     calibration: Calibration | None
@@ -63,9 +63,9 @@ class Guard:
 
 
 def local_guard(surrogate) -> Guard:
-    """The :class:`Guard` of a loaded :class:`tdcr.runtime.Surrogate` in this process (``tdcr
+    """The :class:`Guard` of a loaded :class:`tdcr.surrogates.runtime.Surrogate` in this process (``tdcr
     predict``): its calibration (if any), its companion and the exact solver here, unlimited."""
-    from tdcr.exact import solve_request
+    from tdcr.physics.exact import solve_request
 
     return Guard(calibration=surrogate.calibration, companion=surrogate.companion(), exact=solve_request)
 
@@ -116,7 +116,7 @@ def prepare_json(body: bytes | str | dict, *, limits: Limits) -> ShapeRequest:
 
 def prepare_npy(body: bytes, params: Mapping[str, list[str]], *, limits: Limits) -> ShapeRequest:
     """A ``.npy`` body of raw SI designs ``(B, 15)``, or ``(B, 25)``: each design followed by its
-    loads (:data:`tdcr.designs.LOAD_COLUMNS`: gravity, density, tip force, tip moment; for a loaded
+    loads (:data:`tdcr.robot.designs.LOAD_COLUMNS`: gravity, density, tip force, tip moment; for a loaded
     operator), and the query ``params`` (name -> values)."""
     problems = [Problem((k,), "may be given once", "repeated") for k in ("model", "points", "outputs", "tolerance")
                 if len(params.get(k, [])) > 1]
@@ -200,7 +200,7 @@ def exact_arrays(answer: ExactAnswer) -> dict[str, np.ndarray]:
 
 
 def encode_json(prediction: Prediction) -> bytes:
-    """``PredictResponse`` JSON (format :data:`tdcr.schemas.RESPONSE_FORMAT_VERSION`): per design s
+    """``PredictResponse`` JSON (format :data:`tdcr.api.schemas.RESPONSE_FORMAT_VERSION`): per design s
     (fractions of L), arclength (m), backbone, rotation, tendons, in_distribution, warnings, finite,
     error_bound (null: none) and source."""
     arrays = {k: np.ascontiguousarray(v) for k, v in prediction.arrays.items()}  # orjson: C order only

@@ -21,14 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tdcr.bounds import (
-    Calibration,
-    CalibrationError,
-    calibration_grid,
-    disagreement,
-    guard,
-)
-from tdcr.checks import (
+from tdcr.api.checks import (
     InvalidRequest,
     check_fractions,
     check_loads,
@@ -39,14 +32,21 @@ from tdcr.checks import (
     loaded_rows,
     raise_problems,
 )
-from tdcr.designs import N_LOAD_COLUMNS, DesignBatch, ExternalLoads
 from tdcr.physics.geometry import cubic_weights, orthonormalize, rigid_fit, tendon_offsets
+from tdcr.robot.designs import N_LOAD_COLUMNS, DesignBatch, ExternalLoads
+from tdcr.surrogates.bounds import (
+    Calibration,
+    CalibrationError,
+    calibration_grid,
+    disagreement,
+    guard,
+)
 
 #: Manifest (and manifest entry) format this runtime reads; training/operators/export.py writes it.
 MANIFEST_FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 #: The shipped models, found from any working directory (a path relative to the package).
-DEFAULT_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+DEFAULT_MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 
 
 def takes_loads(entry: dict) -> bool:
@@ -214,7 +214,7 @@ class Surrogate:
 
     @property
     def load_ranges(self) -> dict[str, list[float]] | None:
-        """The loads of its training data (:meth:`tdcr.design_space.LoadSpace.ranges`), or None."""
+        """The loads of its training data (:meth:`tdcr.robot.design_space.LoadSpace.ranges`), or None."""
         return self.entry.get("load_ranges")
 
     def load_matrix(self, loads, n_designs: int) -> np.ndarray | None:
@@ -242,7 +242,7 @@ class Surrogate:
     def error_bound(self, features: np.ndarray, *, loads: ExternalLoads | np.ndarray | None = None,
                     tendons: np.ndarray | None = None) -> np.ndarray:
         """The calibrated 99 % bound ``(B,)`` of the relative l2 error of each design's tendon
-        positions (:mod:`tdcr.bounds`; ``inf`` outside the calibrated region, and everywhere for a
+        positions (:mod:`tdcr.surrogates.bounds`; ``inf`` outside the calibrated region, and everywhere for a
         model without a calibration); ``tendons``: this operator's answer ``(B, 42, 4, 3)`` on the
         calibration grid if already computed.  Designs are not checked here."""
         if self.calibration is None:
@@ -306,7 +306,7 @@ class Surrogate:
         """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m.
 
         ``bound``: add ``error_bound`` ``(B,)`` (:meth:`error_bound`).  ``tolerance`` (relative l2,
-        at least :data:`tdcr.bounds.EXACT_TOLERANCE`): designs whose bound exceeds it, or is not
+        at least :data:`tdcr.surrogates.bounds.EXACT_TOLERANCE`): designs whose bound exceeds it, or is not
         finite, are answered by the exact solver (:func:`tdcr.physics.solve`, float64), in order;
         adds ``error_bound`` and ``source`` ``(B,)`` (0: surrogate, 1: exact).
 
@@ -320,7 +320,7 @@ class Surrogate:
         ``pose=False`` returns ``tendons`` only (saves the conversion and, off the FNO grid, the
         interpolation of the pose).
 
-        ``check``: the one validation path's checks first (:mod:`tdcr.checks`): ``(B, 15)`` designs
+        ``check``: the one validation path's checks first (:mod:`tdcr.api.checks`): ``(B, 15)`` designs
         inside their admissible bounds, loads inside theirs, fractions in [0, 1]; a ``ValueError``
         with the service's words else.  The service's batcher, whose requests are validated
         already, skips them.

@@ -1,6 +1,6 @@
 """The value checks of the one validation path, numpy only: what every entry point runs, the
-service's (through :mod:`tdcr.validation`) and the Python API's (:func:`tdcr.solve`,
-:meth:`tdcr.Surrogate.predict`, :class:`tdcr.client.Client`), so that the same mistake gets the
+service's (through :mod:`tdcr.api.validation`) and the Python API's (:func:`tdcr.solve`,
+:meth:`tdcr.Surrogate.predict`, :class:`tdcr.clients.client.Client`), so that the same mistake gets the
 same words everywhere: ``designs[0].tendons[1].tension: must be in [0, 1000] N, got -2``.
 
 :class:`InvalidRequest` is a ``ValueError``; the service answers it with a 422 naming the fields.
@@ -13,9 +13,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tdcr.bounds import EXACT_TOLERANCE
-from tdcr.design_space import FRACTION_ROUNDING, LAYOUT_FIELDS, LOADS, N_TENDONS, TABLE_I, admissible_bounds
-from tdcr.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout, default_angles
+from tdcr.robot.design_space import FRACTION_ROUNDING, LAYOUT_FIELDS, LOADS, N_TENDONS, TABLE_I, admissible_bounds
+from tdcr.robot.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout, default_angles
+from tdcr.surrogates.bounds import EXACT_TOLERANCE
 
 #: Problems quoted in one message (the rest are counted).
 MAX_LISTED_PROBLEMS = 20
@@ -106,7 +106,7 @@ def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list
 
 
 def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[Problem]:
-    """Problems with the general design's optional fields (:data:`tdcr.design_space.LAYOUT_FIELDS`): an
+    """Problems with the general design's optional fields (:data:`tdcr.robot.design_space.LAYOUT_FIELDS`): an
     angle, end, displacement or Poisson ratio that is not finite or outside its admissible bounds,
     an end beyond the design's L (within rounding: clamped), a Poisson ratio outside (0, 0.5)."""
     rows = np.arange(designs.n_designs) if rows is None else rows
@@ -239,7 +239,7 @@ def check_model_loads(loads: ExternalLoads | None, rows: np.ndarray, *, model: s
 
 def check_tolerance(tolerance: float | None, *, name: str = "tolerance") -> list[Problem]:
     """The problem with a ``tolerance`` (relative l2; None: none): it must be a number of at least
-    :data:`tdcr.bounds.EXACT_TOLERANCE`, what the exact solver itself guarantees."""
+    :data:`tdcr.surrogates.bounds.EXACT_TOLERANCE`, what the exact solver itself guarantees."""
     if tolerance is None:
         return []
     number = isinstance(tolerance, (int, float, np.floating)) and not isinstance(tolerance, bool)
