@@ -18,6 +18,8 @@ from hypothesis import strategies as st
 
 from service.process import ServerProcess, child_pids
 from tdcr import design_space, relative_l2
+from tdcr.api.checks import InvalidRequest
+from tdcr.api.validation import validate_json
 from tdcr.clients.client import AsyncClient, Client, TDCRError
 from tdcr.physics import solve
 from tdcr.robot.designs import DesignBatch
@@ -250,9 +252,6 @@ def test_hypothesis_never_a_server_error(server, body):
         return
     r = httpx.post(server.url + "/predict", content=payload, headers={"content-type": "application/json"})
     # the oracle: the one validation path, in process (a 404 is an unknown model, a 413 a size limit)
-    from tdcr.api.checks import InvalidRequest
-    from tdcr.api.validation import validate_json
-
     try:
         validate_json(payload, target="surrogate")
         problems = None

@@ -12,9 +12,10 @@ from hypothesis import strategies as st
 
 from tdcr import design_space as ds
 from tdcr.api.validation import validate_features, validate_json
-from tdcr.physics import STATUS, SolverOptions
+from tdcr.physics import STATUS, SolverOptions, Status, solve
 from tdcr.physics.exact import solve_request
 from tdcr.surrogates import engine
+from tdcr.surrogates.bounds import bending_angle
 from tdcr.surrogates.runtime import Surrogate
 
 LOW, HIGH, _ = ds.admissible_bounds()
@@ -94,10 +95,6 @@ def test_the_solver_flags_only_designs_it_has_a_reason_to_flag():
     angle < 2 rad, :func:`tdcr.surrogates.bounds.bending_angle`) with every tendon's tau o^2 / (E I) < 0.3 (far
     from the collapse at ~1, :func:`tdcr.physics.cosserat.tendon_collapsed`) converges, and a
     ``tendon_collapsed`` design pulls at least that hard."""
-    from tdcr import solve
-    from tdcr.physics import Status
-    from tdcr.surrogates.bounds import bending_angle
-
     designs = ds.DesignBatch.from_features(_admissible(np.random.default_rng(0).uniform(0, 1, (400, 15))))
     pull = (designs.tension * designs.offset**2).max(axis=1) / (designs.E * np.pi * designs.r**4 / 4)
     gentle = (bending_angle(designs.features()) < 2.0) & (pull < 0.3)
