@@ -1323,7 +1323,7 @@ def _jump(x, rot, mom, force, rho, drho, tau_right, kse, kbt, dt):
 
 
 @njit(cache=True, error_model="numpy")
-def _stage_stretch(x, rho, drho, tau, end, act, out):
+def _stage_stretch(x, rho, drho, end, act, out):
     """|g_i| at a stage's strains ``x`` for the tendons that act there (0 for ended ones), (N_t,)."""
     for i in range(out.shape[0]):
         out[i] = _stretch(x, rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1]) if end[i] > act else 0.0
@@ -1389,7 +1389,7 @@ def _shoot_pass(m0, n_start, edges, rod, f_g, tols, want_var, shortcut, record, 
         if not (r <= worst):
             worst = r
         if want_len:
-            _stage_stretch(x, ws[0], ws[1], tau, end, _step_act(edges, k), stretch[0])
+            _stage_stretch(x, ws[0], ws[1], end, _step_act(edges, k), stretch[0])
         for j in range(n_out):
             if out_step[j] == k:
                 pos_out[j, :] = p
@@ -1427,7 +1427,7 @@ def _shoot_pass(m0, n_start, edges, rod, f_g, tols, want_var, shortcut, record, 
             if not (r <= worst):
                 worst = r
             if want_len:
-                _stage_stretch(xs, ws[0], ws[1], tau, end, _step_act(edges, k), stretch[st])
+                _stage_stretch(xs, ws[0], ws[1], end, _step_act(edges, k), stretch[st])
         w6 = h / 6.0
         for i in range(lengths.shape[0]):
             lengths[i] += w6 * (stretch[0, i] + 2.0 * stretch[1, i] + 2.0 * stretch[2, i] + stretch[3, i])
