@@ -9,6 +9,7 @@ unread pipe would fill up and block the server).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import subprocess
@@ -48,10 +49,19 @@ def solver_pids(pid: int) -> list[int]:
     return out
 
 
+def free_ports(n: int) -> list[int]:
+    """``n`` distinct free loopback ports: all bound at once, so that the system cannot hand out one
+    twice (two ports picked one after the other can be equal: the HTTP and gRPC servers then clash)."""
+    with contextlib.ExitStack() as stack:
+        sockets = [stack.enter_context(socket.socket()) for _ in range(n)]
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """One free loopback port."""
+    return free_ports(1)[0]
 
 
 class ServerProcess:
@@ -62,9 +72,8 @@ class ServerProcess:
 
     def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, grpc: bool = True, **settings):
         """``grpc``: also serve gRPC, on a free port (``grpc_target``)."""
-        self.port = free_port()
+        self.port, self.grpc_port = free_ports(2) if grpc else (free_port(), 0)
         self.url = f"http://127.0.0.1:{self.port}"
-        self.grpc_port = free_port() if grpc else 0
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
         env = {**os.environ, "TDCR_MODELS_DIR": str(models_dir),
                **{f"TDCR_{k.upper()}": str(v) for k, v in settings.items()}}
