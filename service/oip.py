@@ -54,6 +54,7 @@ from tdcr.physics.cosserat import TERMINATIONS
 from tdcr.physics.exact import ExactAnswer
 from tdcr.robot.design_space import N_FEATURES, N_TENDONS, range_warnings
 from tdcr.robot.designs import DesignBatch
+from tdcr.robot.fields import LAYOUT_COLUMNS, OWN_TENSORS
 from tdcr.surrogates.engine import Prediction
 
 #: OIP datatypes and their little-endian numpy types.
@@ -75,9 +76,10 @@ NO_BOUND = -1.0
 #: The solver's extra tensors.
 LOAD_INPUTS = {"gravity": TensorSpec("FP64", (-1, 3)), "density": TensorSpec("FP64", (-1,)),
                "tip_force": TensorSpec("FP64", (-1, 3)), "tip_moment": TensorSpec("FP64", (-1, 3))}
-#: Any robot's tensors: per tendon (angle rad, end m, displacement m, displacement-driven 0/1), and nu.
-LAYOUT_COLUMNS = ("angle", "end", "displacement", "driven")
-LAYOUT_INPUTS = {"layout": TensorSpec("FP64", (-1, -1, len(LAYOUT_COLUMNS))), "poisson": TensorSpec("FP64", (-1,))}
+#: Any robot's tensors (:data:`tdcr.robot.fields.LAYOUT_COLUMNS`): ``layout`` per tendon (angle rad, end m,
+#: displacement m, displacement-driven 0/1), and each design field of its own (``poisson``).
+LAYOUT_INPUTS = {"layout": TensorSpec("FP64", (-1, -1, len(LAYOUT_COLUMNS)))} | {
+    name: TensorSpec("FP64", (-1,)) for name in OWN_TENSORS}
 EXACT_INPUTS = SURROGATE_INPUTS | {"design": TensorSpec("FP64", (-1, -1))} | LOAD_INPUTS | LAYOUT_INPUTS
 EXACT_OUTPUTS = {k: v for k, v in SURROGATE_OUTPUTS.items() if k not in GUARD_OUTPUTS} | {
     "tendons": TensorSpec("FP32", (-1, -1, -1, 3)),
@@ -328,18 +330,23 @@ class OipCodec:
 
 
 def _layout(inputs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
-    """The ``layout`` ``[B, N_t, 4]`` and ``poisson`` ``[B]`` inputs as the general design's arrays
-    by name (:func:`tdcr.api.validation.validate_features`'s ``layout``), or None."""
+    """The ``layout`` ``[B, N_t, k]`` (:data:`tdcr.robot.fields.LAYOUT_COLUMNS`) and the design fields'
+    own ``[B]`` inputs as the general design's arrays by name
+    (:func:`tdcr.api.validation.validate_features`'s ``layout``), or None."""
     out = {}
     if "layout" in inputs:
         layout = np.asarray(inputs["layout"], dtype=np.float64)
-        driven = layout[..., 3]
-        if not np.isin(driven, (0.0, 1.0)).all():
-            raise InferenceError("invalid", "input 'layout': its last column (displacement-driven) must be 0 or 1")
-        out = {"angle": layout[..., 0], "end": layout[..., 1],
-               "displacement": np.where(driven == 1.0, layout[..., 2], np.nan)}
-    if "poisson" in inputs:
-        out["poisson"] = np.asarray(inputs["poisson"], dtype=np.float64)
+        for k, name in enumerate(LAYOUT_COLUMNS):
+            if name == "driven":
+                continue
+            out[name] = layout[..., k]
+            if LAYOUT_COLUMNS[k + 1:k + 2] == ("driven",):  # an alternative field: NaN where the other drives
+                driven = layout[..., k + 1]
+                if not np.isin(driven, (0.0, 1.0)).all():
+                    raise InferenceError("invalid", f"input 'layout': its column {k + 1} ({name}-driven) must be 0 "
+                                                    "or 1")
+                out[name] = np.where(driven == 1.0, out[name], np.nan)
+    out |= {name: np.asarray(inputs[name], dtype=np.float64) for name in OWN_TENSORS if name in inputs}
     return out or None
 
 

@@ -41,12 +41,12 @@ import numpy as np
 from tdcr import design_space
 from tdcr.physics import STATUS, SolverOptions, solve
 from tdcr.robot.designs import LOAD_COLUMNS, N_LOAD_COLUMNS, DesignBatch, ExternalLoads
+from tdcr.robot.fields import OPTIONAL
 
 FORMAT_VERSION = 1
 _ARRAYS = ("index", "features", "s", "tendons", "backbone", "rotation", "converged", "residual")
 #: arrays of newer or loaded datasets, read where a shard has them
-_OPTIONAL = ("status", "error_estimate", "gravity", "density", "tip_force", "tip_moment", "angle", "end",
-             "tension", "displacement")
+_OPTIONAL = ("status", "error_estimate", *LOAD_COLUMNS, *(f.name for f in OPTIONAL), "tension")
 
 
 @dataclass(frozen=True)
@@ -93,7 +93,8 @@ def solve_shard(features: np.ndarray, index: np.ndarray, points: int,
                 loads: dict[str, np.ndarray] | None = None,
                 layout: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Solve one shard of designs ``(b, 3 + 3 N_t)`` (and their ``loads``, arrays as in the module
-    doc; ``layout``: the tendons' ``angle`` and ``end`` ``(b, N_t)`` of robots with segments);
+    doc; ``layout``: the general design's fields given, e.g. the tendons' ``angle`` and ``end``
+    ``(b, N_t)`` of robots with segments);
     returns the shard's arrays."""
     designs = DesignBatch.from_features(features)
     if layout:
@@ -175,7 +176,7 @@ def generate(
         stale.unlink()
     designs = cfg.designs()
     features = designs.features()
-    layout = None if designs.angle is None else {"angle": designs.angles, "end": designs.ends}
+    layout = {f.name: designs.resolved(f.name) for f in OPTIONAL if getattr(designs, f.name) is not None} or None
     todo = [k for k in range(cfg.n_shards) if not shard_path(out, k).exists()]
     done_designs = cfg.n - sum(len(range(cfg.n)[_shard_range(cfg, k)]) for k in todo)
     bar = _progress_bar(cfg.n, done_designs, progress)
@@ -263,7 +264,8 @@ def _finish(out: Path, cfg: GenerateConfig, *, solved: int, elapsed: float) -> d
         **asdict(cfg),
         "n_tendons": cfg.n_tendons,
         "feature_names": design_space.feature_names(cfg.n_tendons),
-        "ranges": {k: asdict(v) for k, v in design_space.TABLE_I.items()},
+        "ranges": {k: {"name": v.name, "unit": v.unit, "low": v.low, "high": v.high, "admissible": v.admissible,
+                       "exclusive_min": v.exclusive_min} for k, v in design_space.TABLE_I.items()},
         "fractions": np.linspace(0.0, 1.0, cfg.points).tolist(),  # the arclengths, fractions of L
         "solver": asdict(SolverOptions()),
         "converged": converged,

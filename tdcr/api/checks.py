@@ -13,8 +13,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tdcr.robot.design_space import FRACTION_ROUNDING, LAYOUT_FIELDS, LOADS, N_TENDONS, TABLE_I, admissible_bounds
-from tdcr.robot.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout, default_angles
+from tdcr.robot.design_space import FRACTION_ROUNDING, LOADS, N_TENDONS, TABLE_I, admissible_bounds
+from tdcr.robot.designs import LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.robot.fields import OPTIONAL, interval, refusal
 from tdcr.surrogates.bounds import EXACT_TOLERANCE
 
 #: Problems quoted in one message (the rest are counted).
@@ -77,10 +78,6 @@ def _invalid_request(problems: list[Problem], too_large: bool) -> InvalidRequest
     return InvalidRequest(problems, too_large=too_large)
 
 
-def _interval(low: float, high: float, exclusive_min: bool, unit: str) -> str:
-    return f"{'(' if exclusive_min else '['}{low:g}, {high:g}] {unit}"
-
-
 def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list[Problem]:
     """Problems with raw SI designs ``(B, 3 + 3 N_t)``: not finite, or outside the admissible
     bounds; ``rows`` ``(B,)`` are the designs' indices in the request (default ``0..B-1``)."""
@@ -99,76 +96,56 @@ def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list
         if not finite[b, j]:
             problems.append(Problem(loc, f"must be a finite number, got {value}", "finite_number"))
         else:
-            p = TABLE_I[name]
-            problems.append(Problem(loc, f"must be in {_interval(*p.admissible, p.exclusive_min, p.unit)}, "
-                                         f"got {value:.6g}", "out_of_range"))
+            problems.append(Problem(loc, f"must be in {interval(TABLE_I[name])}, got {value:.6g}", "out_of_range"))
     return problems
 
 
 def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[Problem]:
-    """Problems with the general design's optional fields (:data:`tdcr.robot.design_space.LAYOUT_FIELDS`): an
-    angle, end, displacement or Poisson ratio that is not finite or outside its admissible bounds,
-    an end beyond the design's L (within rounding: clamped), a Poisson ratio outside (0, 0.5)."""
+    """Problems with the general design's optional fields (:data:`tdcr.robot.fields.OPTIONAL`): a value
+    that is not finite or outside its admissible bounds, or an arclength (``end``) beyond the
+    design's L (within rounding: clamped)."""
     rows = np.arange(designs.n_designs) if rows is None else rows
     problems = []
-    for name in ("angle", "end", "displacement", "poisson"):
-        values = getattr(designs, name)
+    for field in OPTIONAL:
+        values = getattr(designs, field.name)
         if values is None:
             continue
         values = values.reshape(designs.n_designs, -1)
-        bound = LAYOUT_FIELDS[name]
-        low, high = bound.admissible
-        given = ~np.isnan(values) if name == "displacement" else np.ones(values.shape, dtype=bool)
+        low, high = field.admissible
+        given = ~np.isnan(values) if field.alternative_to else np.ones(values.shape, dtype=bool)
         with np.errstate(invalid="ignore"):
-            bad = given & (~np.isfinite(values) | ((values >= high) if bound.exclusive_max else (values > high))
-                           | ((values <= low) if bound.exclusive_min else (values < low)))
-            if name == "end":
+            bad = given & (~np.isfinite(values) | ((values >= high) if field.exclusive_max else (values > high))
+                           | ((values <= low) if field.exclusive_min else (values < low)))
+            if field.within_length:
                 bad |= values > designs.L[:, None] * (1.0 + FRACTION_ROUNDING)
         for b, i in zip(*np.nonzero(bad), strict=True):
-            loc = ("designs", int(rows[b])) + ((name,) if name == "poisson" else ("tendons", int(i), name))
+            loc = ("designs", int(rows[b])) + ((field.name,) if field.per == "design" else ("tendons", int(i),
+                                                                                            field.name))
             value = values[b, i]
             if not np.isfinite(value):
                 msg, kind = f"must be a finite number, got {value}", "finite_number"
-            elif name == "end" and value > low:
-                msg, kind = f"must be in (0, L] = (0, {designs.L[b]:g}] m, got {value:.6g}", "end_beyond_length"
+            elif field.within_length and value > low:
+                msg, kind = (f"must be in (0, L] = {interval(field, high=designs.L[b])}, got {value:.6g}",
+                             "end_beyond_length")
             else:
-                opening, closing = "(" if bound.exclusive_min else "[", ")" if bound.exclusive_max else "]"
-                interval = (f"{opening}{low:g}, {high:g}{closing}"
-                            + (f" {bound.unit}" if bound.unit else ""))
-                msg, kind = f"must be in {interval}, got {value:.6g}", "out_of_range"
+                msg, kind = f"must be in {interval(field)}, got {value:.6g}", "out_of_range"
             problems.append(Problem(loc, msg, kind))
     return problems
 
 
-#: Why a surrogate refuses a general design's field (it was trained on one layout): field -> reason.
-LAYOUT_REASONS = {"poisson": f"the operators were trained at nu = {DEFAULT_POISSON}",
-                  "angle": f"the operators take tendons at 2 pi i / {N_TENDONS}",
-                  "end": "the operators take tendons that end at the tip",
-                  "displacement": "the operators take tensions",
-                  "termination": "the operators' tendons all end at the tip"}
+#: Why a surrogate refuses a general design's field (it was trained on one layout): field -> reason
+#: (:attr:`tdcr.robot.fields.DesignField.refusal`), and the request option ``termination``.
+LAYOUT_REASONS = {f.name: refusal(f.name, N_TENDONS) for f in OPTIONAL} | {
+    "termination": "the operators' tendons all end at the tip"}
 
 
 def check_standard_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[Problem]:
     """Problems of designs for a surrogate, which takes only the layout it was trained on
-    (:meth:`DesignBatch.is_standard`): one per design, naming its first other field."""
+    (:meth:`DesignBatch.is_standard`): one per design, naming its first other field
+    (:meth:`DesignBatch.first_departure`)."""
     rows = np.arange(designs.n_designs) if rows is None else rows
-    angles = default_angles(designs.n_tendons)
-    problems = []
-    for b in np.nonzero(~designs.is_standard())[0]:
-        where: tuple = ("poisson",)
-        for i in range(designs.n_tendons):
-            if designs.displacement_driven[b, i]:
-                where = ("tendons", i, "displacement")
-            elif designs.end_fractions[b, i] < 1.0:
-                where = ("tendons", i, "end")
-            elif not np.isclose(designs.angles[b, i], angles[i], rtol=0.0, atol=1e-12):
-                where = ("tendons", i, "angle")
-            else:
-                continue
-            break
-        problems.append(Problem(("designs", int(rows[b])) + where, f"{LAYOUT_REASONS[where[-1]]}; {EXACT_ROUTES}",
-                                "layout"))
-    return problems
+    return [Problem(("designs", int(rows[b])) + where, f"{LAYOUT_REASONS[where[-1]]}; {EXACT_ROUTES}", "layout")
+            for b, where in enumerate(designs.first_departure()) if where is not None]
 
 
 def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
@@ -190,7 +167,7 @@ def check_loads(loads: ExternalLoads, rows: np.ndarray) -> list[Problem]:
             loc = ("designs", int(rows[b]), name) + ((int(k),) if values.shape[1] > 1 else ())
             value = values[b, k]
             msg = (f"must be a finite number, got {value}" if not np.isfinite(value) else
-                   f"must be in {_interval(low, high, bound.exclusive_min, bound.unit)}, got {value:.6g}")
+                   f"must be in {interval(bound)}, got {value:.6g}")
             problems.append(Problem(loc, msg, "finite_number" if not np.isfinite(value) else "out_of_range"))
     if loads.gravity is not None:
         no_density = np.isnan(loads.density) & ~np.isnan(loads.gravity).any(axis=1)

@@ -13,19 +13,19 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, create_model
 
 from tdcr.physics.cosserat import TERMINATIONS
 from tdcr.robot.design_space import (
     DEFAULT_POINTS,
     FRACTION_ROUNDING,
-    LAYOUT_FIELDS,
     LOADS,
     MAX_POINTS,
     MAX_TENDONS,
     N_TENDONS,
     TABLE_I,
 )
+from tdcr.robot.fields import FEATURES, OPTIONAL, DesignField
 from tdcr.surrogates.bounds import EXACT_TOLERANCE
 
 #: Longest model name a request may carry.
@@ -59,7 +59,7 @@ _Fraction = Annotated[float, Field(strict=True, json_schema_extra={"minimum": -F
 
 
 def _layout(bound):
-    """An optional field of the general design (:data:`tdcr.robot.design_space.LAYOUT_FIELDS`), with its bounds."""
+    """An optional field of the general design (:data:`tdcr.robot.fields.OPTIONAL`), with its bounds."""
     low, high = bound.admissible
     extra = {"exclusiveMinimum" if bound.exclusive_min else "minimum": low,
              "exclusiveMaximum" if bound.exclusive_max else "maximum": high}
@@ -70,37 +70,57 @@ def _layout(bound):
 _FloatOrNone = Annotated[float | None, Field(strict=True)]
 
 
-class SurrogateTendon(BaseModel):
-    """One tendon of the surrogates' layout: radial offset (m), helical pitch (rad/m) and tension
-    (N, >= 0), at the default angle 2 pi i / 4 and ending at the tip."""
-
-    model_config = ConfigDict(extra="forbid")
-    offset: _number(TABLE_I["offset"]) = Field(  # type: ignore[valid-type]
-        description="distance of the tendon from the backbone axis, m")
-    pitch: _number(TABLE_I["pitch"]) = Field(0.0, description="helical pitch of the routing, rad/m")  # type: ignore[valid-type]
-    tension: _number(TABLE_I["tension"]) = Field(description="tendon tension, N")  # type: ignore[valid-type]
-
-
-#: JSON schema: a tendon gives its tension or its displacement, not both.
-_TENSION_OR_DISPLACEMENT = {"oneOf": [{"required": [k], "properties": {k: {"type": "number"}}}
-                                      for k in ("tension", "displacement")]}
+def _field(field: DesignField, *, replaced_by: str | None = None):
+    """``(annotation, FieldInfo)`` of a registry field: a feature as a strict number with its
+    admissible bounds (``replaced_by``: another field may drive the tendon instead, so it may be
+    absent), an optional field as a number or null with its bounds and default in words."""
+    if not field.feature:
+        return _FloatOrNone, _layout(field)
+    description = f"{field.description}, {field.unit}"
+    if replaced_by is not None:
+        return _number(field) | None, Field(None, description=f"{description} (or give {replaced_by})")
+    return _number(field), (Field(description=description) if field.default is None
+                            else Field(field.default, description=description))
 
 
-class InverseTendon(SurrogateTendon):
-    """A tendon of a design for inverse kinematics: any angle and end (the exact model)."""
+def _model(name: str, base: type[BaseModel], doc: str, fields: dict, schema_extra: dict | None = None):
+    """A request model ``name`` derived from the registry: ``base``'s fields, then ``fields``
+    (name -> ``(annotation, FieldInfo)``); unknown keys are refused."""
+    config = type(f"_{name}Config", (base,), {"model_config": ConfigDict(extra="forbid",
+                                                                          json_schema_extra=schema_extra)})
+    return create_model(name, __base__=config, __doc__=" ".join(doc.split()), __module__=__name__, **fields)
 
-    angle: _FloatOrNone = _layout(LAYOUT_FIELDS["angle"])
-    end: _FloatOrNone = _layout(LAYOUT_FIELDS["end"])
+
+def _tendon_fields(*, optional: bool, alternatives: bool) -> dict:
+    """A tendon's fields of the registry: the features; with ``optional`` the general design's
+    tendon fields an inverse-kinematics design may give; with ``alternatives`` also the fields
+    that drive a tendon instead of a feature (then the feature they replace may be absent)."""
+    replacing = {f.alternative_to: f.name for f in OPTIONAL if f.alternative_to and alternatives}
+    out = {f.name: _field(f, replaced_by=replacing.get(f.name)) for f in FEATURES if f.per == "tendon"}
+    return out | {f.name: _field(f) for f in OPTIONAL if f.per == "tendon" and optional
+                  and (f.inverse or alternatives)}
 
 
-class Tendon(InverseTendon):
-    """One tendon of any robot: radial offset (m), helical pitch (rad/m), its angle at s = 0 (rad)
-    and where it ends (m), driven by its tension (N, >= 0) or by its displacement (m)."""
+def _design_fields(tendon: type[BaseModel], *, optional: bool, inverse: bool = False, counts=(1, MAX_TENDONS)):
+    """A design's fields of the registry: the features, the general design's design fields
+    (``optional``; for an inverse-kinematics design those it may give), and ``tendons``."""
+    out = {f.name: _field(f) for f in FEATURES if f.per == "design"}
+    out |= {f.name: _field(f) for f in OPTIONAL if f.per == "design" and optional and (f.inverse or not inverse)}
+    return out | {"tendons": (list[tendon], Field(min_length=counts[0], max_length=counts[1]))}
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_TENSION_OR_DISPLACEMENT)
-    tension: _number(TABLE_I["tension"]) | None = Field(  # type: ignore[valid-type]
-        None, description="tendon tension, N (or give displacement)")
-    displacement: _FloatOrNone = _layout(LAYOUT_FIELDS["displacement"])
+
+#: JSON schema: a tendon gives a feature or the field that replaces it (tension or displacement), not both.
+_ONE_OF_ALTERNATIVES = {"oneOf": [{"required": [k], "properties": {k: {"type": "number"}}}
+                                  for f in OPTIONAL if f.alternative_to for k in (f.alternative_to, f.name)]}
+
+SurrogateTendon = _model("SurrogateTendon", BaseModel, """One tendon of the surrogates' layout: radial offset (m),
+    helical pitch (rad/m) and tension (N, >= 0), at the default angle 2 pi i / 4 and ending at the tip.""",
+                         _tendon_fields(optional=False, alternatives=False))
+InverseTendon = _model("InverseTendon", SurrogateTendon, """A tendon of a design for inverse kinematics: any angle and
+    end (the exact model).""", _tendon_fields(optional=True, alternatives=False))
+Tendon = _model("Tendon", InverseTendon, """One tendon of any robot: radial offset (m), helical pitch (rad/m), its angle
+    at s = 0 (rad) and where it ends (m), driven by its tension (N, >= 0) or by its displacement (m).""",
+                _tendon_fields(optional=True, alternatives=True), schema_extra=_ONE_OF_ALTERNATIVES)
 
 
 #: A gravity vector needs a density (JSON Schema of every design with loads).
@@ -120,29 +140,14 @@ class _Loads(BaseModel):
         None, description="tip moment, base frame, N m")
 
 
-class SurrogateDesign(_Loads):
-    """A TDCR design in SI units with the surrogates' 4 tendons; loads (gravity, tip wrench) only
-    for a loaded operator (``*_loaded``)."""
-
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_GRAVITY_NEEDS_DENSITY)
-    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
-    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
-    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
-    tendons: list[SurrogateTendon] = Field(min_length=N_TENDONS, max_length=N_TENDONS)
-
-
-class Design(_Loads):
-    """A TDCR design in SI units -- any number of tendons (up to MAX_TENDONS), each at any angle and
-    ending anywhere (segments), driven by tension or displacement, and the material's Poisson
-    ratio -- with optional external loads for the physics solver (a gravity vector needs a
-    density)."""
-
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_GRAVITY_NEEDS_DENSITY)
-    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
-    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
-    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
-    poisson: _FloatOrNone = _layout(LAYOUT_FIELDS["poisson"])
-    tendons: list[Tendon] = Field(min_length=1, max_length=MAX_TENDONS)
+SurrogateDesign = _model("SurrogateDesign", _Loads, """A TDCR design in SI units with the surrogates' 4 tendons; loads
+    (gravity, tip wrench) only for a loaded operator (``*_loaded``).""",
+                         _design_fields(SurrogateTendon, optional=False, counts=(N_TENDONS, N_TENDONS)),
+                         schema_extra=_GRAVITY_NEEDS_DENSITY)
+Design = _model("Design", _Loads, """A TDCR design in SI units -- any number of tendons (up to MAX_TENDONS), each at any
+    angle and ending anywhere (segments), driven by tension or displacement, and the material's Poisson ratio -- with
+    optional external loads for the physics solver (a gravity vector needs a density).""",
+                _design_fields(Tendon, optional=True), schema_extra=_GRAVITY_NEEDS_DENSITY)
 
 
 def _integral_float(value):
@@ -314,16 +319,9 @@ class TipTarget(BaseModel):
         json_schema_extra={"contains": {"not": {"const": 0}}})
 
 
-class InverseDesign(_Loads):
-    """A design for inverse kinematics (its tensions are the first start); gravity and a tip wrench
-    only with a loaded operator."""
-
-    model_config = ConfigDict(extra="forbid", json_schema_extra=_GRAVITY_NEEDS_DENSITY)
-    E: _number(TABLE_I["E"]) = Field(description="Young's modulus, Pa")  # type: ignore[valid-type]
-    r: _number(TABLE_I["r"]) = Field(description="backbone radius, m")  # type: ignore[valid-type]
-    L: _number(TABLE_I["L"]) = Field(description="backbone length, m")  # type: ignore[valid-type]
-    poisson: _FloatOrNone = _layout(LAYOUT_FIELDS["poisson"])
-    tendons: list[InverseTendon] = Field(min_length=1, max_length=MAX_TENDONS)
+InverseDesign = _model("InverseDesign", _Loads, """A design for inverse kinematics (its tensions are the first start);
+    gravity and a tip wrench only with a loaded operator.""",
+                       _design_fields(InverseTendon, optional=True, inverse=True), schema_extra=_GRAVITY_NEEDS_DENSITY)
 
 
 class InverseRequest(BaseModel):

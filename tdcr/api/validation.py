@@ -50,7 +50,8 @@ from tdcr.robot.design_space import (
     N_TENDONS,
     TABLE_I,
 )
-from tdcr.robot.designs import DEFAULT_POISSON, DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.robot.designs import DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.robot.fields import BY_NAME, FIELDS, OPTIONAL
 
 #: What a request is for: the surrogates (4 tendons, no loads) or the physics solver.
 Target = Literal["surrogate", "solver"]
@@ -324,37 +325,39 @@ def _what_to_do(problem: Problem, target: Target) -> Problem:
 
 def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | None = None) -> DesignGroup:
     """Arrays of parsed designs that share a tendon count (loads: NaN gravity and density where
-    absent; the optional layout fields None when no design gives them, else their defaults where
-    absent).  A tendon with neither or both of tension and displacement is a problem (appended)."""
-    def optional(name: str, default) -> list | None:
-        if not any(getattr(t, name, None) is not None for d in designs for t in d.tendons):
-            return None
-        return [[default(d, i) if getattr(t, name) is None else getattr(t, name) for i, t in enumerate(d.tendons)]
-                for d in designs]
-
-    for j, d in enumerate(designs):
-        for i, t in enumerate(d.tendons):
-            given = (t.tension is not None) + (getattr(t, "displacement", None) is not None)
-            if given != 1 and problems is not None:
-                problems.append(Problem(("designs", int(rows[j]), "tendons", i, "tension"),
-                                        "give the tendon's tension (N) or its displacement (m), not both"
-                                        if given else "give the tendon's tension (N) or its displacement (m)",
-                                        "tension_or_displacement"))
-    poisson = None
-    if any(getattr(d, "poisson", None) is not None for d in designs):
-        poisson = [DEFAULT_POISSON if d.poisson is None else d.poisson for d in designs]
+    absent; each optional field of the registry None when no design gives it, else its default
+    where absent; a feature that a tendon replaces by an alternative field starts at 0).  A tendon
+    with neither or both of a feature and its alternative (tension, displacement) is a problem
+    (appended)."""
     n_t = len(designs[0].tendons)
-    batch = DesignBatch(
-        E=[d.E for d in designs], r=[d.r for d in designs], L=[d.L for d in designs],
-        offset=[[t.offset for t in d.tendons] for d in designs],
-        pitch=[[t.pitch for t in d.tendons] for d in designs],
-        tension=[[0.0 if t.tension is None else t.tension for t in d.tendons] for d in designs],
-        angle=optional("angle", lambda d, i: 2.0 * np.pi * i / n_t), end=optional("end", lambda d, i: d.L),
-        displacement=optional("displacement", lambda d, i: np.nan), poisson=poisson,
-    )
-    if batch.end is not None:  # an end within rounding of L is L (farther ones are refused by check_layout)
-        rounding = (batch.end > batch.L[:, None]) & (batch.end <= batch.L[:, None] * (1.0 + FRACTION_ROUNDING))
-        batch = batch.replace(end=np.where(rounding, batch.L[:, None], batch.end))
+    for f in OPTIONAL:
+        if f.alternative_to is None or problems is None:
+            continue
+        other = BY_NAME[f.alternative_to]
+        for j, d in enumerate(designs):
+            for i, t in enumerate(d.tendons):
+                given = (getattr(t, other.name, None) is not None) + (getattr(t, f.name, None) is not None)
+                if given != 1:
+                    what = f"give the tendon's {other.name} ({other.unit}) or its {f.name} ({f.unit})"
+                    problems.append(Problem(("designs", int(rows[j]), "tendons", i, other.name),
+                                            what + (", not both" if given else ""), f"{other.name}_or_{f.name}"))
+    lengths = np.array([d.L for d in designs], dtype=np.float64)
+    fields = {}
+    for f in FIELDS:
+        values = [getattr(d, f.name, None) for d in designs] if f.per == "design" else [
+            [getattr(t, f.name, None) for t in d.tendons] for d in designs]
+        absent = np.array([[v is None for v in row] for row in values] if f.per == "tendon"
+                          else [v is None for v in values], dtype=bool)
+        if f.feature:
+            fields[f.name] = np.where(absent, 0.0, np.array(values, dtype=object)).astype(np.float64)
+        elif not absent.all():
+            given = np.where(absent, np.nan, np.array(values, dtype=object)).astype(np.float64)
+            fields[f.name] = np.where(absent, f.fill(lengths, n_t), given)
+            if f.within_length:  # an arclength within rounding of L is L (farther ones are refused by check_layout)
+                limit = lengths[:, None] if f.per == "tendon" else lengths
+                rounding = (given > limit) & (given <= limit * (1.0 + FRACTION_ROUNDING))
+                fields[f.name] = np.where(rounding, limit, fields[f.name])
+    batch = DesignBatch(**fields)
     loads = None
     takes_loads = "gravity" in type(designs[0]).model_fields  # surrogate designs have no load fields
     if takes_loads and any(d.gravity is not None or d.tip_force is not None or d.tip_moment is not None
@@ -421,15 +424,18 @@ def _with_layout(designs: DesignBatch, layout: Mapping[str, np.ndarray] | None,
     fields = {}
     for name, values in layout.items():
         values = np.asarray(values, dtype=np.float64)
-        shape = (designs.n_designs,) if name == "poisson" else (designs.n_designs, designs.n_tendons)
-        if name not in ("angle", "end", "displacement", "poisson"):
-            problems.append(Problem((name,), "not a layout field; they are angle, end, displacement and poisson",
+        field = BY_NAME.get(name)
+        if field is None or field.feature:
+            names = [f.name for f in OPTIONAL]
+            problems.append(Problem((name,), f"not a layout field; they are {', '.join(names[:-1])} and {names[-1]}",
                                     "layout"))
-        elif values.shape != shape:
-            where = "layout" if name != "poisson" else "poisson"
-            problems.append(Problem((where,), f"{name} must have shape {list(shape)} (a row per design"
-                                    f"{'' if name == 'poisson' else ', a column per tendon of design'}), got "
-                                    f"{list(values.shape)}", "shape"))
+            continue
+        per_design = field.per == "design"
+        shape = (designs.n_designs,) if per_design else (designs.n_designs, designs.n_tendons)
+        if values.shape != shape:
+            rows = "a row per design" + ("" if per_design else ", a column per tendon of design")
+            problems.append(Problem(("layout" if field.oip == "layout" else name,), f"{name} must have shape "
+                                    f"{list(shape)} ({rows}), got {list(values.shape)}", "shape"))
         else:
             fields[name] = values
     return designs.replace(**fields) if fields else designs

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcr.robot.designs import DEFAULT_POISSON, LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.robot.designs import LOAD_COLUMNS, DesignBatch, ExternalLoads, FeatureLayout
+from tdcr.robot.fields import FEATURES, OPTIONAL, DesignField
 
 #: Tendons of the trained surrogates (the solver takes any number >= 1).
 N_TENDONS = 4
@@ -30,32 +31,9 @@ FRACTION_ROUNDING = 1e-9
 MAX_TENDONS = 64
 
 
-@dataclass(frozen=True)
-class Parameter:
-    """One design parameter: name, SI unit, Table I range [low, high] and admissible bounds.
-
-    ``low``/``high`` are the trained range (Table I); inputs outside it are answered with a range
-    warning.  ``admissible`` is the physically sane range, much wider but finite; inputs outside it
-    are refused.  ``exclusive_min``: the lower admissible bound itself is excluded.
-    """
-
-    name: str
-    unit: str
-    low: float
-    high: float
-    admissible: tuple[float, float]
-    exclusive_min: bool = False
-
-
-#: Table I of the paper (SI units), with the admissible bounds of each parameter.
-TABLE_I: dict[str, Parameter] = {
-    "E": Parameter("E", "Pa", 15.5e9, 45.5e9, (1e6, 1e12)),  # soft rubber .. diamond
-    "r": Parameter("r", "m", 0.0005, 0.0015, (1e-4, 0.05)),
-    "L": Parameter("L", "m", 0.1, 0.35, (0.01, 5.0)),
-    "offset": Parameter("offset", "m", 0.005, 0.01, (1e-4, 0.1)),
-    "pitch": Parameter("pitch", "rad/m", -20.0, 20.0, (-200.0, 200.0)),
-    "tension": Parameter("tension", "N", 0.0, 5.0, (0.0, 1000.0)),
-}
+#: Table I of the paper (SI units): the surrogates' features (:data:`tdcr.robot.fields.FEATURES`), each
+#: with its trained range (``low``, ``high``: warned outside) and its admissible bounds (refused outside).
+TABLE_I: dict[str, DesignField] = {f.name: f for f in FEATURES}
 
 
 @dataclass(frozen=True)
@@ -76,30 +54,9 @@ LOADS: dict[str, LoadBound] = {
     "tip_moment": LoadBound("tip_moment", "N m", (-10.0, 10.0)),
 }
 
-@dataclass(frozen=True)
-class LayoutBound(LoadBound):
-    """Admissible range of an optional field of the general design (exact solver only)."""
-
-    exclusive_max: bool = False
-    description: str = ""
-    default: object = None  #: what a design that gives none means (in words where it depends on the design)
-
-
-#: The general design's optional fields and their admissible bounds (the surrogates take only the
+#: The general design's optional fields (:data:`tdcr.robot.fields.OPTIONAL`; the surrogates take only the
 #: defaults: angles 2 pi i / N_t, every tendon ending at the tip, nu = 0.3, tensions).
-LAYOUT_FIELDS: dict[str, LayoutBound] = {
-    "angle": LayoutBound("angle", "rad", (-50.0, 50.0), description="body-frame angle of the tendon at s = 0 "
-                         "(default 2 pi i / N_t)", default="2 pi i / N_t"),
-    "end": LayoutBound("end", "m", (0.0, TABLE_I["L"].admissible[1]), exclusive_min=True,
-                       description="arclength where the tendon terminates, 0 < end <= L (default L): tendons "
-                                   "with distinct ends make segments", default="L"),
-    "displacement": LayoutBound("displacement", "m", (-1.0, 1.0), description="length pulled in (its path "
-                                "length on the straight rod minus its deformed path length), instead of a "
-                                "tension: the solver finds the tension (0 where the tendon would go slack)"),
-    "poisson": LayoutBound("poisson", "", (0.0, 0.5), exclusive_min=True, exclusive_max=True,
-                           description="Poisson ratio nu of the backbone, G = E / (2 (1 + nu)) (default 0.3)",
-                           default=DEFAULT_POISSON),
-}
+LAYOUT_FIELDS: dict[str, DesignField] = {f.name: f for f in OPTIONAL}
 
 
 #: The paper's out-of-distribution bins, as fractions p of the upper bound (x = high * (1 + p)).
@@ -116,7 +73,7 @@ def describe() -> dict:
     trained = TRAINING_LOADS.ranges()
     return {"parameters": {k: bounds(p) | {"table_i": [p.low, p.high]} for k, p in TABLE_I.items()},
             "loads": {k: bounds(b) | {"trained": trained[k]} for k, b in LOADS.items()},
-            "layout": {k: bounds(b) | {"exclusive_max": b.exclusive_max, "default": b.default}
+            "layout": {k: bounds(b) | {"exclusive_max": b.exclusive_max, "default": b.default_words}
                        for k, b in LAYOUT_FIELDS.items()},
             "n_tendons": N_TENDONS, "max_tendons": MAX_TENDONS, "feature_order": feature_names(),
             "default_points": DEFAULT_POINTS}

@@ -15,22 +15,25 @@ from functools import cached_property
 
 import numpy as np
 
+from tdcr.robot.fields import (  # noqa: F401 - re-exported: the designs' vocabulary
+    BY_NAME,
+    DEFAULT_POISSON,
+    DESIGN_FEATURES,
+    FIELDS,
+    OPTIONAL,
+    TENDON_FEATURES,
+    default_angles,
+)
+
 #: Columns of E, r and L in a feature matrix (the per-tendon groups follow, see :class:`FeatureLayout`).
-E_COLUMN, R_COLUMN, L_COLUMN = 0, 1, 2
-#: The per-tendon feature groups, in column order.
-TENDON_GROUPS = ("offset", "pitch", "tension")
+E_COLUMN, R_COLUMN, L_COLUMN = (DESIGN_FEATURES.index(name) for name in ("E", "r", "L"))
+#: The per-tendon feature groups, in column order (:data:`tdcr.robot.fields.TENDON_FEATURES`).
+TENDON_GROUPS = TENDON_FEATURES
 #: Columns of the loads matrix ``(B, 10)`` of the loaded operators (the ONNX input ``loads``):
 #: gravity (3, m/s^2), density (kg/m^3), tip force (3, N), tip moment (3, N m), base frame.
 LOAD_COLUMNS: dict[str, slice] = {"gravity": slice(0, 3), "density": slice(3, 4), "tip_force": slice(4, 7),
                                   "tip_moment": slice(7, 10)}
 N_LOAD_COLUMNS = 10
-#: The Poisson ratio of a design that gives none (G = E / (2 (1 + nu))): the surrogates' material.
-DEFAULT_POISSON = 0.3
-
-
-def default_angles(n_tendons: int) -> np.ndarray:
-    """The body-frame angles at s = 0 of evenly spaced tendons, 2 pi i / N_t, rad, ``(N_t,)``."""
-    return 2.0 * np.pi * np.arange(n_tendons) / n_tendons
 
 
 @dataclass(frozen=True)
@@ -47,34 +50,35 @@ class FeatureLayout:
     @property
     def width(self) -> int:
         """Number of feature columns, ``3 + 3 N_t``."""
-        return 3 + 3 * self.n_tendons
+        return len(DESIGN_FEATURES) + len(TENDON_GROUPS) * self.n_tendons
 
     def group(self, name: str) -> slice:
         """Columns of one per-tendon group (``offset``, ``pitch`` or ``tension``)."""
-        start = 3 + TENDON_GROUPS.index(name) * self.n_tendons
+        start = len(DESIGN_FEATURES) + TENDON_GROUPS.index(name) * self.n_tendons
         return slice(start, start + self.n_tendons)
 
     @cached_property
     def names(self) -> tuple[str, ...]:
         """Column names, e.g. ``('E', 'r', 'L', 'offset_0', ...)``."""
-        return ("E", "r", "L") + tuple(f"{g}_{i}" for g in TENDON_GROUPS for i in range(self.n_tendons))
+        return DESIGN_FEATURES + tuple(f"{g}_{i}" for g in TENDON_GROUPS for i in range(self.n_tendons))
 
     @cached_property
     def parameters(self) -> tuple[str, ...]:
         """The design parameter (a key of Table I) of every column, e.g. ``('E', 'r', 'L', 'offset', ...)``."""
-        return ("E", "r", "L") + tuple(g for g in TENDON_GROUPS for _ in range(self.n_tendons))
+        return DESIGN_FEATURES + tuple(g for g in TENDON_GROUPS for _ in range(self.n_tendons))
 
     @cached_property
     def tendon_index(self) -> tuple[int | None, ...]:
         """The tendon of every column (``None`` for E, r and L)."""
-        return (None, None, None) + tuple(i for _ in TENDON_GROUPS for i in range(self.n_tendons))
+        return (None,) * len(DESIGN_FEATURES) + tuple(i for _ in TENDON_GROUPS for i in range(self.n_tendons))
 
     @classmethod
     def of(cls, features: np.ndarray) -> FeatureLayout:
         """The layout of a feature matrix ``(B, 3 + 3 N_t)`` (``ValueError`` if no layout fits)."""
         features = np.asarray(features)
-        n_t = (features.shape[-1] - 3) // 3 if features.ndim == 2 else 0
-        if n_t < 1 or features.shape[-1] != 3 + 3 * n_t:
+        d, g = len(DESIGN_FEATURES), len(TENDON_GROUPS)
+        n_t = (features.shape[-1] - d) // g if features.ndim == 2 else 0
+        if n_t < 1 or features.shape[-1] != d + g * n_t:
             raise ValueError(f"features must have shape (B, 3 + 3 N_t) with N_t >= 1, got {features.shape}")
         return cls(n_t)
 
@@ -111,35 +115,52 @@ class DesignBatch:
     displacement: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for name in ("E", "r", "L", "offset", "pitch", "tension"):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
-        for name in _OPTIONAL:
-            if getattr(self, name) is not None:
-                object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
+        for f in FIELDS:  # the registry's fields (a test checks that they are this class's)
+            if getattr(self, f.name) is not None:
+                object.__setattr__(self, f.name, np.asarray(getattr(self, f.name), dtype=np.float64))
         b = self.E.shape[0]
-        if self.E.ndim != 1 or self.r.shape != (b,) or self.L.shape != (b,):
-            raise ValueError("E, r and L must all have shape (B,)")
-        if self.offset.ndim != 2 or self.offset.shape[0] != b:
-            raise ValueError("offset must have shape (B, N_t)")
-        if self.pitch.shape != self.offset.shape or self.tension.shape != self.offset.shape:
-            raise ValueError("offset, pitch and tension must share the shape (B, N_t)")
-        for name in ("angle", "end", "displacement"):
-            if getattr(self, name) is not None and getattr(self, name).shape != self.offset.shape:
-                raise ValueError(f"{name} must have the shape (B, N_t) of offset")
-        if self.poisson is not None and self.poisson.shape != (b,):
-            raise ValueError("poisson must have shape (B,)")
+        if self.E.ndim != 1 or any(getattr(self, name).shape != (b,) for name in DESIGN_FEATURES):
+            raise ValueError(f"{', '.join(DESIGN_FEATURES)} must all have shape (B,)")
+        first = TENDON_GROUPS[0]
+        if getattr(self, first).ndim != 2 or getattr(self, first).shape[0] != b:
+            raise ValueError(f"{first} must have shape (B, N_t)")
+        if any(getattr(self, name).shape != self.offset.shape for name in TENDON_GROUPS):
+            raise ValueError(f"{', '.join(TENDON_GROUPS)} must share the shape (B, N_t)")
+        for f in OPTIONAL:
+            value = getattr(self, f.name)
+            shape = (b,) if f.per == "design" else self.offset.shape
+            if value is not None and value.shape != shape:
+                raise ValueError(f"{f.name} must have shape {'(B,)' if f.per == 'design' else '(B, N_t) of offset'}")
+
+    def resolved(self, name: str) -> np.ndarray:
+        """Field ``name`` with its default filled in, ``(B,)`` or ``(B, N_t)`` (a field that is an
+        alternative to another: NaN where the tendon is driven by the other)."""
+        value = getattr(self, name)
+        return BY_NAME[name].fill(self.L, self.n_tendons) if value is None else value
+
+    def departs(self, name: str) -> np.ndarray:
+        """Where field ``name`` is set to other than its default, ``(B,)`` or ``(B, N_t)`` bool (an
+        arclength within rounding above L counts as L; a field that is an alternative: where given)."""
+        f = BY_NAME[name]
+        value = getattr(self, name)
+        shape = (self.n_designs,) if f.per == "design" else self.offset.shape
+        if value is None:
+            return np.zeros(shape, dtype=bool)
+        if f.alternative_to is not None:
+            return ~np.isnan(value)
+        if f.within_length:
+            value = np.minimum(value, self.L[:, None] if f.per == "tendon" else self.L)
+        return ~np.isclose(value, f.fill(self.L, self.n_tendons), rtol=0.0, atol=1e-12)
 
     @property
     def angles(self) -> np.ndarray:
         """The tendons' angles at s = 0, rad, ``(B, N_t)`` (defaults filled in)."""
-        if self.angle is None:
-            return np.broadcast_to(default_angles(self.n_tendons), self.offset.shape)
-        return self.angle
+        return self.resolved("angle")
 
     @property
     def ends(self) -> np.ndarray:
         """The tendons' ends, m, ``(B, N_t)`` (default L)."""
-        return np.broadcast_to(self.L[:, None], self.offset.shape) if self.end is None else self.end
+        return self.resolved("end")
 
     @property
     def end_fractions(self) -> np.ndarray:
@@ -152,33 +173,47 @@ class DesignBatch:
     @property
     def poissons(self) -> np.ndarray:
         """The Poisson ratio of every design, ``(B,)``."""
-        return np.full(self.n_designs, DEFAULT_POISSON) if self.poisson is None else self.poisson
+        return self.resolved("poisson")
 
     @property
     def displacement_driven(self) -> np.ndarray:
         """Per tendon ``(B, N_t)``: driven by a displacement (rather than its tension)."""
-        if self.displacement is None:
-            return np.zeros(self.offset.shape, dtype=bool)
-        return ~np.isnan(self.displacement)
+        return self.departs("displacement")
 
     @property
     def segmented(self) -> np.ndarray:
         """Per design ``(B,)``: some tendon ends before the tip (the rod has several segments)."""
         return (self.end_fractions < 1.0).any(axis=1)
 
+    def first_departure(self) -> list[tuple | None]:
+        """Per design, where it first leaves the surrogates' layout (every optional field at its
+        default): ``("tendons", i, name)`` for the first tendon ``i`` with a field ``name`` set,
+        else ``(name,)`` for a design field, or ``None`` (the surrogates' layout)."""
+        tendon = [f.name for f in OPTIONAL if f.per == "tendon"]
+        design = [f.name for f in OPTIONAL if f.per == "design"]
+        per_tendon = [self.departs(n) for n in tendon]  # each (B, N_t)
+        per_design = [self.departs(n) for n in design]  # each (B,)
+        out: list[tuple | None] = []
+        for b in range(self.n_designs):
+            where = next((("tendons", i, n) for i in range(self.n_tendons) for n, d in zip(tendon, per_tendon,
+                                                                                         strict=True) if d[b, i]),
+                         None)
+            out.append(where or next(((n,) for n, d in zip(design, per_design, strict=True) if d[b]), None))
+        return out
+
     def is_standard(self) -> np.ndarray:
-        """Per design ``(B,)``: the surrogates' layout, i.e. default angles, every tendon ending at
-        the tip, the default Poisson ratio and tension actuation."""
-        out = ~self.segmented & ~self.displacement_driven.any(axis=1)
-        if self.angle is not None:
-            out &= np.isclose(self.angle, default_angles(self.n_tendons), rtol=0.0, atol=1e-12).all(axis=1)
-        if self.poisson is not None:
-            out &= self.poisson == DEFAULT_POISSON
+        """Per design ``(B,)``: the surrogates' layout, i.e. every optional field of
+        :data:`tdcr.robot.fields.OPTIONAL` at its default (default angles, every tendon ending at the
+        tip, the default Poisson ratio and tension actuation)."""
+        out = np.ones(self.n_designs, dtype=bool)
+        for f in OPTIONAL:
+            departs = self.departs(f.name)
+            out &= ~(departs.any(axis=1) if departs.ndim == 2 else departs)
         return out
 
     def replace(self, **fields) -> DesignBatch:
         """A copy with some fields replaced (e.g. ``tension=...``)."""
-        return DesignBatch(**{name: fields.get(name, getattr(self, name)) for name in _FIELDS})
+        return DesignBatch(**{f.name: fields.get(f.name, getattr(self, f.name)) for f in FIELDS})
 
     @property
     def n_designs(self) -> int:
@@ -193,47 +228,39 @@ class DesignBatch:
 
     def take(self, index) -> DesignBatch:
         """Sub-batch selected by an integer index array or slice."""
-        return DesignBatch(**{name: None if getattr(self, name) is None else getattr(self, name)[index]
-                              for name in _FIELDS})
+        return DesignBatch(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[index]
+                              for f in FIELDS})
 
     def features(self) -> np.ndarray:
         """Raw SI feature matrix ``(B, 3 + 3 N_t)``: [E, r, L, offsets, pitches, tensions]."""
-        return np.concatenate(
-            [self.E[:, None], self.r[:, None], self.L[:, None], self.offset, self.pitch, self.tension],
-            axis=1,
-        )
+        return np.concatenate([getattr(self, n)[:, None] for n in DESIGN_FEATURES]
+                              + [getattr(self, n) for n in TENDON_GROUPS], axis=1)
 
     @classmethod
     def from_features(cls, features: np.ndarray) -> DesignBatch:
         """Inverse of :meth:`features` for ``(B, 3 + 3 N_t)`` arrays."""
         features = np.asarray(features, dtype=np.float64)
         layout = FeatureLayout.of(features)
-        return cls(
-            E=features[:, E_COLUMN], r=features[:, R_COLUMN], L=features[:, L_COLUMN],
-            offset=features[:, layout.group("offset")], pitch=features[:, layout.group("pitch")],
-            tension=features[:, layout.group("tension")],
-        )
+        return cls(**{n: features[:, j] for j, n in enumerate(DESIGN_FEATURES)},
+                   **{n: features[:, layout.group(n)] for n in TENDON_GROUPS})
 
     def to_dicts(self) -> list[dict]:
         """The designs as JSON-ready dicts of the request format (``tdcr.api.schemas.Design``), SI units;
-        the optional fields only where given."""
+        the optional fields only where given (a tendon driven by an alternative field gives it
+        instead of the field it replaces)."""
+        given = {f.name: getattr(self, f.name) for f in OPTIONAL if getattr(self, f.name) is not None}
+        alternatives = [f for f in OPTIONAL if f.alternative_to is not None and f.name in given]
         out = []
         for b in range(self.n_designs):
             tendons = []
             for i in range(self.n_tendons):
-                t = {"offset": float(self.offset[b, i]), "pitch": float(self.pitch[b, i])}
-                if self.displacement is not None and not np.isnan(self.displacement[b, i]):
-                    t["displacement"] = float(self.displacement[b, i])
-                else:
-                    t["tension"] = float(self.tension[b, i])
-                if self.angle is not None:
-                    t["angle"] = float(self.angle[b, i])
-                if self.end is not None:
-                    t["end"] = float(self.end[b, i])
+                replaced = {f.alternative_to for f in alternatives if not np.isnan(given[f.name][b, i])}
+                t = {n: float(getattr(self, n)[b, i]) for n in TENDON_GROUPS if n not in replaced}
+                t |= {n: float(v[b, i]) for n, v in given.items() if BY_NAME[n].per == "tendon"
+                      and not np.isnan(v[b, i])}
                 tendons.append(t)
-            design = {"E": float(self.E[b]), "r": float(self.r[b]), "L": float(self.L[b]), "tendons": tendons}
-            if self.poisson is not None:
-                design["poisson"] = float(self.poisson[b])
+            design = {n: float(getattr(self, n)[b]) for n in DESIGN_FEATURES} | {"tendons": tendons}
+            design |= {n: float(v[b]) for n, v in given.items() if BY_NAME[n].per == "design"}
             out.append(design)
         return out
 
@@ -242,30 +269,12 @@ class DesignBatch:
         """One batch of ``batches`` with one tendon count (optional fields filled with defaults
         where some batches give them and others not)."""
         fields = {}
-        for name in _FIELDS:
-            if name in _OPTIONAL and all(getattr(b, name) is None for b in batches):
-                fields[name] = None
+        for f in FIELDS:
+            if not f.feature and all(getattr(b, f.name) is None for b in batches):
+                fields[f.name] = None
                 continue
-            fields[name] = np.concatenate([_resolved(b, name) for b in batches], axis=0)
+            fields[f.name] = np.concatenate([np.array(b.resolved(f.name)) for b in batches], axis=0)
         return cls(**fields)
-
-
-#: The optional fields of :class:`DesignBatch` (``None``: the default), and all of them in order.
-_OPTIONAL = ("angle", "end", "poisson", "displacement")
-_FIELDS = ("E", "r", "L", "offset", "pitch", "tension") + _OPTIONAL
-
-
-def _resolved(batch: DesignBatch, name: str) -> np.ndarray:
-    """A field of ``batch`` with its default filled in (NaN displacements: tension-driven)."""
-    if name == "angle":
-        return np.array(batch.angles)
-    if name == "end":
-        return np.array(batch.ends)
-    if name == "poisson":
-        return batch.poissons
-    if name == "displacement" and batch.displacement is None:
-        return np.full(batch.offset.shape, np.nan)
-    return getattr(batch, name)
 
 
 @dataclass(frozen=True)
