@@ -32,6 +32,7 @@ from tdcr.api.validation import InvalidRequest, Problem, check_inverse
 from tdcr.robot.design_space import LAYOUT, N_TENDONS, TABLE_I
 from tdcr.robot.designs import DesignBatch
 from tdcr.search.inverse import answer, exact_forward, model_tip_pose, tip_by_differences
+from tdcr.search.lm import Evaluation, levenberg_marquardt
 
 #: Fitness of a candidate that misses a target: above every objective value.
 PENALTY = 1e3
@@ -197,44 +198,29 @@ def _residual(position, frame, jacobian, targets, directions, lengths):
 
 def inner_ik(tip: TipModel, features: np.ndarray, targets: np.ndarray, directions: np.ndarray,
              tau: np.ndarray, tension_max: float, iterations: int = INNER_ITERATIONS) -> tuple[np.ndarray, ...]:
-    """Box-constrained Levenberg-Marquardt on the tensions of ``B`` problems at once: designs
-    ``(B, 15)``, targets ``(B, 3)``, directions ``(B, 3)`` (NaN rows: none), starts ``(B, 4)``.
-    Returns tensions ``(B, 4)``, tip positions ``(B, 3)``, position errors ``(B,)`` m and
-    direction errors ``(B,)`` (|d - d_target|; 0 without a direction; inf: the model failed), and
-    the designs evaluated."""
+    """Box-constrained Levenberg-Marquardt (:func:`tdcr.search.lm.levenberg_marquardt`) on the
+    tensions of ``B`` problems at once: designs ``(B, 15)``, targets ``(B, 3)``, directions ``(B, 3)``
+    (NaN rows: none), starts ``(B, 4)``.  Returns tensions ``(B, 4)``, tip positions ``(B, 3)``,
+    position errors ``(B,)`` m and direction errors ``(B,)`` (|d - d_target|; 0 without a direction;
+    inf: the model failed), and the designs evaluated (a model's tip by differences counts each of
+    its 1 + 2 N_t designs)."""
     lengths = features[:, 2]
     tension = LAYOUT.group("tension")
-    eye = np.eye(N_TENDONS)
 
-    def evaluate(t):
-        f = features.copy()
+    def evaluate(t: np.ndarray, rows: np.ndarray) -> Evaluation:
+        f = features[rows].copy()
         f[:, tension] = t
         position, frame, jacobian, ok = tip(f)
-        r, j = _residual(position, frame, jacobian, targets, directions, lengths)
-        cost = np.where(ok, (r ** 2).sum(axis=1), np.inf)
-        return position, r, j, cost
+        r, j = _residual(position, frame, jacobian, targets[rows], directions[rows], lengths[rows])
+        return Evaluation(r, j, ok, {"position": position})
 
-    tau = np.clip(tau, 0.0, tension_max)
-    position, r, j, cost = evaluate(tau)
-    evaluations = len(features) * (1 + 2 * N_TENDONS)
-    damping = 1e-3 * np.maximum(np.einsum("bij,bij->b", j, j) / N_TENDONS, 1e-300)
-    for _ in range(iterations):
-        a = np.einsum("bki,bkj->bij", j, j) + damping[:, None, None] * eye
-        g = np.einsum("bki,bk->bi", j, r)
-        with np.errstate(all="ignore"):
-            step = -np.linalg.solve(a, g[..., None])[..., 0]
-        trial = np.clip(tau + np.nan_to_num(step), 0.0, tension_max)
-        t_position, t_r, t_j, t_cost = evaluate(trial)
-        evaluations += len(features) * (1 + 2 * N_TENDONS)
-        better = t_cost < cost
-        tau = np.where(better[:, None], trial, tau)
-        position = np.where(better[:, None], t_position, position)
-        r, j = np.where(better[:, None], t_r, r), np.where(better[:, None, None], t_j, j)
-        cost = np.where(better, t_cost, cost)
-        damping = np.where(better, damping * 0.3, damping * 10.0)
-    error = np.where(np.isfinite(cost), np.linalg.norm(position - targets, axis=1), np.inf)
-    direction_error = np.where(np.isfinite(cost), np.linalg.norm(r[:, 3:], axis=1), np.inf)
-    return tau, position, error, direction_error, evaluations
+    bounds = np.zeros(tau.shape), np.full(tau.shape, float(tension_max))
+    solution = levenberg_marquardt(evaluate, tau, *bounds, max_iterations=iterations)
+    finite = np.isfinite(solution.cost)
+    position = solution.at.extra["position"]
+    error = np.where(finite, np.linalg.norm(position - targets, axis=1), np.inf)
+    direction_error = np.where(finite, np.linalg.norm(solution.at.residual[:, 3:], axis=1), np.inf)
+    return solution.tau, position, error, direction_error, solution.evaluations * (1 + 2 * N_TENDONS)
 
 
 # -- the search -------------------------------------------------------------------------------

@@ -11,7 +11,8 @@ with 0 <= tau_i <= tension_max throughout:
    that reach a target (four tendons leave a one-parameter family for a position) the answer is
    the one with the least sum of squared tensions, i.e. no needless co-contraction.
 
-Each step solves a box-constrained quadratic program exactly (active set).  A target not reached
+Each step solves a box-constrained quadratic program exactly (active set; the one batched
+Levenberg-Marquardt of :mod:`tdcr.search.lm`, here one problem at a time).  A target not reached
 from its start (the tip map of helical routings is not convex) is tried again from all tensions at
 tension_max / 2 and from seeded random tensions (:data:`RESTARTS` in all); the best answer is kept.  The Jacobian comes
 from :class:`Forward`: exact (the solver's own,
@@ -33,6 +34,7 @@ from tdcr.api.validation import InverseProblem
 from tdcr.physics import TipSolver, solve
 from tdcr.physics.exact import NOT_FINITE_RESIDUAL
 from tdcr.robot.designs import DesignBatch
+from tdcr.search.lm import Evaluation, box_qp, levenberg_marquardt
 
 #: Relative weight of |tau|^2 (to the Jacobian's scale) in the least-norm steps.
 LEAST_NORM_WEIGHT = 1e-10
@@ -133,33 +135,6 @@ class InverseResult:
     iterations: int
 
 
-def _box_qp(h: np.ndarray, g: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """argmin 1/2 x^T h x + g^T x subject to low <= x <= high, for a small SPD ``h`` (active set:
-    clamp violating variables, release those whose gradient points inside, until neither)."""
-    n = g.size
-    at_low, at_high = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-    x = np.zeros(n)
-    for _ in range(4 * n + 4):
-        fixed = at_low | at_high
-        x = np.where(at_low, low, np.where(at_high, high, 0.0))
-        free = ~fixed
-        if free.any():
-            rhs = -g[free] - h[np.ix_(free, fixed)] @ x[fixed]
-            x[free] = np.linalg.solve(h[np.ix_(free, free)], rhs)
-        below, above = free & (x < low - 1e-15), free & (x > high + 1e-15)
-        if below.any() or above.any():
-            at_low |= below
-            at_high |= above
-            continue
-        grad = h @ x + g
-        release = (at_low & (grad < 0)) | (at_high & (grad > 0))
-        if not release.any():
-            return np.clip(x, low, high)
-        worst = np.argmax(np.abs(np.where(release, grad, 0.0)))
-        at_low[worst] = at_high[worst] = False
-    return np.clip(x, low, high)
-
-
 def inverse(forward: Forward, length: float, positions: np.ndarray, directions: np.ndarray | None, *,
             start: np.ndarray, tension_max: float, tolerance: float = 1e-4, max_iterations: int = 60,
             warm_start: bool = True) -> list[InverseResult]:
@@ -212,37 +187,39 @@ def _residual(pose: TipPose, i: int, target, wanted, length) -> tuple[np.ndarray
     return r, j
 
 
+def _box_step(h: np.ndarray, g: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """:func:`tdcr.search.lm.box_qp` of one problem ``(n, n)``, ``(n,)``."""
+    return box_qp(h[None], g[None], low[None], high[None])[0]
+
+
 def _one_target(forward, length, target, wanted, tau, low, high, tolerance, max_iterations) -> InverseResult:
-    """Levenberg-Marquardt onto the target, then least-norm steps along the tip's null space."""
+    """Levenberg-Marquardt onto the target (:func:`tdcr.search.lm.levenberg_marquardt`), then
+    least-norm steps along the tip's null space."""
     pose = forward(tau[None])
     if not pose.ok[0]:
         return _result(tau, pose, target, wanted, "failed", 0)
+
+    def evaluate(trial: np.ndarray, rows: np.ndarray) -> Evaluation:
+        at = forward(trial)
+        if not at.ok[0]:
+            return Evaluation(np.full((1, 3 + 3 * (wanted is not None)), np.nan),
+                              np.full((1, 3 + 3 * (wanted is not None), tau.size), np.nan), at.ok, _pose_arrays(at))
+        r, j = _residual(at, 0, target, wanted, length)
+        return Evaluation(r[None], j[None], at.ok, _pose_arrays(at))
+
     r, j = _residual(pose, 0, target, wanted, length)
-    scale = max(float(np.trace(j.T @ j)) / tau.size, 1e-300)
-    damping = 1e-3 * scale
     close = (0.01 * tolerance) ** 2  # |r|^2 that ends the first phase
-    iteration = 0
-    while iteration < max_iterations and r @ r > close:
-        iteration += 1
-        step = _box_qp(j.T @ j + damping * np.eye(tau.size), j.T @ r, low - tau, high - tau)
-        trial = np.clip(tau + step, low, high)
-        trial_pose = forward(trial[None])
-        tr, tj = _residual(trial_pose, 0, target, wanted, length) if trial_pose.ok[0] else (None, None)
-        if tr is not None and tr @ tr <= r @ r:
-            stalled = np.abs(trial - tau).max() <= 1e-12 * high.max()
-            tau, pose, r, j = trial, trial_pose, tr, tj
-            damping = max(damping * 0.2, 1e-12 * scale)
-            if stalled:  # a stationary point within the bounds
-                break
-        else:
-            damping *= 10.0
-            if damping > 1e12 * scale:  # no step lowers the error: the closest tip the bounds allow
-                break
+    solution = levenberg_marquardt(evaluate, tau[None], low[None], high[None], max_iterations=max_iterations,
+                                   close=close, start=Evaluation(r[None], j[None], pose.ok, _pose_arrays(pose)))
+    tau, r, j = solution.tau[0], solution.at.residual[0], solution.at.jacobian[0]
+    pose = TipPose(**solution.at.extra)
+    iteration = int(solution.iterations[0])
+    scale = float(solution.scale[0])
     if r @ r <= close:  # on the target: the least sum of squared tensions that stays there
         weight = LEAST_NORM_WEIGHT * scale
         on_target = (0.5 * tolerance) ** 2  # what a least-norm step may leave (the next one corrects it)
         while iteration < max_iterations:
-            step = _box_qp(j.T @ j + weight * np.eye(tau.size), j.T @ r + weight * tau, low - tau, high - tau)
+            step = _box_step(j.T @ j + weight * np.eye(tau.size), j.T @ r + weight * tau, low - tau, high - tau)
             accepted = False
             for _ in range(8):  # halve a step that leaves the target (the null space is curved)
                 if np.abs(step).max() <= LEAST_NORM_STEP * high.max():
@@ -256,8 +233,8 @@ def _one_target(forward, length, target, wanted, tau, low, high, tolerance, max_
                     tr, tj = _residual(trial_pose, 0, target, wanted, length)
                     if tr @ tr <= close:
                         break
-                    trial = np.clip(trial + _box_qp(tj.T @ tj + weight * np.eye(tau.size), tj.T @ tr,
-                                                    low - trial, high - trial), low, high)
+                    trial = np.clip(trial + _box_step(tj.T @ tj + weight * np.eye(tau.size), tj.T @ tr,
+                                                      low - trial, high - trial), low, high)
                 if trial_pose.ok[0] and tr @ tr <= on_target and trial @ trial < tau @ tau:
                     tau, pose, r, j, accepted = trial, trial_pose, tr, tj, True
                     break
@@ -265,6 +242,10 @@ def _one_target(forward, length, target, wanted, tau, low, high, tolerance, max_
             if not accepted:
                 break
     return _result(tau, pose, target, wanted, _status(r, wanted, tolerance), iteration)
+
+
+def _pose_arrays(pose: TipPose) -> dict[str, np.ndarray]:
+    return {"position": pose.position, "direction": pose.direction, "jacobian": pose.jacobian, "ok": pose.ok}
 
 
 def _status(r: np.ndarray, wanted, tolerance: float) -> str:

@@ -27,8 +27,8 @@ from tdcr.physics.exact import ExactAnswer
 from tdcr.robot.design_space import N_FEATURES, load_warnings, range_warnings
 from tdcr.robot.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
 from tdcr.search.inverse import model_tip_pose, tip_by_differences
-from tdcr.surrogates.bounds import EXACT, SOURCES, Calibration, guard
-from tdcr.surrogates.runtime import error_bound, on_grid_tendons
+from tdcr.surrogates.bounds import EXACT, SOURCES, Calibration
+from tdcr.surrogates.runtime import keep_tolerance, on_grid_tendons
 
 #: Media types of the binary path.
 NPY = "application/x-npy"
@@ -163,21 +163,19 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str, guard_wi
     finite = np.ones(len(features), dtype=bool)
     for v in arrays.values():
         finite &= np.isfinite(v.reshape(len(features), -1)).all(axis=1)
-    if not finite.all():
-        arrays = {k: np.where(finite.reshape(-1, *[1] * (v.ndim - 1)), v, 0).astype(v.dtype)
-                  for k, v in arrays.items()}
     bounds = source = None
     if guard_with is not None:
         given = np.zeros((len(features), N_LOAD_COLUMNS)) if matrix is None else matrix
-        with np.errstate(all="ignore"):
-            bounds = error_bound(guard_with.calibration, features, given if predictor.takes_loads else None,
-                                 tendons=on_grid_tendons(out, request.fractions), own=predictor.predict,
-                                 companion=guard_with.companion)
-        bounds = np.where(finite, bounds, np.inf)
-        arrays, kept = guard(arrays, bounds, tolerance=request.tolerance,
-                             exact=lambda rows: exact_arrays(guard_with.exact(request.take(rows))))
+        arrays, kept = keep_tolerance(arrays, features, request.fractions, given if predictor.takes_loads else None,
+                                      tendons=on_grid_tendons(out, request.fractions), own=predictor.predict,
+                                      calibration=guard_with.calibration, companion=guard_with.companion,
+                                      tolerance=request.tolerance,
+                                      exact=lambda rows: exact_arrays(guard_with.exact(request.take(rows))))
         bounds, source = kept.error_bound, kept.source if request.tolerance is not None else None
         finite = finite | (kept.source == EXACT)
+    if not finite.all():
+        arrays = {k: np.where(finite.reshape(-1, *[1] * (v.ndim - 1)), v, 0).astype(v.dtype)
+                  for k, v in arrays.items()}
     arclength = features[:, L_COLUMN, None] * request.fractions[None, :]
     tip_jacobian = None
     if request.jacobian:

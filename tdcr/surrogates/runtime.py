@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,7 @@ from tdcr.robot.designs import N_LOAD_COLUMNS, DesignBatch, ExternalLoads
 from tdcr.surrogates.bounds import (
     Calibration,
     CalibrationError,
+    Guarded,
     calibration_grid,
     disagreement,
     guard,
@@ -115,6 +117,23 @@ def error_bound(calibration: Calibration | None, features: np.ndarray, loads: np
         with np.errstate(all="ignore"):
             score = disagreement(tendons, theirs)
     return calibration.bound(features, score, loads)
+
+
+def keep_tolerance(arrays: dict[str, np.ndarray], features: np.ndarray, fractions: np.ndarray,
+                   loads: np.ndarray | None, *, tendons: np.ndarray | None, own, calibration: Calibration | None,
+                   companion, tolerance: float | None,
+                   exact: Callable[[np.ndarray], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], Guarded]:
+    """The one tolerance path of an operator's answer, for :meth:`Surrogate.predict` and the engine
+    alike: each design's bound (:func:`error_bound`; ``inf`` where the answer ``arrays`` ``(B, ...)``
+    are not finite), then :func:`tdcr.surrogates.bounds.guard`: with ``tolerance``, the designs whose
+    bound exceeds it answered by ``exact(rows)``.  ``tendons``: the answer on the calibration grid
+    (:func:`on_grid_tendons`; None: ``own`` computes it)."""
+    finite = np.ones(len(features), dtype=bool)
+    for v in arrays.values():
+        finite &= np.isfinite(v.reshape(len(features), -1)).all(axis=1)
+    with np.errstate(all="ignore"):
+        bounds = error_bound(calibration, features, loads, tendons=tendons, own=own, companion=companion)
+    return guard(arrays, np.where(finite, bounds, np.inf), tolerance=tolerance, exact=exact)
 
 
 def solve_rows(features: np.ndarray, fractions: np.ndarray, loads: np.ndarray | None, *,
@@ -339,12 +358,13 @@ class Surrogate:
         matrix = self.load_matrix(loads, len(features))
         if bound or tolerance is not None:
             out = self.predict(features, fractions, loads=matrix, pose=pose, check=False)
-            bounds = self.error_bound(features, loads=matrix, tendons=on_grid_tendons(out, fractions))
 
             def exact(rows: np.ndarray) -> dict[str, np.ndarray]:
                 return solve_rows(features[rows], fractions, None if matrix is None else matrix[rows], pose=pose)
 
-            out, guarded = guard(out, bounds, tolerance=tolerance, exact=exact)
+            out, guarded = keep_tolerance(out, features, fractions, matrix, tendons=on_grid_tendons(out, fractions),
+                                          own=self.predict, calibration=self.calibration,
+                                          companion=self.companion(), tolerance=tolerance, exact=exact)
             return out | {"error_bound": guarded.error_bound} | (
                 {"source": guarded.source} if tolerance is not None else {})
         raw = {k: v for k, v in self.run(features, fractions, matrix).items() if pose or k == "tendons"}
