@@ -661,6 +661,28 @@ def _stretch(x, ox, oy, dx, dy):
 
 
 @njit(cache=True, error_model="numpy")
+def least_stretch(length, offset, pitch, angle, end, fractions, strains):
+    """Per design ``(B,)``: the least |g_i| (:func:`_stretch`) of the tendons acting (end_i >= s)
+    at the output ``fractions`` ``(n,)`` for the strains ``(B, n, 6)``; NaN where one is not finite
+    (0 / 0 in its direction).  Designs: ``length`` ``(B,)`` m, ``offset``, ``pitch``, ``angle``,
+    ``end`` ``(B, N_t)`` (end as a fraction of L)."""
+    n_designs, n_t = offset.shape
+    out = np.full(n_designs, np.inf)
+    rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
+    for b in range(n_designs):
+        for k in range(fractions.shape[0]):
+            _routing(fractions[k], length[b], offset[b], pitch[b], angle[b], rho, drho)
+            for i in range(n_t):
+                if end[b, i] >= fractions[k]:
+                    g = _stretch(strains[b, k], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+                    if g != g:  # not finite: NaN, and it stays
+                        out[b] = g
+                    elif g < out[b]:
+                        out[b] = g
+    return out
+
+
+@njit(cache=True, error_model="numpy")
 def undeformed_length(length, offset, pitch, end):
     """A tendon's path length on the straight rod, m: int_0^end |e3 + rho'| ds = end L sqrt(1 + (o p)^2)
     (``end`` a fraction of L)."""

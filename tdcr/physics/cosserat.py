@@ -179,7 +179,7 @@ def material(designs: DesignBatch) -> _Material:
     kernels receive these)."""
     ga, ea, ei, gj = section_stiffness(designs.E, designs.r, designs.poissons)
     return _Material(kse=np.stack([ga, ga, ea], axis=-1), kbt=np.stack([ei, ei, gj], axis=-1),
-                     area=np.pi * designs.r**2)
+                     area=ea / designs.E)  # A of the material law
 
 
 def internal_wrench(rotation: np.ndarray, strains: np.ndarray, mat: _Material) -> tuple[np.ndarray, np.ndarray]:
@@ -506,12 +506,12 @@ def tendon_collapsed(designs: DesignBatch, fractions: np.ndarray, strains: np.nd
     one tendon), and no equilibrium with a taut tendon exists -- more continuation would not help."""
     if len(designs) == 0:
         return np.zeros(0, dtype=bool)
-    rho, drho = tendon_routing(designs, fractions)
-    g = strains[:, :, None, :3] + _cross(strains[:, :, None, 3:], rho) + drho
-    acting = designs.end_fractions[:, None, :] >= fractions[None, :, None]
-    with np.errstate(invalid="ignore"):
-        stretch = np.where(acting, np.linalg.norm(g, axis=-1), np.inf)
-        return ~(stretch.min(axis=(1, 2)) >= COLLAPSED_STRETCH)
+    from tdcr.physics._compiled import kernel
+
+    least = kernel.least_stretch(designs.L, designs.offset, designs.pitch, np.ascontiguousarray(designs.angles),
+                                 np.ascontiguousarray(designs.end_fractions), np.asarray(fractions, np.float64),
+                                 np.ascontiguousarray(strains))
+    return ~(least >= COLLAPSED_STRETCH)
 
 
 class TipSolver:

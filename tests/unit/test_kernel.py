@@ -189,3 +189,23 @@ def test_euler_buckling_is_flagged_as_several_equilibria():
     assert sol.status.tolist() == [Status.CONVERGED, Status.MULTIPLE_EQUILIBRIA]
     assert sol.converged.tolist() == [True, False]
     np.testing.assert_allclose(sol.backbone[:, -1, :2], 0.0, atol=1e-12)  # the straight shape, flagged
+
+
+def test_the_numpy_routing_is_the_kernels_routing():
+    """eq. RHO: the runtime's vectorised tendon_routing (numba-free, for the operators' pose fit)
+    gives the kernel's _routing at every node, angles and helices included."""
+    from tdcr.physics._compiled import kernel
+
+    rng = np.random.default_rng(4)
+    designs = sample_designs(20, seed=4)
+    designs = designs.replace(angle=rng.uniform(-3, 3, (20, 4)))
+    fractions = np.linspace(0.0, 1.0, 7)
+    rho, drho = cosserat.tendon_routing(designs, fractions)
+    mine, mine_d = np.empty((4, 2)), np.empty((4, 2))
+    for b in range(20):
+        for k, fraction in enumerate(fractions):
+            kernel._routing(fraction, designs.L[b], designs.offset[b], designs.pitch[b], designs.angles[b], mine,
+                            mine_d)
+            np.testing.assert_allclose(rho[b, k, :, :2], mine, rtol=0, atol=1e-15)
+            np.testing.assert_allclose(drho[b, k, :, :2], mine_d, rtol=0, atol=1e-14)
+    assert (rho[..., 2] == 0).all() and (drho[..., 2] == 0).all()
