@@ -58,10 +58,12 @@ def _serve(conn: Connection, parent: int) -> None:
     """Worker loop: ``(fn, args, kwargs, expected exception types)`` in, ``(ok, result or exception)`` out."""
     _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server handles Ctrl-C and stops us
-    from tdcr.physics.exact import warm_up
+    from tdcr.physics.exact import DEFAULT_PATHS, PATHS, warm_up
 
-    warm_up()
+    warm_up(DEFAULT_PATHS)  # ready once the default path answers; the others compile meanwhile
     conn.send((True, "ready"))
+    rest = tuple(p for p in PATHS if p not in DEFAULT_PATHS)
+    threading.Thread(target=_warm_up_rest, args=(rest,), daemon=True, name="tdcr-warm-up").start()
     while True:
         try:
             fn, args, kwargs, expected = conn.recv()
@@ -73,6 +75,17 @@ def _serve(conn: Connection, parent: int) -> None:
             conn.send((False, exc))
         except Exception as exc:  # noqa: BLE001 - reported to the server, which answers 500-free
             conn.send((False, RuntimeError(f"{exc.__class__.__name__}: {exc}")))
+
+
+def _warm_up_rest(paths: tuple[str, ...]) -> None:
+    """Compile (or load) the solver's other paths after the worker said ready: a request on one of
+    them meanwhile waits for its compilation (numba's compiler lock), one on the default path does not."""
+    from tdcr.physics.exact import warm_up
+
+    try:
+        warm_up(paths)
+    except Exception:  # noqa: BLE001 - a request on that path compiles it itself, and reports what fails
+        log.exception("warming up the solver paths %s failed", paths)
 
 
 class _Worker:

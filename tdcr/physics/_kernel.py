@@ -29,7 +29,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from tdcr.physics.status import Status
 
@@ -879,11 +879,11 @@ def find_tensions(rod, target, grid, tols, slack):
     return False, MAX_DISPLACEMENT_ITERATIONS
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def find_tensions_batch(rods, target, grid, tols, slack, status, iterations):
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
     targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED."""
-    for b in prange(rods.length.shape[0]):
+    for b in range(rods.length.shape[0]):
         ok, it = find_tensions(_rod(rods, b), target[b], grid, tols, slack[b])
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
@@ -1203,11 +1203,12 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order):
     return ok, iters, worst
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def solve_batch(rods, grid, tols, out):
-    """:func:`solve_design` for every design of :class:`Rods` ``rods``, over numba's threads, into
+    """:func:`solve_design` for every design of :class:`Rods` ``rods``,
+    without the GIL (:func:`tdcr.physics.cosserat._run_kernel` runs chunks side by side), into
     the :class:`Shapes` ``out``."""
-    for b in prange(rods.length.shape[0]):
+    for b in range(rods.length.shape[0]):
         res = solve_design(_rod(rods, b), grid, tols, _design_shapes(out, b))
         _store_summary(out, b, res)
 
@@ -1765,11 +1766,12 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
     return status, residual, passes, level, estimate, y[3], y[4], y[5]
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def solve_loaded_batch(rods, loads, grid, tols, out):
     """:func:`solve_loaded_design` for every design of :class:`Rods` ``rods`` under :class:`Loads`
-    ``loads``, over numba's threads, into the :class:`Shapes` ``out`` (``iterations``: passes)."""
-    for b in prange(rods.length.shape[0]):
+    ``loads``, without the GIL (:func:`tdcr.physics.cosserat._run_kernel` runs chunks side by side),
+    into the :class:`Shapes` ``out`` (``iterations``: passes)."""
+    for b in range(rods.length.shape[0]):
         res = solve_loaded_design(_rod(rods, b), _load(loads, b), grid, tols, _design_shapes(out, b), out.shoot_jac[b])
         _store_summary(out, b, res)
         m0 = out.m0[b]

@@ -45,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -383,17 +384,33 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
     return kernel, rods, grid, tols, out
 
 
-def _run_kernel(entry, threads: int, n_designs: int, *args) -> None:
-    """``entry(*args)`` on ``threads`` numba threads (0: all), restoring numba's setting after."""
-    import numba
+#: Chunks per thread of a batch run side by side (designs differ in cost: smaller chunks balance).
+CHUNKS_PER_THREAD = 4
 
-    wanted = min(threads or os.cpu_count() or 1, numba.config.NUMBA_NUM_THREADS, max(n_designs, 1))
-    previous = numba.get_num_threads()
-    numba.set_num_threads(wanted)
-    try:
+
+def _run_kernel(entry, threads: int, n_designs: int, *args) -> None:
+    """``entry(*args)`` on ``threads`` threads (0: one per core): the designs in contiguous chunks,
+    each a call of the compiled ``entry`` (``nogil``) on its rows of the batch-first arguments (the
+    :class:`~tdcr.physics._kernel.Rods`, ``Loads`` and ``Shapes`` and the plain arrays; the grid and
+    the tolerances are shared).  Designs are independent, so any split gives the same bits."""
+    from tdcr.physics._compiled import kernel
+
+    wanted = min(threads or os.cpu_count() or 1, max(n_designs, 1))
+    if wanted <= 1:
         entry(*args)
-    finally:
-        numba.set_num_threads(previous)
+        return
+    batched = (kernel.Rods, kernel.Loads, kernel.Shapes)
+
+    def rows(arg, part: slice):
+        if isinstance(arg, batched):
+            return type(arg)(*(a[part] if a.shape[0] == n_designs else a for a in arg))
+        return arg[part] if isinstance(arg, np.ndarray) else arg
+
+    size = -(-n_designs // (wanted * CHUNKS_PER_THREAD))
+    parts = [slice(i, min(i + size, n_designs)) for i in range(0, n_designs, size)]
+    with ThreadPoolExecutor(wanted) as pool:
+        for _ in pool.map(lambda part: entry(*(rows(a, part) for a in args)), parts):
+            pass
 
 
 def several_equilibria(shoot_jac: np.ndarray) -> np.ndarray:

@@ -167,17 +167,31 @@ def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None
     return ExactAnswer(fractions=request.fractions, groups=tuple(groups))
 
 
-def warm_up() -> bool:
-    """Import and run the solver once, tendon-only, loaded, with segments under both termination
-    rules and with displacement actuation (warms worker processes up; compiles the numba kernels
-    into their cache on first use)."""
+#: The solver's compiled paths, in the order a start compiles them: the default (tendon loads,
+#: with segments and the tip Jacobian) first, then external loads (and the rucker_webster rule, the
+#: same kernel), then displacement actuation.
+PATHS = ("tendon", "loaded", "displacement")
+#: What a service compiles before it says ready; the rest follows in the background.
+DEFAULT_PATHS = ("tendon",)
+
+
+def warm_up(paths: tuple[str, ...] = PATHS) -> bool:
+    """Run the solver once on each of ``paths`` (:data:`PATHS`): compiles the numba kernels into
+    their cache on first use (a cold cache: about a minute and a half each on 2 cores), loads them
+    from it afterwards."""
     from tdcr.robot.design_space import sample_designs, sample_segmented_designs
     from tdcr.robot.designs import ExternalLoads
 
+    unknown = set(paths) - set(PATHS)
+    if unknown:
+        raise ValueError(f"unknown solver paths {sorted(unknown)}; they are {list(PATHS)}")
     designs, fraction = sample_designs(2, seed=0), np.linspace(0.0, 1.0, 5)
-    solve(designs, fraction)
-    solve(designs, fraction, loads=ExternalLoads(tip_force=np.array([[0.0, 0.01, 0.0]] * 2)))
-    segmented = sample_segmented_designs(1, seed=0)
-    solve(segmented, fraction, termination="rucker_webster")
-    solve(designs.replace(displacement=np.full(designs.offset.shape, 1e-4)), fraction)
+    if "tendon" in paths:
+        solve(designs, fraction)
+        solve(sample_segmented_designs(1, seed=0), fraction, jacobian=True)
+    if "loaded" in paths:
+        solve(designs, fraction, loads=ExternalLoads(tip_force=np.array([[0.0, 0.01, 0.0]] * 2)))
+        solve(sample_segmented_designs(1, seed=0), fraction, termination="rucker_webster")
+    if "displacement" in paths:
+        solve(designs.replace(displacement=np.full(designs.offset.shape, 1e-4)), fraction)
     return True
