@@ -343,20 +343,23 @@ def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | 
                                             what + (", not both" if given else ""), f"{other.name}_or_{f.name}"))
     lengths = np.array([d.L for d in designs], dtype=np.float64)
     fields = {}
+    per = {"design": [d.__dict__ for d in designs], "tendon": [t.__dict__ for d in designs for t in d.tendons]}
     for f in FIELDS:
-        values = [getattr(d, f.name, None) for d in designs] if f.per == "design" else [
-            [getattr(t, f.name, None) for t in d.tendons] for d in designs]
-        absent = np.array([[v is None for v in row] for row in values] if f.per == "tendon"
-                          else [v is None for v in values], dtype=bool)
-        if f.feature:
-            fields[f.name] = np.where(absent, 0.0, np.array(values, dtype=object)).astype(np.float64)
-        elif not absent.all():
-            given = np.where(absent, np.nan, np.array(values, dtype=object)).astype(np.float64)
-            fields[f.name] = np.where(absent, f.fill(lengths, n_t), given)
-            if f.within_length:  # an arclength within rounding of L is L (farther ones are refused by check_layout)
-                limit = lengths[:, None] if f.per == "tendon" else lengths
-                rounding = (given > limit) & (given <= limit * (1.0 + FRACTION_ROUNDING))
-                fields[f.name] = np.where(rounding, limit, fields[f.name])
+        values = [row.get(f.name) for row in per[f.per]]  # flat: designs, or designs x tendons in order
+        shape = (len(designs),) if f.per == "design" else (len(designs), n_t)
+        given = np.array(values, dtype=np.float64).reshape(shape)  # numpy reads None as NaN
+        absent = np.isnan(given)
+        if absent.any():  # which are None (a NaN given stays, for the checks to refuse)
+            absent = np.array([v is None for v in values], dtype=bool).reshape(shape)
+            if not f.feature and absent.all():
+                continue  # None: no design gives it
+            fields[f.name] = np.where(absent, 0.0 if f.feature else f.fill(lengths, n_t), given)
+        else:
+            fields[f.name] = given
+        if f.within_length:  # an arclength within rounding of L is L (farther ones are refused by check_layout)
+            limit = lengths[:, None] if f.per == "tendon" else lengths
+            rounding = (given > limit) & (given <= limit * (1.0 + FRACTION_ROUNDING))
+            fields[f.name] = np.where(rounding, limit, fields[f.name])
     batch = DesignBatch(**fields)
     loads = None
     takes_loads = "gravity" in type(designs[0]).model_fields  # surrogate designs have no load fields
