@@ -261,66 +261,78 @@ def _potential(x, rho, drho, tau, kse, kbt, target):
 @njit(cache=True, error_model="numpy")
 def _residual_jacobian(x, rho, drho, tau, kse, kbt, res, jac, want_jac, av, target):
     """Residual of (W1, W2) into ``res`` (6,) and (if ``want_jac``) its Jacobian, the Hessian of
-    Phi, into ``jac`` (6, 6): J = diag(K_se, K_bt) + sum_i w_i (A_i^T A_i - a_i a_i^T)."""
-    res[0] = kse[0] * x[0]
-    res[1] = kse[1] * x[1]
-    res[2] = kse[2] * (x[2] - 1.0)
-    res[3] = kbt[0] * x[3]
-    res[4] = kbt[1] * x[4]
-    res[5] = kbt[2] * x[5]
-    if want_jac:
-        for a in range(6):
-            for b in range(6):
-                jac[a, b] = 0.0
-        jac[0, 0], jac[1, 1], jac[2, 2] = kse[0], kse[1], kse[2]
-        jac[3, 3], jac[4, 4], jac[5, 5] = kbt[0], kbt[1], kbt[2]
+    Phi, into ``jac`` (6, 6): J = diag(K_se, K_bt) + sum_i w_i (A_i^T A_i - a_i a_i^T), w_i = tau_i /
+    |g_i|, a_i = (t_i, rho_i x t_i), A_i = [I, -hat(rho_i)].  The sums run in local scalars (kept in
+    registers: five times faster than accumulating into the arrays); ``av`` is unused workspace."""
+    x0, x1, x2, x3, x4, x5 = x[0], x[1], x[2], x[3], x[4], x[5]
+    r0, r1, r2 = kse[0] * x0 - target[0], kse[1] * x1 - target[1], kse[2] * (x2 - 1.0) - target[2]
+    r3, r4, r5 = kbt[0] * x3 - target[3], kbt[1] * x4 - target[4], kbt[2] * x5 - target[5]
+    j00, j11, j22, j33, j44, j55 = kse[0], kse[1], kse[2], kbt[0], kbt[1], kbt[2]
+    j01 = j02 = j03 = j04 = j05 = j12 = j13 = j14 = j15 = j23 = j24 = j25 = j34 = j35 = j45 = 0.0
     for i in range(tau.shape[0]):
-        if tau[i] == 0.0:  # a slack or ended tendon adds nothing to (W1, W2) or its Jacobian
+        ti = tau[i]
+        if ti == 0.0:  # a slack or ended tendon adds nothing to (W1, W2) or its Jacobian
             continue
         ox, oy = rho[i, 0], rho[i, 1]
-        g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], ox, oy, drho[i, 0], drho[i, 1])
-        gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-        t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
+        g0, g1, g2 = _tendon(x0, x1, x2, x3, x4, x5, ox, oy, drho[i, 0], drho[i, 1])
+        inv = 1.0 / math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)  # 1 / |g_i|
+        t0, t1, t2 = g0 * inv, g1 * inv, g2 * inv
         c0, c1, c2 = oy * t2, -ox * t2, ox * t1 - oy * t0  # rho_i x t_i
-        ti = tau[i]
-        res[0] += ti * t0
-        res[1] += ti * t1
-        res[2] += ti * t2
-        res[3] += ti * c0
-        res[4] += ti * c1
-        res[5] += ti * c2
+        r0 += ti * t0
+        r1 += ti * t1
+        r2 += ti * t2
+        r3 += ti * c0
+        r4 += ti * c1
+        r5 += ti * c2
         if want_jac:
-            w = ti / gn
-            av[0], av[1], av[2], av[3], av[4], av[5] = t0, t1, t2, c0, c1, c2
-            for a in range(6):
-                wa = w * av[a]
-                for b in range(a, 6):
-                    jac[a, b] -= wa * av[b]
-            # + w A^T A with A = [I, -hat(rho)]: [[I, -hat(rho)], [hat(rho), |rho|^2 I - rho rho^T]]
-            jac[0, 0] += w
-            jac[1, 1] += w
-            jac[2, 2] += w
-            # upper block -hat(rho), rho = (ox, oy, 0): hat = [[0,0,oy],[0,0,-ox],[-oy,ox,0]]
-            jac[0, 5] -= w * oy
-            jac[1, 5] += w * ox
-            jac[2, 3] += w * oy
-            jac[2, 4] -= w * ox
-            jac[3, 3] += w * oy * oy
-            jac[4, 4] += w * ox * ox
-            jac[3, 4] -= w * ox * oy
-            jac[5, 5] += w * (ox * ox + oy * oy)
-    for a in range(6):
-        res[a] -= target[a]
+            # w (A^T A - a a^T), A^T A = [[I, -hat(rho)], [hat(rho), |rho|^2 I - rho rho^T]], rho = (ox, oy, 0)
+            w = ti * inv
+            j00 += w * (1.0 - t0 * t0)
+            j01 -= w * t0 * t1
+            j02 -= w * t0 * t2
+            j03 -= w * t0 * c0
+            j04 -= w * t0 * c1
+            j05 -= w * (oy + t0 * c2)
+            j11 += w * (1.0 - t1 * t1)
+            j12 -= w * t1 * t2
+            j13 -= w * t1 * c0
+            j14 -= w * t1 * c1
+            j15 += w * (ox - t1 * c2)
+            j22 += w * (1.0 - t2 * t2)
+            j23 += w * (oy - t2 * c0)
+            j24 -= w * (ox + t2 * c1)
+            j25 -= w * t2 * c2
+            j33 += w * (oy * oy - c0 * c0)
+            j34 -= w * (ox * oy + c0 * c1)
+            j35 -= w * c0 * c2
+            j44 += w * (ox * ox - c1 * c1)
+            j45 -= w * c1 * c2
+            j55 += w * (ox * ox + oy * oy - c2 * c2)
+    res[0], res[1], res[2], res[3], res[4], res[5] = r0, r1, r2, r3, r4, r5
     if want_jac:
-        for a in range(6):
-            for b in range(a + 1, 6):
-                jac[b, a] = jac[a, b]
+        jac[0, 0], jac[1, 1], jac[2, 2], jac[3, 3], jac[4, 4], jac[5, 5] = j00, j11, j22, j33, j44, j55
+        jac[0, 1] = jac[1, 0] = j01
+        jac[0, 2] = jac[2, 0] = j02
+        jac[0, 3] = jac[3, 0] = j03
+        jac[0, 4] = jac[4, 0] = j04
+        jac[0, 5] = jac[5, 0] = j05
+        jac[1, 2] = jac[2, 1] = j12
+        jac[1, 3] = jac[3, 1] = j13
+        jac[1, 4] = jac[4, 1] = j14
+        jac[1, 5] = jac[5, 1] = j15
+        jac[2, 3] = jac[3, 2] = j23
+        jac[2, 4] = jac[4, 2] = j24
+        jac[2, 5] = jac[5, 2] = j25
+        jac[3, 4] = jac[4, 3] = j34
+        jac[3, 5] = jac[5, 3] = j35
+        jac[4, 5] = jac[5, 4] = j45
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _factor_spd(jac, d, low):
     """Cholesky factor ``low`` (6, 6) of D jac D with the Jacobi scaling ``d`` (6,), D = diag(d);
-    False if ``jac`` is not positive definite or not finite."""
+    the diagonal of ``low`` holds the factor's reciprocal diagonal (the solves multiply).  False
+    if ``jac`` is not positive definite or not finite."""
     n = 6
     for a in range(n):
         if not (jac[a, a] > 0.0) or not math.isfinite(jac[a, a]):
@@ -334,13 +346,13 @@ def _factor_spd(jac, d, low):
             if a == b:
                 if not (s > 0.0):
                     return False
-                low[a, a] = math.sqrt(s)
+                low[a, a] = 1.0 / math.sqrt(s)
             else:
-                low[a, b] = s / low[b, b]
+                low[a, b] = s * low[b, b]
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _solve_factored(d, low, rhs, out, y):
     """``out`` = jac^-1 rhs from :func:`_factor_spd`'s factor; False if not finite."""
     n = 6
@@ -348,12 +360,12 @@ def _solve_factored(d, low, rhs, out, y):
         s = rhs[a] * d[a]
         for k in range(a):
             s -= low[a, k] * y[k]
-        y[a] = s / low[a, a]
+        y[a] = s * low[a, a]
     for a in range(n - 1, -1, -1):
         s = y[a]
         for k in range(a + 1, n):
             s -= low[k, a] * y[k]
-        y[a] = s / low[a, a]
+        y[a] = s * low[a, a]
     for a in range(n):
         out[a] = y[a] * d[a]
         if not math.isfinite(out[a]):
@@ -361,14 +373,14 @@ def _solve_factored(d, low, rhs, out, y):
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _solve_spd(jac, rhs, out, d, low, y):
     """``out`` = jac^-1 rhs for SPD ``jac`` (6, 6) by Cholesky after Jacobi scaling; False if not
     positive definite or not finite.  ``d`` (6,), ``low`` (6, 6), ``y`` (6,) are workspace."""
     return _factor_spd(jac, d, low) and _solve_factored(d, low, rhs, out, y)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _newton(x, rho, drho, tau, kse, kbt, radius, length, tol, max_iter, work, jac, low, target, final_factor):
     """Damped Newton on (W1, W2) (right-hand side ``target`` (6,)) at one node, in place on ``x``
     (6,).  Returns ``(converged, iterations, residual)``, residual = sqrt(|F|^2 + |M / L|^2) of the
@@ -426,7 +438,7 @@ def _routing(fraction, length, offset, pitch, angle, rho, drho):
         drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * s, offset[i] * pitch[i] * c
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _first_order(x, rho, drho, tau, kse, kbt, length, work):
     """The first-order strains at one node, in place on ``x`` (6,): the root of (W1, W2) with the
     tendon tangents of the undeformed rod, x = x0 - K^-1 res(x0) with x0 = (e3, 0) and K =
@@ -446,7 +458,7 @@ def _first_order(x, rho, drho, tau, kse, kbt, length, work):
                      + (res[3] ** 2 + res[4] ** 2 + res[5] ** 2) / (length * length))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _node_strains(x, rho, drho, tau_node, rod, tols, work, jac, low):
     """The strains at one node, in place on ``x`` (6,) (the start): Newton on (W1, W2) or, with
     ``tols.linearized``, :func:`_first_order`.  Returns ``(converged, iterations, residual N)``."""
@@ -1143,10 +1155,28 @@ def solve_design(rod, grid, tols, view):
 
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _extrapolate_cubic(sig, x_nodes, k, k1, k2, k3, k4):
+    """x_nodes[k] (6,) by the cubic through the nodes k1..k4 (Lagrange, at the fractions ``sig``); the
+    last node's strains where two of them coincide (a zero-width step)."""
+    s0, s1, s2, s3, s4 = sig[k], sig[k1], sig[k2], sig[k3], sig[k4]
+    d12, d13, d14, d23, d24, d34 = s1 - s2, s1 - s3, s1 - s4, s2 - s3, s2 - s4, s3 - s4
+    if not (d12 > 0.0 and d23 > 0.0 and d34 > 0.0):
+        x_nodes[k, :] = x_nodes[k1]
+        return
+    e1, e2, e3, e4 = s0 - s1, s0 - s2, s0 - s3, s0 - s4
+    l1 = e2 * e3 * e4 / (d12 * d13 * d14)
+    l2 = -e1 * e3 * e4 / (d12 * d23 * d24)
+    l3 = e1 * e2 * e4 / (d13 * d23 * d34)
+    l4 = -e1 * e2 * e3 / (d14 * d24 * d34)
+    for a in range(6):
+        x_nodes[k, a] = l1 * x_nodes[k1, a] + l2 * x_nodes[k2, a] + l3 * x_nodes[k3, a] + l4 * x_nodes[k4, a]
+
+
 @njit(cache=True, error_model="numpy")
 def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order):
     """As :func:`_solve_nodes`, each node starting from the solved strains of the nodes before
-    (Lagrange extrapolation from the last three since the last end, where the strains jump).  The
+    (Lagrange extrapolation from the last four since the last end, where the strains jump).  The
     tendon angles advance by angle addition between nodes (a rotation per distinct spacing),
     recomputed exactly every ``_RESYNC`` nodes."""
     length, offset, pitch, angle, tau, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.tension, rod.end
@@ -1183,7 +1213,9 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order):
             f = (node_fractions[k] - node_fractions[k1]) / span if span > 0.0 else 0.0
             for a in range(6):
                 x_nodes[k, a] = x_nodes[k1, a] + f * (x_nodes[k1, a] - x_nodes[k2, a])
-        elif since > 2:  # quadratic (Lagrange) extrapolation from the three nodes before (start error O(h^3))
+        elif since > 3:  # cubic (Lagrange) extrapolation from the four nodes before (start error O(h^4))
+            _extrapolate_cubic(node_fractions, x_nodes, k, order[j - 1], order[j - 2], order[j - 3], order[j - 4])
+        elif since == 3:  # quadratic (Lagrange) extrapolation from the three nodes before (start error O(h^3))
             k1, k2, k3 = order[j - 1], order[j - 2], order[j - 3]
             s0, s1, s2, s3 = node_fractions[k], node_fractions[k1], node_fractions[k2], node_fractions[k3]
             d12, d13, d23 = s1 - s2, s1 - s3, s2 - s3
