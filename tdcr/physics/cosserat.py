@@ -45,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -235,11 +236,14 @@ def _step_grid(fractions_out: np.ndarray, max_step: float) -> tuple[np.ndarray, 
     ``out_step[j]`` is the index of output point j among the edges (K = 0 when all s are 0).
     """
     breaks = np.unique(np.concatenate([[0.0], fractions_out]))
-    edges = [np.zeros(1)]
-    for a, b in zip(breaks[:-1], breaks[1:], strict=True):
-        k = max(1, int(np.ceil((b - a) / max_step - 1e-9)))
-        edges.append(np.linspace(a, b, k + 1)[1:])
-    edges = np.concatenate(edges)
+    widths = np.diff(breaks)
+    k = np.maximum(1, np.ceil(widths / max_step - 1e-9)).astype(np.int64)  # steps per output interval
+    interval = np.repeat(np.arange(k.size), k)
+    last = np.cumsum(k) - 1
+    j = np.arange(interval.size) - (last - k + 1)[interval] + 1  # 1..k within each interval
+    inner = breaks[:-1][interval] + j * (widths / k)[interval]  # np.linspace's a + j (b - a) / k, bit for bit
+    inner[last] = breaks[1:]  # and its exact end point
+    edges = np.concatenate([np.zeros(1), inner])
     return edges, np.diff(edges), np.searchsorted(edges, fractions_out)
 
 
@@ -386,6 +390,19 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
 
 #: Chunks per thread of a batch run side by side (designs differ in cost: smaller chunks balance).
 CHUNKS_PER_THREAD = 4
+#: Fewer designs than this per thread run on the calling thread (a hand-off costs more than they do).
+MIN_DESIGNS_PER_THREAD = 8
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """The process's pool of ``threads`` kernel threads, made on first use and kept (a new pool per
+    call cost 3 ms, more than a few designs' solve)."""
+    with _POOLS_LOCK:
+        if threads not in _POOLS:
+            _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="tdcr-kernel")
+        return _POOLS[threads]
 
 
 def _run_kernel(entry, threads: int, n_designs: int, *args) -> None:
@@ -395,7 +412,7 @@ def _run_kernel(entry, threads: int, n_designs: int, *args) -> None:
     the tolerances are shared).  Designs are independent, so any split gives the same bits."""
     from tdcr.physics._compiled import kernel
 
-    wanted = min(threads or os.cpu_count() or 1, max(n_designs, 1))
+    wanted = min(threads or os.cpu_count() or 1, max(n_designs // MIN_DESIGNS_PER_THREAD, 1))
     if wanted <= 1:
         entry(*args)
         return
@@ -408,9 +425,8 @@ def _run_kernel(entry, threads: int, n_designs: int, *args) -> None:
 
     size = -(-n_designs // (wanted * CHUNKS_PER_THREAD))
     parts = [slice(i, min(i + size, n_designs)) for i in range(0, n_designs, size)]
-    with ThreadPoolExecutor(wanted) as pool:
-        for _ in pool.map(lambda part: entry(*(rows(a, part) for a in args)), parts):
-            pass
+    for _ in _pool(wanted).map(lambda part: entry(*(rows(a, part) for a in args)), parts):
+        pass
 
 
 def several_equilibria(shoot_jac: np.ndarray) -> np.ndarray:
