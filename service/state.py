@@ -13,6 +13,7 @@ from service.batching import Batcher
 from service.dataplane import DataPlane
 from service.metrics import Metrics
 from service.model import ModelRepository, loaded
+from service.routed import AUTO_MODEL, RoutedModel
 from service.settings import Settings
 from service.solver import ExactModel, InverseModel
 from service.surrogate import SurrogateModel
@@ -87,14 +88,23 @@ def load_models(state: ServiceState) -> ModelRepository:
                           on_run=state.metrics.batch.labels(name).observe)
         repository.register(SurrogateModel(surrogate, limits=limits, batcher=batcher))
     guard(repository, exact, state.problems)
-    default = settings.default_model or best_model(state.manifest)
-    if default is not None:
-        if default not in repository.names("surrogate"):
-            state.problems.append(f"default model {default!r} is not loaded")
-        repository.defaults["surrogate"] = default
-    with_loads = best_model(state.manifest, loads=True)  # the default for designs with loads
-    if with_loads in repository.names("surrogate"):
-        repository.defaults[loaded("surrogate")] = with_loads
+    if settings.default_model is not None:  # a configured default, served as asked
+        if settings.default_model not in repository.names("surrogate"):
+            state.problems.append(f"default model {settings.default_model!r} is not loaded")
+        repository.defaults["surrogate"] = settings.default_model
+        with_loads = best_model(state.manifest, loads=True)  # the default for designs with loads
+        if with_loads in repository.names("surrogate"):
+            repository.defaults[loaded("surrogate")] = with_loads
+        return repository
+    # the router: the cheaper of the solver and the most accurate operator (its loaded default for loads)
+    operator, with_loads = best_model(state.manifest, loads=None), best_model(state.manifest, loads=True)
+    if operator in repository.names("surrogate"):
+        named = repository.models
+        routed = RoutedModel(exact, named[operator], named.get(with_loads))  # type: ignore[arg-type]
+        repository.register(routed)
+        repository.defaults["surrogate"] = repository.defaults[loaded("surrogate")] = routed.name
+    elif operator is not None:
+        state.problems.append(f"default model {operator!r} is not loaded")
     return repository
 
 
@@ -126,6 +136,9 @@ async def start(state: ServiceState, *, before_ready=None) -> None:
         await run_in_threadpool(repository.models[EXACT_MODEL].start)
     except Exception as exc:  # noqa: BLE001 - reported by /readyz
         state.problems.append(f"solver pool: {exc}")
+    routed = repository.models.get(AUTO_MODEL)
+    if isinstance(routed, RoutedModel):  # the solver's default kernels are in the cache now: load them here
+        await run_in_threadpool(routed.measure)
     state.plane.repository = repository
     state.plane.loaded = not state.problems and bool(state.surrogates)
     if before_ready is not None:

@@ -349,6 +349,7 @@ def _cmd_predict(args) -> int:
     from tdcr.api.checks import check_tolerance
     from tdcr.api.validation import InvalidRequest
     from tdcr.surrogates import engine
+    from tdcr.surrogates.router import Router
     from tdcr.surrogates.runtime import ManifestError, Surrogate, best_model, load_manifest
 
     text = _read_text(args.request)
@@ -367,19 +368,26 @@ def _cmd_predict(args) -> int:
         manifest = load_manifest(args.models_dir)
     except ManifestError as exc:
         raise UsageError(f"{args.models_dir}: {exc}") from None
-    # the service's rule (service/state.py): designs with loads default to the best loaded operator
-    name = (args.model or request.model or (request.n_loaded and best_model(manifest, loads=True))
-            or best_model(manifest))
     if request.model is not None and args.model is not None and request.model != args.model:
         raise UsageError(f"{args.request} names the model {request.model!r}, --model {args.model!r}: give one")
+    pinned = args.model or request.model
+    # the service's rule (service/state.py): a pinned model as asked; else the cheaper of the solver and
+    # the default operator (designs with loads: the best loaded one), which meets the tolerance
+    name = pinned or (request.n_loaded and best_model(manifest, loads=True)) or best_model(manifest, loads=None)
     if name not in manifest.get("models", {}):
         raise UsageError(f"unknown model {name!r}; available: {sorted(manifest.get('models', {}))}")
     try:
         model = Surrogate.load(args.models_dir, name, manifest=manifest)
     except ManifestError as exc:
         raise UsageError(f"{args.models_dir}: {exc}") from None
+    guard = engine.local_guard(model)
     try:
-        prediction = engine.predict(model, request, model=name, guard_with=engine.local_guard(model))
+        if pinned:
+            prediction = engine.predict(model, request, model=name, guard_with=guard)
+        else:
+            costs = Router(model, model if model.takes_loads else None).costs
+            prediction = engine.route(request, costs=costs, operator=engine.Operator(name, model, guard),
+                                      exact=guard.exact)
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
     sys.stdout.buffer.write(engine.encode_json(prediction) + b"\n")

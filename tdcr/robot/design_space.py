@@ -280,13 +280,29 @@ def out_of_range(features: np.ndarray, n_tendons: int = N_TENDONS) -> list[list[
     return out
 
 
+def _outside_features(features: np.ndarray) -> np.ndarray:
+    """Which features ``(B, 3 + 3 N_t)`` lie outside Table I (the trained ranges), ``(B, 3 + 3 N_t)``."""
+    low, high = feature_bounds(FeatureLayout.of(features).n_tendons)
+    return (features < low) | (features > high)
+
+
+def in_trained_ranges(features: np.ndarray, loads: np.ndarray | None = None,
+                      ranges: dict[str, list[float]] | None = None) -> np.ndarray:
+    """Per design ``(B,)``: no range warning (:func:`range_warnings`, and with ``loads`` ``(B, 10)``
+    and ``ranges`` :func:`load_warnings`), without writing the warnings."""
+    inside = ~_outside_features(features).any(axis=1)
+    if loads is not None and ranges is not None:
+        inside &= ~_outside_loads(loads, ranges)[1].any(axis=0)
+    return inside
+
+
 def range_warnings(features: np.ndarray) -> list[list[str]]:
     """Per design, one line for each parameter outside Table I (the trained ranges), for
     features ``(B, 3 + 3 N_t)``; e.g. ``tension_2 = 6.5 N is outside the trained range [0, 5]``."""
     layout = FeatureLayout.of(features)
     low, high = feature_bounds(layout.n_tendons)
     out: list[list[str]] = [[] for _ in range(len(features))]
-    for b, j in zip(*np.nonzero((features < low) | (features > high)), strict=True):  # offenders only
+    for b, j in zip(*np.nonzero(_outside_features(features)), strict=True):  # offenders only
         unit = TABLE_I[layout.parameters[j]].unit
         out[b].append(f"{layout.names[j]} = {features[b, j]:.6g} {unit} is outside the trained range "
                       f"[{low[j]:.6g}, {high[j]:.6g}]")
@@ -305,18 +321,28 @@ def load_warnings(loads: np.ndarray, ranges: dict[str, list[float]]) -> list[lis
     ``load_ranges``) of the loads matrix ``(B, 10)`` (:data:`tdcr.robot.designs.LOAD_COLUMNS`): the
     magnitudes |gravity|, |tip_force| and |tip_moment|, and the density of designs in gravity;
     e.g. ``|tip_force| = 0.05 N is outside the trained range [0, 0.02]``."""
-    loads = np.asarray(loads, dtype=np.float64)
-    values = {name: np.linalg.norm(loads[:, LOAD_COLUMNS[name]], axis=1) for name in ("gravity", "tip_force",
-                                                                                     "tip_moment")}
-    values["density"] = np.where(values["gravity"] > 0, loads[:, LOAD_COLUMNS["density"]][:, 0], np.nan)
-    out: list[list[str]] = [[] for _ in range(len(loads))]
-    for name, unit in _LOAD_MAGNITUDES.items():
+    values, outside = _outside_loads(loads, ranges)
+    out: list[list[str]] = [[] for _ in range(len(values["gravity"]))]
+    for (name, unit), bad in zip(_LOAD_MAGNITUDES.items(), outside, strict=True):
         low, high = ranges[name]
-        slack = _LOAD_SLACK * max(abs(high), 1.0)
-        with np.errstate(invalid="ignore"):
-            bad = (values[name] < low - slack) | (values[name] > high + slack)
         label = name if name == "density" else f"|{name}|"
         for b in np.nonzero(bad)[0]:
             out[b].append(f"{label} = {values[name][b]:.6g} {unit} is outside the trained range "
                           f"[{low:.6g}, {high:.6g}]")
     return out
+
+
+def _outside_loads(loads: np.ndarray, ranges: dict[str, list[float]]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The loads' magnitudes (name -> ``(B,)``, density NaN outside gravity) and which lie outside
+    the trained ``ranges``, ``(4, B)`` in the order of :data:`_LOAD_MAGNITUDES`."""
+    loads = np.asarray(loads, dtype=np.float64)
+    values = {name: np.linalg.norm(loads[:, LOAD_COLUMNS[name]], axis=1) for name in ("gravity", "tip_force",
+                                                                                     "tip_moment")}
+    values["density"] = np.where(values["gravity"] > 0, loads[:, LOAD_COLUMNS["density"]][:, 0], np.nan)
+    outside = np.zeros((len(_LOAD_MAGNITUDES), len(loads)), dtype=bool)
+    for k, name in enumerate(_LOAD_MAGNITUDES):
+        low, high = ranges[name]
+        slack = _LOAD_SLACK * max(abs(high), 1.0)
+        with np.errstate(invalid="ignore"):
+            outside[k] = (values[name] < low - slack) | (values[name] > high + slack)
+    return values, outside

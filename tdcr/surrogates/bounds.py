@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tdcr.metrics import relative_l2
-from tdcr.robot.design_space import LAYOUT, load_warnings, range_warnings
+from tdcr.robot.design_space import LAYOUT, in_trained_ranges
 
 #: Calibration record format this runtime reads.
 CALIBRATION_FORMAT = 1
@@ -124,10 +124,8 @@ class Calibration:
     def in_region(self, features: np.ndarray, loads: np.ndarray | None = None) -> np.ndarray:
         """Whether each design ``(B,)`` lies in the calibrated region: its parameters and loads
         ``(B, 10)`` in the trained ranges, its bending angle inside the calibrated edges."""
-        inside = np.array([not w for w in range_warnings(features)], dtype=bool) & (self.bins(features) >= 0)
-        if self.load_ranges is not None and loads is not None:
-            inside &= np.array([not w for w in load_warnings(loads, self.load_ranges)], dtype=bool)
-        return inside
+        inside = in_trained_ranges(features, loads, self.load_ranges)
+        return inside & (self.bins(features) >= 0)
 
     def bound(self, features: np.ndarray, score: np.ndarray | None, loads: np.ndarray | None = None) -> np.ndarray:
         """The error bound of each design ``(B,)`` (relative l2, ``inf`` outside the calibrated

@@ -20,15 +20,17 @@ from typing import Protocol
 import numpy as np
 import orjson
 
-from tdcr.api.checks import check_model_loads
-from tdcr.api.schemas import RESPONSE_FORMAT_VERSION
+from tdcr.api.checks import check_model_loads, loaded_rows
+from tdcr.api.schemas import EXACT_MODEL, RESPONSE_FORMAT_VERSION
 from tdcr.api.validation import InvalidRequest, Limits, Problem, ShapeRequest, quote, validate_features, validate_json
 from tdcr.physics.exact import ExactAnswer
+from tdcr.physics.status import STATUS, Status
 from tdcr.robot.design_space import N_FEATURES, load_warnings, range_warnings
 from tdcr.robot.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
 from tdcr.search.inverse import model_tip_pose, tip_by_differences
-from tdcr.surrogates.bounds import EXACT, SOURCES, Calibration
-from tdcr.surrogates.runtime import keep_tolerance, on_grid_tendons
+from tdcr.surrogates.bounds import EXACT, EXACT_TOLERANCE, SOURCES, Calibration
+from tdcr.surrogates.router import Costs, choose
+from tdcr.surrogates.runtime import finite_rows, keep_tolerance, on_grid_tendons
 
 #: Media types of the binary path.
 NPY = "application/x-npy"
@@ -160,9 +162,7 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str, guard_wi
     with np.errstate(all="ignore"):  # overflow far outside the trained ranges is reported per design
         out = predictor.predict(features, request.fractions, loads=matrix, pose=request.pose, check=False)  # validated
     arrays = {k: out[k] for k in request.outputs}
-    finite = np.ones(len(features), dtype=bool)
-    for v in arrays.values():
-        finite &= np.isfinite(v.reshape(len(features), -1)).all(axis=1)
+    finite = finite_rows(arrays.values(), len(features))
     bounds = source = None
     if guard_with is not None:
         given = np.zeros((len(features), N_LOAD_COLUMNS)) if matrix is None else matrix
@@ -188,6 +188,54 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str, guard_wi
         warnings = [w + v for w, v in zip(warnings, load_warnings(given, predictor.load_ranges), strict=True)]
     return Prediction(model=model, fractions=request.fractions, arclength=arclength, arrays=arrays,
                       warnings=warnings, finite=finite, tip_jacobian=tip_jacobian, error_bound=bounds, source=source)
+
+
+def exact_prediction(request: ShapeRequest, answer: ExactAnswer) -> Prediction:
+    """The solver's ``answer`` to ``request`` as a :class:`Prediction` of the model ``"exact"``: every
+    design's ``source`` the solver, its ``error_bound`` :data:`tdcr.surrogates.bounds.EXACT_TOLERANCE`
+    where it converged (``inf`` else, with a warning naming its status)."""
+    g = answer.arrays()
+    arrays = {"backbone": g.backbone, "rotation": g.rotation, "tendons": g.tendons}
+    warnings = [[] if ok else [f"the solver did not converge: {STATUS[k]}"]
+                for ok, k in zip(g.converged.tolist(), g.status.tolist(), strict=True)]
+    return Prediction(model=EXACT_MODEL, fractions=request.fractions, arclength=g.arclength,
+                      arrays={k: arrays[k] for k in request.outputs}, warnings=warnings,
+                      finite=g.status != Status.NOT_FINITE, tip_jacobian=g.tip_jacobian,
+                      error_bound=np.where(g.converged, EXACT_TOLERANCE, np.inf),
+                      source=np.full(len(g.converged), EXACT, dtype=np.int32))
+
+
+@dataclass(frozen=True)
+class Operator:
+    """An operator a router may answer with: its ``name``, its ``predictor`` and its ``guard``."""
+
+    name: str
+    predictor: Predictor
+    guard: Guard | None
+
+
+def route(request: ShapeRequest, *, costs: Costs, operator: Operator | None,
+          exact: Callable[[ShapeRequest], ExactAnswer], exact_ready: bool = True) -> Prediction:
+    """A request that names no model, by the cheaper path that meets its tolerance
+    (:func:`tdcr.surrogates.router.choose`): the exact solver (``exact``, for the whole request) or
+    ``operator`` (the default operator for the request's loads; None: the solver only).  The
+    operator's bound is known before its graph runs where its score is the bins; another score
+    (a companion's) is taken as no fallback in the estimate."""
+    features, loads = request.features, request.loads
+    matrix = None if loads is None else np.nan_to_num(loads.matrix(len(features)))
+    loaded = np.zeros(len(features), dtype=bool) if matrix is None else loaded_rows(matrix)
+    bound = np.zeros(len(features))
+    if operator is None:
+        bound = np.full(len(features), np.inf)
+    elif operator.guard is None or operator.guard.calibration is None:
+        bound = np.full(len(features), np.inf if request.tolerance is not None else 0.0)
+    elif operator.guard.calibration.companion is None:
+        bound = operator.guard.calibration.bound(features, None, matrix if operator.predictor.takes_loads else None)
+    choice = choose(costs, bound, loaded=loaded, tolerance=request.tolerance, operator_ready=operator is not None,
+                    exact_ready=exact_ready)
+    if choice.path == "exact":
+        return exact_prediction(request, exact(request))
+    return predict(operator.predictor, request, model=operator.name, guard_with=operator.guard)
 
 
 def exact_arrays(answer: ExactAnswer) -> dict[str, np.ndarray]:

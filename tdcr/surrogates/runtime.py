@@ -56,11 +56,12 @@ def takes_loads(entry: dict) -> bool:
     return "loads" in entry.get("inputs", {})
 
 
-def best_model(manifest: dict, *, loads: bool = False) -> str | None:
+def best_model(manifest: dict, *, loads: bool | None = False) -> str | None:
     """The default model, for the service and ``tdcr predict`` alike: of the manifest models that
-    take no loads (``loads``: of those that do), the one with the lowest mean test relative l2 (the
-    first by name if none has metrics); None if there is none."""
-    models = {k: v for k, v in manifest.get("models", {}).items() if takes_loads(v) == loads}
+    take no loads (``loads``: of those that do; None: of all, a loaded operator answering load-free
+    designs with zero loads), the one with the lowest mean test relative l2 (the first by name if
+    none has metrics); None if there is none."""
+    models = {k: v for k, v in manifest.get("models", {}).items() if loads is None or takes_loads(v) == loads}
 
     def score(name):
         m = (models[name].get("metrics") or {}).get("test_relative_l2") or {}
@@ -69,7 +70,7 @@ def best_model(manifest: dict, *, loads: bool = False) -> str | None:
     return min(sorted(models), key=score) if models else None
 
 
-def _as_matrix(loads: ExternalLoads | np.ndarray, n_designs: int) -> np.ndarray:
+def as_load_matrix(loads: ExternalLoads | np.ndarray, n_designs: int) -> np.ndarray:
     """Loads as the ``(B, 10)`` float64 matrix of the graphs' input, absent values 0."""
     matrix = loads.matrix(n_designs) if isinstance(loads, ExternalLoads) else np.asarray(loads, dtype=np.float64)
     return np.nan_to_num(matrix.reshape(n_designs, N_LOAD_COLUMNS))
@@ -119,6 +120,18 @@ def error_bound(calibration: Calibration | None, features: np.ndarray, loads: np
     return calibration.bound(features, score, loads)
 
 
+def finite_rows(arrays, n_designs: int) -> np.ndarray:
+    """Per design ``(B,)``: every value of its rows of ``arrays`` (each ``(B, ...)``) is finite, by
+    the finiteness of the row sums (a NaN or an infinity makes its sum so; a sum that overflows from
+    finite values beyond 1e38 counts as not finite too): one vectorised pass, 10x cheaper than
+    testing every value of an answer."""
+    finite = np.ones(n_designs, dtype=bool)
+    for v in arrays:
+        with np.errstate(all="ignore"):
+            finite &= np.isfinite(v.reshape(n_designs, -1).sum(axis=1))
+    return finite
+
+
 def keep_tolerance(arrays: dict[str, np.ndarray], features: np.ndarray, fractions: np.ndarray,
                    loads: np.ndarray | None, *, tendons: np.ndarray | None, own, calibration: Calibration | None,
                    companion, tolerance: float | None,
@@ -128,9 +141,7 @@ def keep_tolerance(arrays: dict[str, np.ndarray], features: np.ndarray, fraction
     are not finite), then :func:`tdcr.surrogates.bounds.guard`: with ``tolerance``, the designs whose
     bound exceeds it answered by ``exact(rows)``.  ``tendons``: the answer on the calibration grid
     (:func:`on_grid_tendons`; None: ``own`` computes it)."""
-    finite = np.ones(len(features), dtype=bool)
-    for v in arrays.values():
-        finite &= np.isfinite(v.reshape(len(features), -1)).all(axis=1)
+    finite = finite_rows(arrays.values(), len(features))
     with np.errstate(all="ignore"):
         bounds = error_bound(calibration, features, loads, tendons=tendons, own=own, companion=companion)
     return guard(arrays, np.where(finite, bounds, np.inf), tolerance=tolerance, exact=exact)
@@ -146,6 +157,23 @@ def solve_rows(features: np.ndarray, fractions: np.ndarray, loads: np.ndarray | 
     sol = solve(DesignBatch.from_features(features), fractions, loads=external)
     out = {"tendons": sol.tendons} | ({"backbone": sol.backbone, "rotation": sol.rotation} if pose else {})
     return out | {"converged": sol.converged}
+
+
+def check_inputs(features: np.ndarray, fractions: np.ndarray, *, loads=None, tolerance: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The one validation path's checks of an operator's inputs (:mod:`tdcr.api.checks`): designs
+    ``(B, 15)`` inside their admissible bounds, loads inside theirs, fractions in [0, 1], the
+    tolerance; a ``ValueError`` with the service's words else.  Returns the fractions (clamped
+    within rounding) and the loads as their ``(B, 10)`` matrix (None: none)."""
+    problems = check_surrogate_features(features)
+    fractions, more = check_fractions(fractions, name="fractions")
+    if loads is not None and not problems:
+        n = len(features)
+        loads = as_load_matrix(loads, n)
+        more += check_loads(checkable_loads(ExternalLoads.from_matrix(loads), n), np.arange(n))
+    more += check_tolerance(tolerance)
+    raise_problems(problems + more)
+    return fractions, loads
 
 
 class ManifestError(ValueError):
@@ -240,7 +268,7 @@ class Surrogate:
         """``loads`` (:class:`ExternalLoads`, a ``(B, 10)`` matrix or None) as this graph's input:
         the matrix for a loaded operator (zeros without loads), None for another; a ``ValueError``
         when an operator that takes no loads is given some."""
-        matrix = None if loads is None else _as_matrix(loads, n_designs)
+        matrix = None if loads is None else as_load_matrix(loads, n_designs)
         if not self.takes_loads:
             if matrix is not None and loaded_rows(matrix).any():
                 raise InvalidRequest(check_model_loads(ExternalLoads.from_matrix(matrix), np.arange(n_designs),
@@ -345,14 +373,7 @@ class Surrogate:
         already, skips them.
         """
         if check:
-            problems = check_surrogate_features(features)
-            fractions, more = check_fractions(fractions, name="fractions")
-            if loads is not None and not problems:
-                n = len(features)
-                loads = _as_matrix(loads, n)
-                more += check_loads(checkable_loads(ExternalLoads.from_matrix(loads), n), np.arange(n))
-            more += check_tolerance(tolerance)
-            raise_problems(problems + more)
+            fractions, loads = check_inputs(features, fractions, loads=loads, tolerance=tolerance)
         features = np.asarray(features, dtype=np.float64)
         fractions = np.asarray(fractions, dtype=np.float64)
         matrix = self.load_matrix(loads, len(features))

@@ -38,7 +38,7 @@ from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR, ManifestError, Surrogate
 
 GRID = calibration_grid()
 SHIPPED = load_manifest(DEFAULT_MODELS_DIR)["models"]
-DEFAULT = "fno_pose"  # the service's default load-free operator (lowest mean test error)
+DEFAULT = "fno_pose"  # a load-free operator, named in the requests that test its guard
 LOADED_DEFAULT = "deeponet_pose_loaded"
 
 
@@ -141,8 +141,14 @@ def test_a_changed_calibration_or_companion_is_refused(tmp_path):
     (models / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ManifestError, match="sha256 does not match"):
         Surrogate.load(models, DEFAULT)
+    # a disagreement score names its companion's sha256: a companion that changed is refused
     manifest = json.loads((DEFAULT_MODELS_DIR / "manifest.json").read_text())
-    companion = manifest["models"][DEFAULT]["calibration"]["companion"]
+    companion = "deeponet_pose_loaded"
+    record = manifest["models"][DEFAULT]["calibration"] | {
+        "score": "disagreement", "companion": companion, "companion_sha256": manifest["models"][companion]["sha256"]}
+    manifest["models"][DEFAULT]["calibration"] = Calibration.sealed(record)
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    assert Surrogate.load(models, DEFAULT).companion().name == companion
     manifest["models"][companion]["sha256"] = "f" * 64
     (models / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ManifestError, match="recalibrate"):
@@ -225,7 +231,8 @@ def _hard_and_easy(n: int = 40) -> design_space.DesignBatch:
 def test_predict_keeps_a_tolerance_and_its_exact_answers_are_those_of_exact(server):
     designs = _hard_and_easy()
     body = {"designs": designs.to_dicts(), "points": 42}
-    r = httpx.post(server.url + "/predict", json=body | {"tolerance": 1e-3}, timeout=120)
+    pinned = body | {"model": DEFAULT}  # a named operator is served as asked (the router is not consulted)
+    r = httpx.post(server.url + "/predict", json=pinned | {"tolerance": 1e-3}, timeout=120)
     assert r.status_code == 200, r.text
     results = r.json()["results"]
     sources = np.array([x["source"] for x in results])
@@ -239,7 +246,7 @@ def test_predict_keeps_a_tolerance_and_its_exact_answers_are_those_of_exact(serv
         else:
             assert mine["error_bound"] <= 1e-3
     # without a tolerance: the bound on every answer, nothing sent to the solver
-    plain = httpx.post(server.url + "/predict", json=body, timeout=120).json()["results"]
+    plain = httpx.post(server.url + "/predict", json=pinned, timeout=120).json()["results"]
     assert all(x["source"] == "surrogate" and x["error_bound"] > 0 for x in plain)
     bounds = np.array([x["error_bound"] for x in plain])
     assert ((bounds > 1e-3) == (sources == "exact")).all()
@@ -266,7 +273,7 @@ def test_binary_predict_takes_the_tolerance_as_a_query_parameter(server):
     designs = _hard_and_easy()
     buf = io.BytesIO()
     np.save(buf, designs.features())
-    r = httpx.post(server.url + "/predict?tolerance=0.001", content=buf.getvalue(),
+    r = httpx.post(server.url + f"/predict?tolerance=0.001&model={DEFAULT}", content=buf.getvalue(),
                    headers={"content-type": "application/x-npy", "accept": "application/x-npz"}, timeout=120)
     assert r.status_code == 200, r.text
     answer = np.load(io.BytesIO(r.content))
@@ -278,7 +285,7 @@ def test_binary_predict_takes_the_tolerance_as_a_query_parameter(server):
     from tdcr.clients import Client
 
     with Client(server.url) as client:  # the binary client sends the same request
-        shapes = client.predict(designs.features(), tolerance=1e-3)
+        shapes = client.predict(designs.features(), tolerance=1e-3, model=DEFAULT)
         np.testing.assert_array_equal(shapes["source"], answer["source"])
         with pytest.raises(ValueError, match="tolerance: must be"):
             client.predict(designs.features(), tolerance=-1.0)
@@ -360,7 +367,8 @@ def test_cli_predict_keeps_a_tolerance(tmp_path):
     request = tmp_path / "request.json"
     request.write_text(json.dumps({"designs": designs.to_dicts(), "points": 42}))
     run = [sys.executable, "-m", "tdcr.cli", "predict", str(request)]
-    out = subprocess.run([*run, "--tolerance", "0.001"], capture_output=True, text=True, timeout=120)
+    out = subprocess.run([*run, "--tolerance", "0.001", "--model", DEFAULT], capture_output=True, text=True,
+                         timeout=120)
     assert out.returncode == 0, out.stderr
     results = json.loads(out.stdout)["results"]
     local = Surrogate.shipped(DEFAULT).predict(designs.features(), GRID, tolerance=1e-3)

@@ -58,18 +58,13 @@ class Score:
     companion: str | None = None
 
 
-#: The measured choice per shipped operator (benchmarks/error_bound_probe.py): for the others, the
-#: disagreement with the loaded DeepONet, near-exact on load-free designs too (1.6e-5; log-log
-#: correlation with the error 1.000, the least fallback); for the loaded DeepONet, the fastest graph,
-#: no score (a second graph would cost 4x its time, and at tolerance 0.01 nothing falls back anyway).
-SCORES: dict[str, Score] = {
-    "deeponet": Score("disagreement", "deeponet_pose_loaded"),
-    "deeponet_pose": Score("disagreement", "deeponet_pose_loaded"),
-    "fno": Score("disagreement", "deeponet_pose_loaded"),
-    "fno_pose": Score("disagreement", "deeponet_pose_loaded"),
-    "deeponet_pose_loaded": Score("bins"),
-    "fno_pose_loaded": Score("disagreement", "deeponet_pose_loaded"),
-}
+#: The choice per shipped operator: the bending-angle bins alone, for every operator (issue #34).  The
+#: disagreement with the loaded DeepONet bounds the tendon-only operators more tightly (log-log
+#: correlation 1.000; fallback at tolerance 0.01 3.6-4.7 % against 9.7-20 %, benchmarks/error_bound_probe.py),
+#: but it runs a second graph that costs 4-8x a DeepONet's own (one design: 4.5 ms against a 0.6 ms
+#: exact solve), so the bound cost more than the fallbacks it saves; the bins cost a lookup.
+SCORES: dict[str, Score] = {name: Score("bins") for name in (
+    "deeponet", "deeponet_pose", "fno", "fno_pose", "deeponet_pose_loaded", "fno_pose_loaded")}
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,122 @@
+"""Every answer the cheapest one that meets its tolerance (issue #34): latency of one design over
+HTTP and gRPC, and what an error bound costs, in one interleaved run on one machine (prints tables).
+
+    python benchmarks/fast_paths.py [--requests 300]
+
+1. A real ``tdcr serve`` on loopback answers a synchronous client, one request at a time, a different
+   Table I design (seeded) each round; each round sends the same body to every row in turn, so drift
+   hits the rows alike (42 points): ``/predict`` without a model (the router: the cheaper of the
+   solver and the default operator), with tolerances, pinned to operators, ``/exact``; then OIP v2
+   ``ModelInfer`` over gRPC (raw FP64 contents) on ``auto`` and on the pinned ``deeponet``.  Each
+   row counts the answers by ``source``.
+2. In process: each operator's ``Surrogate.predict`` plain and with its bound (``bound=True``), at 1
+   and 1,000 designs (median of repeats), and the exact ``solve`` of the same designs.
+3. The router's measured costs (``GET /v2/models/auto``) and where its choice flips.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import grpc
+import httpx
+import numpy as np
+from exact_latency import design_json  # benchmarks/ is the script's folder
+
+from service.process import ROOT, ServerProcess
+from tdcr.clients.loadtest import grpc_request
+from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
+from tdcr.physics import solve
+from tdcr.robot.design_space import sample_designs
+from tdcr.surrogates.runtime import Surrogate
+
+HTTP_ROWS = {"/predict (router)": ("/predict", {}),
+             "/predict (router), tolerance 0.01": ("/predict", {"tolerance": 0.01}),
+             "/predict (router), tolerance 0.001": ("/predict", {"tolerance": 0.001}),
+             "/predict deeponet (pinned, bounded)": ("/predict", {"model": "deeponet"}),
+             "/predict fno_pose (pinned, bounded)": ("/predict", {"model": "fno_pose"}),
+             "/predict deeponet_pose_loaded (pinned, bounded)": ("/predict", {"model": "deeponet_pose_loaded"}),
+             "/exact": ("/exact", {})}
+GRPC_ROWS = ("auto", "deeponet")
+OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose", "deeponet_pose_loaded", "fno_pose_loaded")
+
+
+def median_seconds(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - started)
+    return float(np.median(times))
+
+
+def served(requests: int) -> None:
+    feats = sample_designs(requests + 20, seed=8).features()
+    rows = list(HTTP_ROWS) + [f"gRPC ModelInfer {m}" for m in GRPC_ROWS]
+    times: dict[str, list[float]] = {label: [] for label in rows}
+    sources: dict[str, dict[str, int]] = {label: {} for label in HTTP_ROWS}
+    with ServerProcess(ROOT / "models") as server, httpx.Client(base_url=server.url, timeout=60) as client, \
+            grpc.insecure_channel(server.grpc_target) as channel:
+        stub = pb_grpc.GRPCInferenceServiceStub(channel)
+        auto = client.get("/v2/models/auto").json()["parameters"]
+        for k, f in enumerate(feats):
+            for label, (route, extra) in HTTP_ROWS.items():
+                body = {"designs": [design_json(f, False)], "points": 42} | extra
+                started = time.perf_counter()
+                r = client.post(route, json=body)
+                elapsed = time.perf_counter() - started
+                r.raise_for_status()
+                if k >= 20:  # after a warm-up
+                    times[label].append(1e3 * elapsed)
+                    source = r.json()["results"][0].get("source", "exact")
+                    sources[label][source] = sources[label].get(source, 0) + 1
+            for model in GRPC_ROWS:
+                request = grpc_request(model, f[None, :], None)
+                started = time.perf_counter()
+                stub.ModelInfer(request)
+                elapsed = time.perf_counter() - started
+                if k >= 20:
+                    times[f"gRPC ModelInfer {model}"].append(1e3 * elapsed)
+    print("| one design, 42 points | requests | p50 (ms) | p90 (ms) | p99 (ms) | answered by |")
+    print("|---|---:|---:|---:|---:|---|")
+    for label in rows:
+        p50, p90, p99 = np.percentile(times[label], [50, 90, 99])
+        by = ", ".join(f"{k} {v}" for k, v in sorted(sources.get(label, {}).items())) or "-"
+        print(f"| {label} | {len(times[label])} | {p50:.2f} | {p90:.2f} | {p99:.2f} | {by} |")
+    ratio = np.median(np.array(times["/predict (router)"]) / np.array(times["/exact"]))
+    print(f"\n/predict (router) / /exact, same body, median of per-round ratios: {ratio:.2f}")
+    print("router costs on the server (s, B designs): " + ", ".join(f"{k} {v}" for k, v in auto.items()))
+
+
+def in_process() -> None:
+    grid = np.linspace(0.0, 1.0, 42)
+    print("\n| in process | designs | plain (ms) | with its bound (ms) | bound cost (ms) | bound / plain |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for batch, repeats in ((1, 200), (1000, 7)):
+        designs = sample_designs(batch, seed=9)
+        features = designs.features()
+        for name in OPERATORS:
+            op = Surrogate.shipped(name)
+            plain = median_seconds(lambda op=op, f=features: op.predict(f, grid), repeats)
+            bounded = median_seconds(lambda op=op, f=features: op.predict(f, grid, bound=True), repeats)
+            print(f"| {name} | {batch:,} | {1e3 * plain:.3f} | {1e3 * bounded:.3f} | {1e3 * (bounded - plain):.3f} "
+                  f"| {(bounded - plain) / plain:+.0%} |")
+        exact = median_seconds(lambda d=designs: solve(d, grid, workers=0), repeats)
+        print(f"| exact solve (all cores) | {batch:,} | {1e3 * exact:.3f} | - | - | - |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--requests", type=int, default=300)
+    args = parser.parse_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores; server and client on the same machine\n")
+    served(args.requests)
+    in_process()
+
+
+if __name__ == "__main__":
+    main()

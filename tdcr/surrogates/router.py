@@ -1,0 +1,210 @@
+"""Cost-aware answers: each batch by the cheapest path that still meets its tolerance.
+
+Two paths answer a batch of ``B`` designs:
+
+* **exact**: the solver (:func:`tdcr.physics.solve`), within :data:`tdcr.surrogates.bounds.EXACT_TOLERANCE`
+  of the truth, so it meets every admissible tolerance; it costs about ``B`` times a design's solve
+  (50x more under gravity or tip loads);
+* **operator**: a neural operator (the most accurate of the manifest, its loaded default for designs
+  with loads): a graph call whose cost grows slowly with ``B``, its calibrated error bound (the
+  bending-angle bins: a lookup, known before the graph runs) and, under a ``tolerance``, the exact
+  solves of the ``m`` designs whose bound exceeds it.
+
+:meth:`Router.choose` compares the two estimates, ``exact(B)`` against ``operator(B) + exact(m)``,
+from :class:`Costs` measured on this machine (:meth:`Costs.measure`), and takes the cheaper.  A
+request that names a model is served by that model as asked (the router is not consulted).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from tdcr.api.checks import loaded_rows
+from tdcr.surrogates.bounds import EXACT, EXACT_TOLERANCE, SURROGATE, fallback_rows
+from tdcr.surrogates.runtime import (
+    DEFAULT_MODELS_DIR,
+    Surrogate,
+    as_load_matrix,
+    best_model,
+    check_inputs,
+    load_manifest,
+    solve_rows,
+)
+
+#: The two paths, as :meth:`Router.choose` names them.
+PATHS = ("exact", "operator")
+#: Batches timed by :meth:`Costs.measure` (designs): a small and a larger one give a line.
+MEASURED_BATCHES = (1, 32)
+
+
+@dataclass(frozen=True)
+class Cost:
+    """Seconds a path takes for ``B`` designs: ``fixed + per_design * B``."""
+
+    fixed: float
+    per_design: float
+
+    def __call__(self, n_designs: int) -> float:
+        return self.fixed + self.per_design * n_designs
+
+    @classmethod
+    def through(cls, small: tuple[int, float], large: tuple[int, float]) -> Cost:
+        """The line through two measured ``(designs, seconds)`` points (never negative)."""
+        (n0, t0), (n1, t1) = small, large
+        per_design = max((t1 - t0) / (n1 - n0), 0.0)
+        return cls(fixed=max(t0 - per_design * n0, 0.0), per_design=per_design)
+
+
+def _median_seconds(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+@dataclass(frozen=True)
+class Costs:
+    """What each path costs on this machine: the ``exact`` solver for tendon-only designs and
+    ``exact_loaded`` for designs under gravity or tip loads, the ``operator`` (tendon-only designs)
+    and the ``loaded_operator`` (designs with loads; None: none is served)."""
+
+    exact: Cost
+    exact_loaded: Cost
+    operator: Cost
+    loaded_operator: Cost | None = None
+
+    @classmethod
+    def measure(cls, operator, loaded_operator=None, *, exact=None, exact_loaded: Cost | None = None,
+                repeats: int = 5) -> Costs:
+        """Time each path at :data:`MEASURED_BATCHES` designs (Table I, seeded, 42 points; median of
+        ``repeats``).  ``operator``, ``loaded_operator``: predictors with ``predict(features, fractions,
+        loads=)``; ``exact(features, fractions, loads)``: the exact path (default :func:`solve_rows`
+        here); ``exact_loaded``: the loaded solver's cost where it runs elsewhere (None: timed here,
+        which compiles its kernel on first use).  About a second on 2 cores."""
+        from tdcr.robot.design_space import BENCHMARK_LOADS, sample_designs
+
+        exact = solve_rows if exact is None else exact
+        fractions = np.linspace(0.0, 1.0, 42)
+        points = {}
+        for n in MEASURED_BATCHES:
+            features = sample_designs(n, seed=0).features()
+            loads = BENCHMARK_LOADS.sample(n, seed=0).matrix(n)
+            exact_loaded_n = min(n, 4)  # a loaded solve takes milliseconds: a few designs give its rate
+            row = {
+                "exact": _median_seconds(lambda f=features: exact(f, fractions, None), repeats),
+                "operator": _median_seconds(lambda f=features: operator.predict(f, fractions, check=False), repeats),
+            }
+            if exact_loaded is None:
+                row["exact_loaded"] = _median_seconds(
+                    lambda f=features[:exact_loaded_n], m=loads[:exact_loaded_n]: exact(f, fractions, m),
+                    repeats) * n / exact_loaded_n
+            if loaded_operator is not None:
+                row["loaded_operator"] = _median_seconds(
+                    lambda f=features, m=loads: loaded_operator.predict(f, fractions, loads=m, check=False), repeats)
+            points[n] = row
+        small, large = MEASURED_BATCHES
+        line = {k: Cost.through((small, points[small][k]), (large, points[large][k])) for k in points[small]}
+        return cls(**({"exact_loaded": exact_loaded} | line))
+
+
+@dataclass(frozen=True)
+class Choice:
+    """A batch's path (``"exact"`` or ``"operator"``), the estimated seconds of each, and the
+    operator's error bound ``(B,)`` that it was weighed with."""
+
+    path: str
+    exact_seconds: float
+    operator_seconds: float
+    error_bound: np.ndarray
+
+
+def choose(costs: Costs, error_bound: np.ndarray, *, loaded: np.ndarray, tolerance: float | None,
+           operator_ready: bool = True, exact_ready: bool = True) -> Choice:
+    """The cheaper path for a batch: ``error_bound`` ``(B,)`` the operator's bound of each design,
+    ``loaded`` ``(B,)`` the designs under gravity or tip loads.  The operator's estimate adds the
+    exact solves of the designs whose bound exceeds ``tolerance``.  A path that is not ready (the
+    solver still compiling) is not taken while the other is."""
+    n = len(error_bound)
+    n_loaded = int(np.count_nonzero(loaded))
+
+    def exact_cost(rows: np.ndarray) -> float:
+        heavy = int(np.count_nonzero(loaded[rows]))
+        return costs.exact(rows.size - heavy) + (costs.exact_loaded(heavy) if heavy else 0.0)
+
+    operator = costs.loaded_operator if n_loaded and costs.loaded_operator is not None else costs.operator
+    fallback = fallback_rows(error_bound, tolerance)
+    exact_seconds = exact_cost(np.arange(n))
+    operator_seconds = operator(n) + (exact_cost(fallback) if fallback.size else 0.0)
+    path = "exact" if exact_seconds <= operator_seconds else "operator"
+    if not exact_ready and operator_ready:
+        path = "operator"
+    elif not operator_ready:
+        path = "exact"
+    return Choice(path=path, exact_seconds=exact_seconds, operator_seconds=operator_seconds,
+                  error_bound=error_bound)
+
+
+class Router:
+    """The cheapest answer of each batch (the module docstring): the exact solver or ``operator``
+    (designs without loads) / ``loaded_operator`` (designs with loads; None: the solver answers
+    them), with the :class:`Costs` ``costs`` (None: measured on first use).
+
+    >>> router = Router.shipped()
+    >>> out = router.predict(sample_designs(1, seed=0).features(), np.linspace(0, 1, 42), tolerance=1e-3)
+    >>> out["source"], out["path"]       # (1,) 1: the solver answered, "exact"
+    """
+
+    def __init__(self, operator: Surrogate, loaded_operator: Surrogate | None = None, *, costs: Costs | None = None):
+        self.operator, self.loaded_operator = operator, loaded_operator
+        self._costs = costs
+
+    @classmethod
+    def shipped(cls, **options) -> Router:
+        """The shipped models' router: the most accurate operator for load-free designs (any
+        operator, a loaded one answering with zero loads) and the best loaded one."""
+        manifest = load_manifest(DEFAULT_MODELS_DIR)
+        name, loaded = best_model(manifest, loads=None), best_model(manifest, loads=True)
+        load = lambda n: Surrogate.load(DEFAULT_MODELS_DIR, n, manifest=manifest)  # noqa: E731
+        operator = load(name)
+        return cls(operator, operator if loaded == name else (load(loaded) if loaded else None), **options)
+
+    @property
+    def costs(self) -> Costs:
+        if self._costs is None:
+            self._costs = Costs.measure(self.operator, self.loaded_operator)
+        return self._costs
+
+    def operator_for(self, loaded: bool) -> Surrogate | None:
+        """The operator of designs with (``loaded``) or without loads (None: only the solver)."""
+        return self.loaded_operator if loaded else self.operator
+
+    def predict(self, features: np.ndarray, fractions: np.ndarray, *, loads=None, tolerance: float | None = None,
+                pose: bool = True) -> dict[str, np.ndarray | str]:
+        """Backbone ``(B, n, 3)`` m, rotation ``(B, n, 3, 3)`` and tendons ``(B, n, 4, 3)`` m of raw
+        SI designs ``(B, 15)`` at arclength ``fractions`` ``(n,)``, with ``error_bound`` and ``source``
+        ``(B,)`` (0: an operator, 1: the solver) and ``path`` (``"exact"`` or the operator's name)
+        by the cheaper path (:func:`choose`); ``loads`` as :meth:`Surrogate.predict`'s, ``tolerance``
+        relative l2 kept by every answer.  Validated like :meth:`Surrogate.predict`."""
+        fractions, matrix = check_inputs(features, fractions, loads=loads, tolerance=tolerance)
+        features = np.asarray(features, dtype=np.float64)
+        fractions = np.asarray(fractions, dtype=np.float64)
+        if matrix is not None:
+            matrix = as_load_matrix(matrix, len(features))
+        loaded = np.zeros(len(features), dtype=bool) if matrix is None else loaded_rows(matrix)
+        operator = self.operator_for(bool(loaded.any()))
+        bound = np.full(len(features), np.inf) if operator is None else operator.error_bound(features, loads=matrix)
+        choice = choose(self.costs, bound, loaded=loaded, tolerance=tolerance, operator_ready=operator is not None)
+        if choice.path == "operator":
+            out = operator.predict(features, fractions, loads=matrix, pose=pose, tolerance=tolerance, bound=True,
+                                   check=False)
+            source = out.get("source", np.full(len(features), SURROGATE, dtype=np.int32))
+            return out | {"source": source, "path": operator.name}
+        solved = solve_rows(features, fractions, matrix, pose=pose)
+        converged = solved.pop("converged")
+        return solved | {"error_bound": np.where(converged, EXACT_TOLERANCE, np.inf),
+                         "source": np.full(len(features), EXACT, dtype=np.int32), "path": "exact"}
