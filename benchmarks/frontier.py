@@ -9,7 +9,9 @@ designs (seed 4242; the training sets used other seeds): relative l2 of the tend
 (``tdcr.metrics.relative_l2``) against the exact solver at a 10x finer step (so the exact solver's
 own discretisation error is shown too): mean, p99 and max.  Speed: designs/s at batches of 1,
 1,000 and ``--big`` (all cores: the solvers through ``solve(..., workers=0)``, onnxruntime with
-one chunk per core), 42 points.  Guarded rows: an operator keeping a ``tolerance`` of 0.01 or
+one chunk per core), 42 points.  Router rows: ``tdcr.surrogates.router.Router`` (what ``/predict`` without a model
+answers with: per batch the cheaper of the solver and the most accurate operator, by costs timed on
+this machine), plain and keeping the tolerances.  Guarded rows: an operator keeping a ``tolerance`` of 0.01 or
 0.001 (its calibrated error bound computed for every design, and the designs whose bound exceeds
 the tolerance answered by the exact solver in the same call: ``Surrogate.predict(...,
 tolerance=...)``).
@@ -32,10 +34,11 @@ from service.process import ROOT
 from tdcr import design_space
 from tdcr.metrics import relative_l2
 from tdcr.physics import SolverOptions, solve
+from tdcr.surrogates.router import Router
 from tdcr.surrogates.runtime import Surrogate
 
 S42 = np.linspace(0.0, 1.0, 42)
-OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose")
+OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose", "deeponet_pose_loaded")
 #: The tolerances of the guarded rows (relative l2).
 TOLERANCES = (0.01, 0.001)
 FINE = SolverOptions(max_step=SolverOptions().max_step / 10)
@@ -77,6 +80,12 @@ def main() -> None:
         for tolerance in TOLERANCES:
             methods[f"{name}, tolerance {tolerance:g}"] = lambda features, model=model, tolerance=tolerance: (
                 model.predict(features, S42, pose=False, tolerance=tolerance)["tendons"])
+
+    router = Router.shipped()  # the cheaper of the solver and its operator, by costs timed here
+    methods["router (no model)"] = lambda features: router.predict(features, S42, pose=False)["tendons"]
+    for tolerance in TOLERANCES:
+        methods[f"router, tolerance {tolerance:g}"] = lambda features, tolerance=tolerance: router.predict(
+            features, S42, pose=False, tolerance=tolerance)["tendons"]
 
     features = held_out.features()
     batches = {1: features[:1], 1000: features[:1000]}
@@ -123,6 +132,9 @@ def loaded_frontier(n: int) -> None:
         else:
             methods[f"{name} (loads ignored)"] = lambda rows, model=model: model.predict(
                 features[rows], S42, pose=False)["tendons"]
+    router = Router.shipped()
+    methods["router (no model)"] = lambda rows: router.predict(features[rows], S42, loads=matrix[rows],
+                                                               pose=False)["tendons"]
     print(f"\nin gravity and under tip loads: {ok.sum()} of {n} held-out designs, truth the exact loaded solver at a "
           "10x finer step\n\n| method | mean rel. l2 | p99 | max | designs/s, batch 1 | batch 1,000 |\n"
           "|---|---:|---:|---:|---:|---:|")

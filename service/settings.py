@@ -41,6 +41,10 @@ class Settings(BaseSettings):
         "compiled kernel on one core: 3.6 ms)")
     exact_admission_factor: float = Field(
         3.0, gt=0, description="/exact refuses (413) work estimated at more than this times its deadline")
+    router_costs: dict[str, tuple[float, float]] | None = Field(
+        None, description='the router\'s costs instead of timing the paths at startup (JSON: {"exact": [fixed s, s '
+        'per design], "exact_loaded": [...], "operator": [...], "loaded_operator": [...]}), e.g. for a deployment '
+        'measured once, or tests')
     workers: int = Field(1, ge=1, description="uvicorn worker processes (scale out with replicas instead)")
     api_keys: set[str] = Field(set(), description='keys accepted on every route but /healthz and /readyz, as '
                                '"Authorization: Bearer KEY" or "X-API-Key: KEY" (JSON list; empty: no authentication)')

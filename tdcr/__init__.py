@@ -8,7 +8,7 @@ answers to requests), ``tdcr.api`` (schemas, checks, the one validation path), `
 search), ``tdcr.clients`` (the service's client, the load test), ``tdcr.cli``::
 
     from tdcr import DesignBatch, ExternalLoads, SolverOptions, RodSolution, solve
-    from tdcr import Surrogate, sample_designs, TABLE_I, relative_l2
+    from tdcr import Router, Surrogate, sample_designs, TABLE_I, relative_l2
 
 Importing ``tdcr`` loads numpy only: no torch, FastAPI, uvicorn or onnxruntime (a
 :class:`Surrogate` imports onnxruntime when it loads a model).
@@ -21,10 +21,11 @@ from tdcr.physics import RodSolution, SolverOptions, solve
 from tdcr.robot import design_space
 from tdcr.robot.design_space import TABLE_I, sample_designs
 from tdcr.robot.designs import DesignBatch, ExternalLoads
+from tdcr.surrogates.router import Router
 from tdcr.surrogates.runtime import Surrogate
 
-__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "SolverOptions", "Surrogate", "design_space",
-           "relative_l2", "sample_designs", "solve"]
+__all__ = ["TABLE_I", "DesignBatch", "ExternalLoads", "RodSolution", "Router", "SolverOptions", "Surrogate",
+           "design_space", "relative_l2", "sample_designs", "solve"]
 
 try:
     __version__ = version("tdcr-surrogates")

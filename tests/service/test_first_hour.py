@@ -144,10 +144,11 @@ def test_a_design_an_operator_cannot_take_is_sent_to_the_solver(server, example_
         assert r.status_code == 422
         assert "the exact solver takes it: tdcr solve, POST /exact or tdcr.solve" in r.json()["message"]
         assert httpx.post(server.url + "/exact", json={"designs": [other]}, timeout=60).status_code == 200
-    # with loads and no model named: the loaded operator
+    # with loads and no model named: the router's loaded operator, or the solver where it is cheaper
     r = httpx.post(server.url + "/predict", json={"designs": [loaded]}, timeout=60)
     assert r.status_code == 200
-    assert r.json()["model"] == httpx.get(server.url + "/models").json()["default_loaded_model"]
+    router = httpx.get(server.url + "/v2/models/auto").json()["parameters"]
+    assert r.json()["model"] in (router["loaded_operator"], "exact")
 
 
 # -- 6. one behaviour ----------------------------------------------------------------------------
@@ -159,8 +160,13 @@ def test_tdcr_predict_chooses_like_the_service_and_honours_the_request(server, t
     request.write_text(json.dumps(example_request))
     out = _tdcr("predict", str(request), "--models-dir", str(models), cwd=tmp_path)
     assert out.returncode == 0, out.stderr
-    served = httpx.get(server.url + "/readyz").json()["default_model"]
-    assert json.loads(out.stdout)["model"] == served == best_model(json.loads((models / "manifest.json").read_text()))
+    # no model named: the router, here and in the service, answers by the solver or the most accurate operator
+    assert httpx.get(server.url + "/readyz").json()["default_model"] == "auto"
+    best = best_model(json.loads((models / "manifest.json").read_text()), loads=None)
+    assert httpx.get(server.url + "/v2/models/auto").json()["parameters"]["operator"] == best
+    assert json.loads(out.stdout)["model"] in ("exact", best)
+    served = httpx.post(server.url + "/predict", json=example_request, timeout=60).json()
+    assert served["model"] in ("exact", best)
     request.write_text(json.dumps(example_request | {"model": "fno"}))
     out = _tdcr("predict", str(request), "--models-dir", str(models), cwd=tmp_path)
     assert out.returncode == 0 and json.loads(out.stdout)["model"] == "fno"
