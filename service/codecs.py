@@ -9,6 +9,7 @@ and :class:`service.grpc_codec.GrpcCodec`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import orjson
 
@@ -37,8 +38,15 @@ class PredictCodec:
     def decode(self, payload: ShapeRequest, spec: ModelSpec) -> Decoded:
         return Decoded(payload)
 
-    def encode(self, decoded: Decoded, answer: Prediction) -> bytes:
-        return encode_npz(answer) if self.npz else encode_json(answer)
+    def encode(self, decoded: Decoded, answer: Prediction) -> bytes | NpzAnswer:
+        return NpzAnswer(encode_npz(answer), answer.model) if self.npz else encode_json(answer)
+
+
+class NpzAnswer(NamedTuple):
+    """A ``.npz`` answer and the model that gave it (the ``X-TDCR-Model`` header: JSON says it in the body)."""
+
+    content: bytes
+    model: str
 
 
 @dataclass(frozen=True)

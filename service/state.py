@@ -57,7 +57,23 @@ class ServiceState:
 
     @property
     def surrogates(self) -> list[str]:
-        return sorted(self.repository.names("surrogate"))
+        """The operators served (the router ``auto`` is not one)."""
+        return sorted(n for n in self.repository.names("surrogate") if isinstance(self.repository.models[n],
+                                                                                   SurrogateModel))
+
+    @property
+    def default_operator(self) -> str | None:
+        """The operator answering designs without loads by default: the router's, or the default model."""
+        routed = self.repository.models.get(AUTO_MODEL)
+        return routed.operator.name if isinstance(routed, RoutedModel) else self.default_model
+
+    @property
+    def default_loaded_operator(self) -> str | None:
+        """The operator answering designs with loads by default: the router's, or the loaded default."""
+        routed = self.repository.models.get(AUTO_MODEL)
+        if isinstance(routed, RoutedModel):
+            return None if routed.loaded is None else routed.loaded.name
+        return self.default_loaded_model
 
 
 def load_models(state: ServiceState) -> ModelRepository:

@@ -1,5 +1,6 @@
 """GET /models: the manifest (names, metrics, ranges, inputs and outputs), the default model and the
-default for designs with loads (a loaded operator)."""
+default for designs with loads (the router ``auto``, or a configured model), the operator the
+router answers with, and the operators served (``loaded``)."""
 
 from __future__ import annotations
 
@@ -13,4 +14,6 @@ router = APIRouter(tags=["models"])
 @router.get("/models", summary="The model manifest")
 def models(state: State) -> dict:
     return {"default_model": state.default_model, "default_loaded_model": state.default_loaded_model,
-            "loaded": state.surrogates, "models": state.manifest.get("models", {})}
+            "default_operator": state.default_operator, "default_loaded_operator": state.default_loaded_operator,
+            "loaded": state.surrogates,
+            "models": state.manifest.get("models", {})}

@@ -23,7 +23,7 @@ router = APIRouter(tags=["predict"])
 
 
 def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits,
-            npz: bool) -> tuple[InferenceResponse, str | None]:
+            npz: bool) -> InferenceResponse:
     """On one worker thread: validate the body (it names the model), then the data plane runs it."""
     query = QUERY_FIELDS if binary else ()
     try:
@@ -34,7 +34,7 @@ def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[
         raise from_invalid(exc, query=query) from None
     except InferenceError as exc:
         raise from_inference(exc, query=query) from None
-    return answer, shapes.model
+    return answer
 
 
 @router.post(
@@ -70,8 +70,8 @@ async def predict(request: Request, state: State) -> Response:
     body = await request.body()
     params = {k: request.query_params.getlist(k) for k in request.query_params}
     npz = NPZ in request.headers.get("accept", "")
-    answer, model = await run_in_threadpool(_answer, state.plane, body, binary, params,
+    answer = await run_in_threadpool(_answer, state.plane, body, binary, params,
                                             state.settings.predict_limits(), npz)
     if npz:
-        return Response(answer.body, media_type=NPZ, headers={"X-TDCR-Model": model or state.default_model})
+        return Response(answer.body.content, media_type=NPZ, headers={"X-TDCR-Model": answer.body.model})
     return Response(answer.body, media_type="application/json")

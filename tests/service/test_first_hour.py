@@ -178,7 +178,7 @@ def test_the_shipped_models_are_found_from_any_directory(root, example_request, 
     out = _tdcr("predict", str(request), cwd=tmp_path)  # no --models-dir, another working directory
     assert out.returncode == 0, out.stderr
     shipped = json.loads((root / "models" / "manifest.json").read_text())
-    assert json.loads(out.stdout)["model"] == best_model(shipped)
+    assert json.loads(out.stdout)["model"] in ("exact", best_model(shipped, loads=None))  # the router's paths
 
 
 # -- 7. help and messages ------------------------------------------------------------------------

@@ -64,7 +64,7 @@ def test_out_of_range_designs_are_flagged(example_request, server):
     design = json.loads(json.dumps(example_request["designs"][0]))
     design["tendons"][2]["tension"] = 6.5
     design["E"] = 5e10
-    r = httpx.post(server.url + "/predict", json={"designs": [design], "s": [0.0, 0.5, 1.0]})
+    r = httpx.post(server.url + "/predict", json={"designs": [design], "s": [0.0, 0.5, 1.0], "model": "fno"})
     res = r.json()["results"][0]
     assert res["in_distribution"] is False
     assert any(w.startswith("E = 5e+10 Pa") for w in res["warnings"])

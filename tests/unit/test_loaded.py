@@ -237,12 +237,15 @@ def test_predict_takes_load_fields_and_defaults_to_a_loaded_operator(server):
     r = httpx.post(server.url + "/predict", json=body, timeout=60)
     assert r.status_code == 200, r.text
     answer = r.json()
-    models = httpx.get(server.url + "/models").json()
-    assert answer["model"] == models["default_loaded_model"] in LOADED
+    router = httpx.get(server.url + "/v2/models/auto").json()["parameters"]  # the default: the router
+    assert httpx.get(server.url + "/models").json()["default_loaded_model"] == "auto"
+    assert router["loaded_operator"] in LOADED and answer["model"] in (router["loaded_operator"], "exact")
     assert all(res["in_distribution"] for res in answer["results"])
-    local = Surrogate.shipped(answer["model"]).predict(designs.features(), GRID, loads=loads)
-    np.testing.assert_allclose([res["tendons"] for res in answer["results"]], local["tendons"], rtol=1e-5, atol=1e-8)
     exact = httpx.post(server.url + "/exact", json=body, timeout=120).json()["results"]
+    if answer["model"] != "exact":  # the loaded operator's answers, as it gives them here
+        local = Surrogate.shipped(answer["model"]).predict(designs.features(), GRID, loads=loads)
+        np.testing.assert_allclose([res["tendons"] for res in answer["results"]], local["tendons"], rtol=1e-5,
+                                   atol=1e-8)
     err = relative_l2(np.array([res["tendons"] for res in answer["results"]]), np.array([x["tendons"] for x in exact]))
     assert err.mean() < 0.01
     # a model that takes no loads: a 422 naming the field

@@ -125,8 +125,9 @@
 
   function operatorFor(loaded) {  // a loaded operator for a design with loads
     const select = el("model");
-    if (loaded && !takesLoads(select.value) && manifest.default_loaded_model) {
-      select.value = manifest.default_loaded_model;
+    const loadedOperator = manifest.default_loaded_operator || manifest.default_loaded_model;
+    if (loaded && !takesLoads(select.value) && loadedOperator) {
+      select.value = loadedOperator;
       el("message").textContent = `The design has loads: switched to the loaded operator ${select.value}.`;
     }
     return select.value;
@@ -390,7 +391,7 @@
       for (const name of manifest.loaded) {
         const option = document.createElement("option");
         option.value = option.textContent = name;
-        option.selected = name === manifest.default_model;
+        option.selected = name === (manifest.default_operator || manifest.default_model);
         select.append(option);
       }
       buildControls();
