@@ -469,9 +469,10 @@ def _node_strains(x, rho, drho, tau_node, rod, tols, work, jac, low):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes(node_fractions, act, x_nodes, rod, tols, order):
+def _solve_nodes(node_fractions, act, x_nodes, rod, tols, order, stretch):
     """The strains at the nodes ``node_fractions[order]`` of :class:`Rod` ``rod`` (their tendons those
-    acting at ``act``, see :func:`_node_activity`), each from the start in ``x_nodes`` (M, 6).
+    acting at ``act``, see :func:`_node_activity`), each from the start in ``x_nodes`` (M, 6), and
+    (where ``stretch`` (M, N_t) has rows) every tendon's |g_i| there (:func:`_node_stretch`).
     Returns (all converged, max iterations, max residual)."""
     n_t = rod.offset.shape[0]
     rho = np.empty((n_t, 2))
@@ -486,6 +487,7 @@ def _solve_nodes(node_fractions, act, x_nodes, rod, tols, order):
         _routing(node_fractions[k], rod.length, rod.offset, rod.pitch, rod.angle, rho, drho)
         _active_tensions(rod.tension, rod.end, act[k], tau_node)
         conv, it, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
+        _node_stretch(x_nodes[k], rho, drho, stretch, k)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):  # NaN-propagating max
@@ -729,6 +731,49 @@ def _advance_angles(j, fraction, previous, length, angle, pitch, cos_phi, sin_ph
 _RESYNC = 16
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _node_stretch(x, rho, drho, stretch, k):
+    """``stretch[k, i]`` = |g_i| (:func:`_stretch`) of every tendon at the strains ``x`` (6,) and the
+    routing ``rho``, ``drho`` (N_t, 2) of node k; nothing where ``stretch`` has no rows."""
+    if stretch.shape[0] == 0:
+        return
+    for i in range(rho.shape[0]):
+        stretch[k, i] = _stretch(x, rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _simpson_weight(sig, node, length):
+    """Simpson's weight (m) of the interleaved node ``node`` (edge, midpoint, edge, ...) of ``sig``
+    (2K+1,) in int_0^L f ds: 4 h / 6 at a midpoint, h / 6 from each step an edge bounds."""
+    k_steps = (sig.shape[0] - 1) // 2
+    if node % 2 == 1:  # a midpoint
+        return 4.0 * (sig[node + 1] - sig[node - 1]) * length / 6.0
+    k = node // 2
+    w = 0.0
+    if k > 0:
+        w += (sig[node] - sig[node - 2]) * length / 6.0
+    if k < k_steps:
+        w += (sig[node + 2] - sig[node]) * length / 6.0
+    return w
+
+
+@njit(cache=True, error_model="numpy")
+def _path_lengths_of(sig, act, stretch, rod, lengths):
+    """Each tendon's deformed path length ``lengths`` (N_t,) m, int_0^end |g_i| ds by Simpson's rule
+    (:func:`_simpson_weight`) from the |g_i| the node solves kept, ``stretch`` (2K+1, N_t), over
+    the nodes where the tendon acts (as :func:`_path_lengths`, without its walk of the angles)."""
+    end = rod.end
+    for i in range(end.shape[0]):
+        lengths[i] = 0.0
+    for node in range(sig.shape[0]):
+        w = _simpson_weight(sig, node, rod.length)
+        if w == 0.0:
+            continue
+        for i in range(end.shape[0]):
+            if end[i] > act[node]:
+                lengths[i] += w * stretch[node, i]
+
+
 @njit(cache=True, error_model="numpy")
 def _path_lengths(sig, act, xs, rod, sens, lengths, dlen):
     """Each tendon's deformed path length ``lengths`` (N_t,) m, int_0^end |g_i| ds by Simpson's rule
@@ -740,7 +785,6 @@ def _path_lengths(sig, act, xs, rod, sens, lengths, dlen):
     int t_i . (dnu_k + dkappa_k x rho_i) ds = int a_i . dx_k ds."""
     length, offset, pitch, angle, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.end
     n_t = offset.shape[0]
-    k_steps = (sig.shape[0] - 1) // 2
     rho, drho = np.empty((n_t, 2)), np.empty((n_t, 2))
     cos_phi, sin_phi, cos_d, sin_d = np.empty(n_t), np.empty(n_t), np.empty(n_t), np.empty(n_t)
     last_delta = np.inf  # none yet
@@ -753,15 +797,7 @@ def _path_lengths(sig, act, xs, rod, sens, lengths, dlen):
     for node in range(sig.shape[0]):
         last_delta = _advance_angles(node, sig[node], sig[node - 1] if node else 0.0, length, angle, pitch, cos_phi,
                                      sin_phi, cos_d, sin_d, last_delta)
-        if node % 2 == 1:  # a midpoint
-            w = 4.0 * (sig[node + 1] - sig[node - 1]) * length / 6.0
-        else:
-            k = node // 2
-            w = 0.0
-            if k > 0:
-                w += (sig[node] - sig[node - 2]) * length / 6.0
-            if k < k_steps:
-                w += (sig[node + 2] - sig[node]) * length / 6.0
+        w = _simpson_weight(sig, node, length)
         if w == 0.0:
             continue
         for i in range(n_t):
@@ -853,7 +889,7 @@ def find_tensions(rod, target, grid, tols, slack):
     for it in range(MAX_DISPLACEMENT_ITERATIONS):
         xs[:, :] = 0.0
         xs[0, 2] = 1.0
-        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order)
+        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, np.empty((0, n_t)))
         if not ok or not _sensitivities(sig, act, xs, rod, sens):
             return False, it + 1
         _path_lengths(sig, act, xs, rod, sens, lengths, dlen)
@@ -1081,13 +1117,14 @@ def solve_design(rod, grid, tols, view):
     act = _node_activity(sig)
     order = np.arange(sig.shape[0])
     keep = view.nodes.shape[0] == sig.shape[0]
+    stretch = np.empty((sig.shape[0], n_t))  # |g_i| at the nodes: the path lengths
     if tols.warm and keep:  # Newton at every node from the last solve's strains
         xs = view.nodes.copy()
-        n_ok, it, res = _solve_nodes(sig, act, xs, rod, tols, order)
+        n_ok, it, res = _solve_nodes(sig, act, xs, rod, tols, order, stretch)
     else:
         xs = np.zeros((sig.shape[0], 6))
         xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
-        n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order)
+        n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch)
     if keep:
         view.nodes[:, :] = xs
     ok = ok and n_ok
@@ -1109,20 +1146,23 @@ def solve_design(rod, grid, tols, view):
         edges = sig.copy()
         new_sig = _interleaved(sig)
         new_xs = np.empty((2 * k_steps + 1, 6))
+        new_stretch = np.empty((2 * k_steps + 1, n_t))
         for k in range(k_steps):
             new_xs[2 * k] = xs[k]
             new_xs[2 * k + 1] = 0.5 * (xs[k] + xs[k + 1])  # start: the neighbours' mean (error O(h^2))
+            new_stretch[2 * k] = stretch[k]
         new_xs[2 * k_steps] = xs[k_steps]
+        new_stretch[2 * k_steps] = stretch[k_steps]
         act = _node_activity(new_sig)
         for k in range(k_steps):  # beside a zero-width step (an end) the neighbours' strains jump
             if sig[k + 1] == sig[k]:
                 new_xs[2 * k + 1] = xs[k + 1]
         mids = np.arange(1, 2 * k_steps + 1, 2)
-        n_ok, it, res = _solve_nodes(new_sig, act, new_xs, rod, tols, mids)
+        n_ok, it, res = _solve_nodes(new_sig, act, new_xs, rod, tols, mids, new_stretch)
         ok = ok and n_ok
         iters = max(iters, it)
         worst = max(worst, res) if res == res else res
-        sig, xs = new_sig, new_xs
+        sig, xs, stretch = new_sig, new_xs, new_stretch
         out_step = out_step * 2
         end_step = np.where(end_step >= 0, end_step * 2, end_step)
         _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
@@ -1139,7 +1179,7 @@ def solve_design(rod, grid, tols, view):
         else:
             view.jacobian[:, :, :] = np.nan
     displacement_out = view.displacement
-    _path_lengths(sig, act, xs, rod, np.empty((0, 6, n_t)), displacement_out, np.empty((n_t, n_t)))
+    _path_lengths_of(sig, act, stretch, rod, displacement_out)
     for i in range(n_t):
         displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
     _clamp_ended(fractions_out, end, _terminal_points(edges, xs, rod, end_step), tendons_out)
@@ -1174,8 +1214,8 @@ def _extrapolate_cubic(sig, x_nodes, k, k1, k2, k3, k4):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order):
-    """As :func:`_solve_nodes`, each node starting from the solved strains of the nodes before
+def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch):
+    """As :func:`_solve_nodes` (``stretch`` too), each node starting from the solved strains of the nodes before
     (Lagrange extrapolation from the last four since the last end, where the strains jump).  The
     tendon angles advance by angle addition between nodes (a rotation per distinct spacing),
     recomputed exactly every ``_RESYNC`` nodes."""
@@ -1228,6 +1268,7 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order):
             for a in range(6):
                 x_nodes[k, a] = l1 * x_nodes[k1, a] + l2 * x_nodes[k2, a] + l3 * x_nodes[k3, a]
         conv, it, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
+        _node_stretch(x_nodes[k], rho, drho, stretch, k)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):
