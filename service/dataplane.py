@@ -37,13 +37,18 @@ class DataPlane:
     # -- health and metadata ----------------------------------------------------------------------
 
     def server_ready(self) -> bool:
-        return not self.starting and self.loaded and all(m.ready() for m in self.repository)
+        """Every model loaded and ready, but for those still starting (:meth:`starting_models`)."""
+        return not self.starting and self.loaded and all(m.ready() or m.starting for m in self.repository)
 
     def problems(self) -> list[str]:
         """Why a model cannot answer now (e.g. a solver process being replaced)."""
         if self.starting:
             return [STARTING]
-        return [p for m in self.repository if (p := m.health()) is not None]
+        return [p for m in self.repository if not m.starting and (p := m.health()) is not None]
+
+    def starting_models(self) -> dict[str, str]:
+        """The models still starting after the service became ready, and what they say."""
+        return {m.name: m.health() or "" for m in self.repository if m.starting}
 
     @staticmethod
     def server_metadata() -> dict:

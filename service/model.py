@@ -133,6 +133,11 @@ class Model(ABC):
         """Why the model cannot answer now, or None."""
         return None
 
+    @property
+    def starting(self) -> bool:
+        """The model is still starting after the service became ready (the solver compiling)."""
+        return False
+
     def ready(self) -> bool:
         """Whether the model can answer now."""
         return self.health() is None

@@ -67,11 +67,14 @@ def free_port() -> int:
 class ServerProcess:
     """``tdcr serve`` (as the README runs it) with ``TDCR_<KEY>=value`` for each setting.
 
-    Blocks until ``/readyz`` answers 200 (``RuntimeError`` with the log's tail if it never does).
+    Blocks until ``/readyz`` answers 200, and the solver's model too (``RuntimeError`` with the log's
+    tail if they never do).
     """
 
-    def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, grpc: bool = True, **settings):
-        """``grpc``: also serve gRPC, on a free port (``grpc_target``)."""
+    def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, grpc: bool = True,
+                 wait_for_solver: bool = True, **settings):
+        """``grpc``: also serve gRPC, on a free port (``grpc_target``); ``wait_for_solver``: also wait
+        for the solver (``exact`` ready: on a machine's first start it compiles after /readyz)."""
         self.port, self.grpc_port = free_ports(2) if grpc else (free_port(), 0)
         self.url = f"http://127.0.0.1:{self.port}"
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
@@ -84,11 +87,15 @@ class ServerProcess:
                  "--grpc-port", str(self.grpc_port), "--log-level", "warning"],
                 cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + ready_timeout_s
+        waiting = ["/readyz"] + (["/v2/models/exact/ready"] if wait_for_solver else [])
         while time.monotonic() < deadline and self.proc.poll() is None:
             try:
-                with urllib.request.urlopen(self.url + "/readyz", timeout=2) as r:
+                with urllib.request.urlopen(self.url + waiting[0], timeout=2) as r:
                     if r.status == 200:
-                        return
+                        waiting.pop(0)
+                        if not waiting:
+                            return
+                        continue
             except (urllib.error.URLError, ConnectionError, TimeoutError):
                 pass
             time.sleep(0.2)

@@ -50,19 +50,23 @@ class RoutedModel(Model):
         #: the exact path's kernels are loaded in this process (:meth:`measure`)
         self.exact_here = False
 
-    def measure(self) -> None:
-        """Load the solver's default kernels here and time every path (blocking, about a second)."""
+    def measure(self, *, exact: bool = True) -> None:
+        """Time every path (blocking, about a second), or take ``TDCR_ROUTER_COSTS``; with ``exact``
+        load the solver's default kernels here, else (the solver still starting) time the operators
+        only: the solver is not chosen until it is ready."""
         settings = self.exact.settings
-        if settings.router_costs is not None:  # given: load the kernels here all the same
-            with np.errstate(all="ignore"):
-                warm_up(DEFAULT_PATHS)
+        loaded = None if self.loaded is None else self.loaded.surrogate
+        if settings.router_costs is not None:
             self.costs = Costs(**{path: Cost(*line) for path, line in settings.router_costs.items()})
+        elif not exact:
+            self.costs = Costs.measure(self.operator.surrogate, loaded, exact=False)
+        else:  # loaded designs are solved in the solver processes: their admission's estimate
+            self.costs = Costs.measure(self.operator.surrogate, loaded,
+                                       exact_loaded=Cost(0.0, settings.exact_seconds_per_loaded_design))
+        if exact:
+            with np.errstate(all="ignore"):
+                warm_up(DEFAULT_PATHS)  # loads the kernels here (from the cache the solver processes wrote)
             self.exact_here = True
-            return
-        # loaded designs are solved in the solver processes: their admission's estimate
-        self.costs = Costs.measure(self.operator.surrogate, None if self.loaded is None else self.loaded.surrogate,
-                                   exact_loaded=Cost(0.0, settings.exact_seconds_per_loaded_design))
-        self.exact_here = True
 
     def health(self) -> str | None:
         if self.costs is None:

@@ -29,6 +29,8 @@ from tdcr.search.inverse import answer_exact, finish
 log = logging.getLogger("tdcr.service")
 #: The inverse-kinematics model's name.
 INVERSE_MODEL = "inverse"
+#: What the solver models say while their processes start.
+STARTING = "starting: the solver processes are starting (a machine's first start compiles the solver, about a minute)"
 #: Exceptions of the solver processes' work that come back as they are.
 EXPECTED = (InvalidRequest, TooMuchWork, InferenceError)
 
@@ -64,14 +66,22 @@ class ExactModel(Model):
         self.budget = settings.exact_budget()
         self.pool: SolverPool | None = None
         self.slots: asyncio.Semaphore | None = None
+        self.failed = False  #: the processes did not start (a problem /readyz reports)
 
     def start(self) -> None:
         """Start the solver processes (blocks for their start, about a second each)."""
         self.pool = SolverPool(self.settings.exact_workers)
         self.slots = asyncio.Semaphore(self.settings.exact_max_pending)
 
+    @property
+    def starting(self) -> bool:
+        """The processes are starting (on a machine's first start they compile the solver)."""
+        return self.pool is None and not self.failed
+
     def health(self) -> str | None:
         """Why the model cannot answer now, or None."""
+        if self.starting:
+            return STARTING
         if self.pool is None:
             return "solver pool: not running"
         return None if self.pool.healthy else "solver pool: a worker is being replaced"
@@ -87,7 +97,8 @@ class ExactModel(Model):
         """``fn(*args, **kwargs)`` in a solver process, within a slot and the deadline; the
         process's failures as :class:`InferenceError` (its ``EXPECTED`` exceptions as they are)."""
         if self.pool is None or self.slots is None:
-            raise InferenceError("unavailable", "the solver pool is not running")
+            raise InferenceError("unavailable", f"{STARTING}; retry shortly" if self.starting
+                                 else "the solver pool is not running")
         if self.slots.locked():
             raise InferenceError("saturated", "the solver is saturated; retry later")
         timeout = self.settings.exact_timeout_s
@@ -137,6 +148,13 @@ class InverseModel(Model):
 
     def ready(self) -> bool:  # the exact model reports the pool's health
         return self.exact.ready()
+
+    @property
+    def starting(self) -> bool:
+        return self.exact.starting
+
+    def health(self) -> str | None:
+        return self.exact.health()
 
     def parameters(self) -> dict:
         return self.exact.parameters() | {"status": orjson.dumps(INVERSE_STATUS).decode()}

@@ -3,6 +3,7 @@ manifest and the one :class:`service.dataplane.DataPlane` with its model reposit
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from dataclasses import dataclass, field
 
@@ -76,13 +77,13 @@ class ServiceState:
         return self.default_loaded_model
 
 
-def load_models(state: ServiceState) -> ModelRepository:
-    """A repository of the exact solver, its inverse kinematics and every manifest operator
-    (checksum verified, warmed up); problems are recorded instead of raised.  The solver's
-    processes start with :meth:`ExactModel.start` (the repository's ``exact``).  Blocking: the
-    lifespan runs it in a thread, and serves the finished repository (:func:`start`)."""
+def load_models(state: ServiceState, exact: ExactModel | None = None) -> ModelRepository:
+    """A repository of the exact solver (``exact``, or a new one), its inverse kinematics and every
+    manifest operator (checksum verified, warmed up); problems are recorded instead of raised.  The
+    solver's processes start with :meth:`ExactModel.start`.  Blocking: the lifespan runs it in a
+    thread, and serves the finished repository (:func:`start`)."""
     settings, repository = state.settings, ModelRepository()
-    exact = ExactModel(settings)
+    exact = ExactModel(settings) if exact is None else exact
     repository.register(exact)
     repository.register(InverseModel(exact, lambda name: repository.get(name, kind="surrogate")))
     try:
@@ -141,23 +142,36 @@ def guard(repository: ModelRepository, exact: ExactModel, problems: list[str]) -
 
 
 async def start(state: ServiceState, *, before_ready=None) -> None:
-    """Load the models and start the solver processes while the server already answers (/healthz
-    200, /readyz 503 and inference 503 "starting" meanwhile), then serve them.  ``before_ready``:
-    an async callback given the readiness just before the service reports it (the gRPC health)."""
-    log.warning("starting: loading the models of %s, then the solver processes (the first start on a machine "
-                "compiles the solver kernels: the default path before ready, about a minute and a half on 2 cores, the "
-                "others after)", state.settings.models_dir)
-    repository = await run_in_threadpool(load_models, state)
-    try:
-        await run_in_threadpool(repository.models[EXACT_MODEL].start)
-    except Exception as exc:  # noqa: BLE001 - reported by /readyz
-        state.problems.append(f"solver pool: {exc}")
+    """Start the solver processes and load the models side by side, while the server already
+    answers (/healthz 200, /readyz 503 and inference 503 "starting" meanwhile).  The service is
+    ready once the operators and the router answer: on a machine's first start the solver's
+    processes still compile its kernels then (about a minute on 2 cores), and until they are up
+    ``exact`` and ``inverse`` say 503 "starting" (their readiness too, and /readyz lists them under
+    ``starting``), and the router answers by its operators.  ``before_ready``: an async callback
+    given the readiness just before the service reports it (the gRPC health)."""
+    log.warning("starting: loading the models of %s while the solver processes start (the first start on a "
+                "machine compiles the solver kernels: about a minute on 2 cores, its default path first)",
+                state.settings.models_dir)
+    exact = ExactModel(state.settings)
+    solver = asyncio.ensure_future(run_in_threadpool(exact.start))
+    repository = await run_in_threadpool(load_models, state, exact)
     routed = repository.models.get(AUTO_MODEL)
-    if isinstance(routed, RoutedModel):  # the solver's default kernels are in the cache now: load them here
-        await run_in_threadpool(routed.measure)
+    if isinstance(routed, RoutedModel):  # the operators' costs now; the solver's once it is up
+        await run_in_threadpool(routed.measure, exact=False)
     state.plane.repository = repository
     state.plane.loaded = not state.problems and bool(state.surrogates)
     if before_ready is not None:
-        await before_ready(state.plane.loaded and all(m.ready() for m in repository))
+        await before_ready(state.plane.server_ready())
     state.plane.starting = False
-    log.warning("ready=%s models=%s problems=%s", state.plane.loaded, sorted(repository.names()), state.problems)
+    log.warning("ready=%s models=%s problems=%s starting=%s", state.plane.server_ready(), sorted(repository.names()),
+                state.problems, state.plane.starting_models())
+    try:
+        await solver
+    except Exception as exc:  # noqa: BLE001 - reported by /readyz
+        exact.failed = True
+        state.problems.append(f"solver pool: {exc}")
+        state.plane.loaded = False
+        return
+    if isinstance(routed, RoutedModel):  # the solver's default kernels are in the cache now: load them here
+        await run_in_threadpool(routed.measure)
+    log.warning("the solver is up: every model ready")

@@ -17,6 +17,7 @@ request that names a model is served by that model as asked (the router is not c
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -67,6 +68,10 @@ def _median_seconds(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
+#: The cost of a path that cannot answer (never the cheaper one).
+UNAVAILABLE = Cost(math.inf, 0.0)
+
+
 @dataclass(frozen=True)
 class Costs:
     """What each path costs on this machine: the ``exact`` solver for tendon-only designs and
@@ -84,10 +89,14 @@ class Costs:
         """Time each path at :data:`MEASURED_BATCHES` designs (Table I, seeded, 42 points; median of
         ``repeats``).  ``operator``, ``loaded_operator``: predictors with ``predict(features, fractions,
         loads=)``; ``exact(features, fractions, loads)``: the exact path (default :func:`solve_rows`
-        here); ``exact_loaded``: the loaded solver's cost where it runs elsewhere (None: timed here,
-        which compiles its kernel on first use).  About a second on 2 cores."""
+        here; False: none, :data:`UNAVAILABLE`); ``exact_loaded``: the loaded solver's cost where it
+        runs elsewhere (None: timed here, which compiles its kernel on first use).  About a second on
+        2 cores."""
         from tdcr.robot.design_space import BENCHMARK_LOADS, sample_designs
 
+        if exact is False:  # no solver here (yet): it is never the cheaper path
+            exact = lambda f, s, m: None  # noqa: E731
+            exact_loaded = UNAVAILABLE
         exact = solve_rows if exact is None else exact
         fractions = np.linspace(0.0, 1.0, 42)
         points = {}
@@ -109,6 +118,8 @@ class Costs:
             points[n] = row
         small, large = MEASURED_BATCHES
         line = {k: Cost.through((small, points[small][k]), (large, points[large][k])) for k in points[small]}
+        if exact_loaded is UNAVAILABLE:
+            line["exact"] = UNAVAILABLE
         return cls(**({"exact_loaded": exact_loaded} | line))
 
 
