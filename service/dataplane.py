@@ -37,8 +37,12 @@ class DataPlane:
     # -- health and metadata ----------------------------------------------------------------------
 
     def server_ready(self) -> bool:
+        """Started, and :meth:`models_ready`."""
+        return not self.starting and self.models_ready()
+
+    def models_ready(self) -> bool:
         """Every model loaded and ready, but for those still starting (:meth:`starting_models`)."""
-        return not self.starting and self.loaded and all(m.ready() or m.starting for m in self.repository)
+        return self.loaded and all(m.ready() or m.starting for m in self.repository)
 
     def problems(self) -> list[str]:
         """Why a model cannot answer now (e.g. a solver process being replaced)."""

@@ -10,6 +10,7 @@ unread pipe would fill up and block the server).
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import subprocess
@@ -87,15 +88,11 @@ class ServerProcess:
                  "--grpc-port", str(self.grpc_port), "--log-level", "warning"],
                 cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + ready_timeout_s
-        waiting = ["/readyz"] + (["/v2/models/exact/ready"] if wait_for_solver else [])
         while time.monotonic() < deadline and self.proc.poll() is None:
             try:
-                with urllib.request.urlopen(self.url + waiting[0], timeout=2) as r:
-                    if r.status == 200:
-                        waiting.pop(0)
-                        if not waiting:
-                            return
-                        continue
+                with urllib.request.urlopen(self.url + "/readyz", timeout=2) as r:
+                    if r.status == 200 and not (wait_for_solver and json.loads(r.read()).get("starting")):
+                        return
             except (urllib.error.URLError, ConnectionError, TimeoutError):
                 pass
             time.sleep(0.2)

@@ -161,7 +161,7 @@ async def start(state: ServiceState, *, before_ready=None) -> None:
     state.plane.repository = repository
     state.plane.loaded = not state.problems and bool(state.surrogates)
     if before_ready is not None:
-        await before_ready(state.plane.server_ready())
+        await before_ready(state.plane.models_ready())
     state.plane.starting = False
     log.warning("ready=%s models=%s problems=%s starting=%s", state.plane.server_ready(), sorted(repository.names()),
                 state.problems, state.plane.starting_models())
