@@ -1,7 +1,7 @@
 """Tendon-only solver throughput and accuracy: Table I designs per second at 42 points (prints a
 Markdown table).
 
-    python benchmarks/solver_throughput.py [--n 2000] [--repeats 3] [--seed 1]
+    python benchmarks/solver_throughput.py [--n 2000] [--repeats 3] [--seed 1] [--against REV]
 
 Rows: the compiled kernel (numba) on 1 thread and on every core, and the same kernel computing
 the exact Jacobian to the tensions too (``solve(..., jacobian=True)``) on 1 core and every core.
@@ -9,7 +9,9 @@ Each row is the best of ``--repeats`` runs of the whole batch, after one warm-up
 columns: the worst relative l2 of tendon positions against the same method at a 20x finer fixed
 step (``max_step = 1/820``), how many designs exceed 1e-6, and the distribution of the step the
 step control chose; the line above the table gives the worst error over the 22 independent C++
-reference cases.
+reference cases.  A second table: the throughput targets of issue #34 on every core (Table I, two
+segments, gravity and tip loads); ``--against REV`` measures a git revision's solver beside it, in
+alternating rounds (e.g. ``--against c3f0ad9``, the solver before issue #34).
 """
 
 from __future__ import annotations
@@ -57,11 +59,73 @@ def timed(designs: DesignBatch, workers: int, repeats: int, jacobian: bool):
     return best, sol
 
 
+#: The throughput targets of issue #34 (designs/s on 2 cores): label -> target.
+TARGETS = {"Table I, tendon loads": 25_000, "two segments of 3 tendons": 20_000,
+           "Table I in gravity and under tip loads (TRAINING_LOADS)": 500}
+
+
+def rates(n: int, seed: int, repeats: int) -> dict[str, float]:
+    """Designs/s of the :data:`TARGETS` cases on every core (``workers=0``), best of ``repeats``:
+    Table I designs, two segments of 3 tendons (``sample_segmented_designs``), and designs in gravity
+    and under tip loads (``TRAINING_LOADS``; a fifth of ``n``: each costs about 50 tendon-only solves).
+    Uses whichever ``tdcr`` is imported (``--against`` runs an older tree's)."""
+    from tdcr.robot.design_space import TRAINING_LOADS, sample_segmented_designs
+
+    n_loaded = max(n // 5, 1)
+    cases = dict(zip(TARGETS, ((design_space.sample_designs(n, seed=seed), None),
+                               (sample_segmented_designs(n, seed=seed), None),
+                               (design_space.sample_designs(n_loaded, seed=seed), TRAINING_LOADS.sample(n_loaded,
+                                                                                                        seed=seed))),
+                     strict=True))
+    out = {}
+    for label, (batch, external) in cases.items():
+        solve(batch, SIGMA, loads=external, workers=0)  # warm-up (compiles on a first run)
+        best = float("inf")
+        for _ in range(repeats):
+            start = time.perf_counter()
+            solve(batch, SIGMA, loads=external, workers=0)
+            best = min(best, time.perf_counter() - start)
+        out[label] = batch.n_designs / best
+    return out
+
+
+def targets(n: int, seed: int, repeats: int, against: str | None) -> None:
+    """The :data:`TARGETS` table; with ``against`` (a git revision) that tree's rates too, measured
+    in alternating rounds in processes of their own (ratios within one run: the VM's speed drifts)."""
+    import subprocess
+    import sys
+
+    def measure(root: Path) -> dict[str, float]:
+        code = (f"import sys; sys.path.insert(0, {str(root)!r}); sys.path.insert(1, {str(ROOT / 'benchmarks')!r}); "
+                f"import json, solver_throughput as b; print(json.dumps(b.rates({n}, {seed}, {repeats})))")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    if against is None:
+        ours, theirs = rates(n, seed, repeats), None
+    else:
+        tree = Path(f"/tmp/tdcr-against-{against}")
+        if not tree.exists():
+            subprocess.run(["git", "worktree", "add", "--detach", str(tree), against], cwd=ROOT, check=True,
+                           capture_output=True)
+        runs = [(measure(tree), measure(ROOT)) for _ in range(3)]  # alternating rounds
+        theirs = {k: max(r[0][k] for r in runs) for k in TARGETS}
+        ours = {k: max(r[1][k] for r in runs) for k in TARGETS}
+    head = f" | {against} | ratio" if against else ""
+    print(f"\n| on every core ({os.cpu_count()}), best of {repeats} | designs/s{head} | target | |\n"
+          f"|---|---:{'|---:|---:' if against else ''}|---:|---|")
+    for label, target in TARGETS.items():
+        old = f" | {theirs[label]:,.0f} | {ours[label] / theirs[label]:.2f}x" if theirs else ""
+        verdict = "met" if ours[label] >= target else "NOT met"
+        print(f"| {label} | {ours[label]:,.0f}{old} | >= {target:,} | {verdict} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=2000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--against", help="a git revision whose solver's rates are measured beside (alternating)")
     args = parser.parse_args()
     designs = design_space.sample_designs(args.n, seed=args.seed)
     cores = os.cpu_count() or 1
@@ -86,6 +150,7 @@ def main() -> None:
         print(f"| {label} | {workers} | {elapsed:.3f} | {args.n / elapsed:,.0f} | {int(sol.converged.sum())}/{args.n} "
               f"| {error.max():.1e} | {int((error > 1e-6).sum())} | {sol.error_estimate.max():.1e} "
               f"| {' / '.join(map(str, counts))} |")
+    targets(args.n, args.seed, max(args.repeats, 5), args.against)
     base = solve(designs, SIGMA, options=SolverOptions(max_level=0, step_tol=np.inf))
     error = relative_l2(base.tendons, fine.tendons)
     print(f"\nwithout step control (one step per output interval): max {error.max():.1e}, "
