@@ -52,7 +52,7 @@ class DataPlane:
 
     def starting_models(self) -> dict[str, str]:
         """The models still starting after the service became ready, and what they say."""
-        return {m.name: m.health() or "" for m in self.repository if m.starting}
+        return {m.name: m.starting_note() for m in self.repository if m.starting}
 
     @staticmethod
     def server_metadata() -> dict:

@@ -138,6 +138,10 @@ class Model(ABC):
         """The model is still starting after the service became ready (the solver compiling)."""
         return False
 
+    def starting_note(self) -> str:
+        """What /readyz says of the model while it is :attr:`starting`."""
+        return self.health() or "starting"
+
     def ready(self) -> bool:
         """Whether the model can answer now."""
         return self.health() is None

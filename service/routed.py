@@ -73,6 +73,14 @@ class RoutedModel(Model):
             return "router: the paths are not timed yet"
         return None
 
+    @property
+    def starting(self) -> bool:
+        """The solver is not on the router's paths yet (it joins once its processes are up)."""
+        return not self.exact_here and not self.exact.failed
+
+    def starting_note(self) -> str:
+        return "answering by its operators; the solver joins once it is up"
+
     def parameters(self) -> dict:
         costs = self.costs
         timed = {} if costs is None else {

@@ -121,11 +121,13 @@ class Calibration:
         k = np.clip(np.searchsorted(edges, theta, side="right") - 1, 0, len(edges) - 2)
         return np.where((theta >= edges[0]) & (theta <= edges[-1]), k, -1)
 
-    def in_region(self, features: np.ndarray, loads: np.ndarray | None = None) -> np.ndarray:
+    def in_region(self, features: np.ndarray, loads: np.ndarray | None = None, *,
+                  bins: np.ndarray | None = None) -> np.ndarray:
         """Whether each design ``(B,)`` lies in the calibrated region: its parameters and loads
-        ``(B, 10)`` in the trained ranges, its bending angle inside the calibrated edges."""
+        ``(B, 10)`` in the trained ranges, its bending angle inside the calibrated edges (``bins``:
+        :meth:`bins` if already computed)."""
         inside = in_trained_ranges(features, loads, self.load_ranges)
-        return inside & (self.bins(features) >= 0)
+        return inside & ((self.bins(features) if bins is None else bins) >= 0)
 
     def bound(self, features: np.ndarray, score: np.ndarray | None, loads: np.ndarray | None = None) -> np.ndarray:
         """The error bound of each design ``(B,)`` (relative l2, ``inf`` outside the calibrated
@@ -134,7 +136,7 @@ class Calibration:
         scale = np.ones(len(features)) if score is None else np.asarray(score, dtype=np.float64)
         with np.errstate(invalid="ignore", over="ignore"):
             bound = self.quantiles[np.maximum(k, 0)] * (scale + float(self.record["floor"]))
-        return np.where(self.in_region(features, loads) & np.isfinite(bound), bound, np.inf)
+        return np.where(self.in_region(features, loads, bins=k) & np.isfinite(bound), bound, np.inf)
 
 
 def disagreement(tendons: np.ndarray, companion_tendons: np.ndarray) -> np.ndarray:

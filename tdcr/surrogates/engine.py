@@ -169,7 +169,7 @@ def predict(predictor: Predictor, request: ShapeRequest, *, model: str, guard_wi
         arrays, kept = keep_tolerance(arrays, features, request.fractions, given if predictor.takes_loads else None,
                                       tendons=on_grid_tendons(out, request.fractions), own=predictor.predict,
                                       calibration=guard_with.calibration, companion=guard_with.companion,
-                                      tolerance=request.tolerance,
+                                      tolerance=request.tolerance, finite=finite,
                                       exact=lambda rows: exact_arrays(guard_with.exact(request.take(rows))))
         bounds, source = kept.error_bound, kept.source if request.tolerance is not None else None
         finite = finite | (kept.source == EXACT)

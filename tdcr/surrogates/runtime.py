@@ -135,13 +135,18 @@ def finite_rows(arrays, n_designs: int) -> np.ndarray:
 def keep_tolerance(arrays: dict[str, np.ndarray], features: np.ndarray, fractions: np.ndarray,
                    loads: np.ndarray | None, *, tendons: np.ndarray | None, own, calibration: Calibration | None,
                    companion, tolerance: float | None,
-                   exact: Callable[[np.ndarray], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], Guarded]:
+                   exact: Callable[[np.ndarray], dict[str, np.ndarray]],
+                   finite: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], Guarded]:
     """The one tolerance path of an operator's answer, for :meth:`Surrogate.predict` and the engine
-    alike: each design's bound (:func:`error_bound`; ``inf`` where the answer ``arrays`` ``(B, ...)``
-    are not finite), then :func:`tdcr.surrogates.bounds.guard`: with ``tolerance``, the designs whose
-    bound exceeds it answered by ``exact(rows)``.  ``tendons``: the answer on the calibration grid
+    alike: each design's bound (:func:`error_bound`; ``inf`` where the answer is not ``finite``
+    ``(B,)``: None, :func:`finite_rows` of its tendons, or of every array without them: the other
+    outputs and the tendons derive from each other, tendons = p + R rho), then
+    :func:`tdcr.surrogates.bounds.guard`: with ``tolerance``, the designs whose bound exceeds it
+    answered by ``exact(rows)``.  ``tendons``: the answer on the calibration grid
     (:func:`on_grid_tendons`; None: ``own`` computes it)."""
-    finite = finite_rows(arrays.values(), len(features))
+    if finite is None:
+        checked = [arrays["tendons"]] if "tendons" in arrays else arrays.values()
+        finite = finite_rows(checked, len(features))
     with np.errstate(all="ignore"):
         bounds = error_bound(calibration, features, loads, tendons=tendons, own=own, companion=companion)
     return guard(arrays, np.where(finite, bounds, np.inf), tolerance=tolerance, exact=exact)

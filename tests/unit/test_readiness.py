@@ -1,0 +1,43 @@
+"""Readiness while the solver starts (service/dataplane.py, service/solver.py): the service is
+ready once its models answer; a model still starting is listed, not a problem, and its calls say
+503 "starting" by name."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from service.dataplane import DataPlane
+from service.metrics import Metrics
+from service.model import InferenceError, ModelRepository
+from service.settings import Settings
+from service.solver import STARTING, ExactModel, InverseModel
+
+
+def _plane() -> tuple[DataPlane, ExactModel]:
+    repository = ModelRepository()
+    exact = ExactModel(Settings())
+    repository.register(exact)
+    repository.register(InverseModel(exact, lambda name: None))
+    plane = DataPlane(repository, Metrics.create())
+    plane.loaded = True
+    return plane, exact
+
+
+def test_a_starting_solver_leaves_the_service_ready_and_says_so():
+    plane, exact = _plane()
+    assert exact.starting and not exact.ready() and exact.health() == STARTING
+    assert plane.server_ready() and plane.problems() == []
+    assert plane.starting_models() == {"exact": STARTING, "inverse": STARTING}
+    with pytest.raises(InferenceError, match="starting: the solver processes are starting") as err:
+        asyncio.run(exact.run(print))
+    assert err.value.kind == "unavailable"
+
+
+def test_a_solver_that_failed_to_start_is_a_problem_and_the_service_not_ready():
+    plane, exact = _plane()
+    exact.failed = True
+    assert not exact.starting and not plane.server_ready()
+    assert plane.problems() == ["solver pool: not running", "solver pool: not running"]
+    assert plane.starting_models() == {}
