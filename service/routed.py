@@ -21,6 +21,7 @@ from tdcr.api.validation import ShapeRequest
 from tdcr.physics.exact import DEFAULT_PATHS, ExactAnswer, solve_request, warm_up
 from tdcr.surrogates import engine
 from tdcr.surrogates.router import Cost, Costs
+from tdcr.surrogates.runtime import solve_rows
 
 #: The routed model's name.
 AUTO_MODEL = "auto"
@@ -57,12 +58,13 @@ class RoutedModel(Model):
         settings = self.exact.settings
         loaded = None if self.loaded is None else self.loaded.surrogate
         if settings.router_costs is not None:
-            self.costs = Costs(**{path: Cost(*line) for path, line in settings.router_costs.items()})
+            self.costs = Costs(**{path: Cost.line(*line) for path, line in settings.router_costs.items()})
         elif not exact:
             self.costs = Costs.measure(self.operator.surrogate, loaded, exact=False)
-        else:  # loaded designs are solved in the solver processes: their admission's estimate
+        else:  # as this process solves (one thread); loaded designs in the solver processes: their admission's estimate
             self.costs = Costs.measure(self.operator.surrogate, loaded,
-                                       exact_loaded=Cost(0.0, settings.exact_seconds_per_loaded_design))
+                                       exact=lambda f, s, m: solve_rows(f, s, m, workers=1),
+                                       exact_loaded=Cost.line(0.0, settings.exact_seconds_per_loaded_design))
         if exact:
             with np.errstate(all="ignore"):
                 warm_up(DEFAULT_PATHS)  # loads the kernels here (from the cache the solver processes wrote)
@@ -84,7 +86,7 @@ class RoutedModel(Model):
     def parameters(self) -> dict:
         costs = self.costs
         timed = {} if costs is None else {
-            f"{path}_seconds": f"{cost.fixed:.3g} + {cost.per_design:.3g} B"
+            f"{path}_seconds": cost.describe()
             for path, cost in (("exact", costs.exact), ("exact_loaded", costs.exact_loaded),
                                ("operator", costs.operator), ("loaded_operator", costs.loaded_operator))
             if cost is not None}

@@ -37,26 +37,35 @@ from tdcr.surrogates.runtime import (
 
 #: The two paths, as :meth:`Router.choose` names them.
 PATHS = ("exact", "operator")
-#: Batches timed by :meth:`Costs.measure` (designs): a small and a larger one give a line.
-MEASURED_BATCHES = (1, 32)
+#: Batches timed by :meth:`Costs.measure` (designs): a path's cost per design falls with the batch
+#: (an operator's graph call, the solver's threads), so a line through two small batches overrates
+#: a large one.
+MEASURED_BATCHES = (1, 16, 128, 1024)
 
 
 @dataclass(frozen=True)
 class Cost:
-    """Seconds a path takes for ``B`` designs: ``fixed + per_design * B``."""
+    """Seconds a path takes for ``B`` designs, measured at ``designs`` (increasing) as ``seconds``:
+    linear between them, and beyond the largest on the last segment's slope."""
 
-    fixed: float
-    per_design: float
+    designs: tuple[float, ...]
+    seconds: tuple[float, ...]
 
     def __call__(self, n_designs: int) -> float:
-        return self.fixed + self.per_design * n_designs
+        d, t = self.designs, self.seconds
+        if n_designs <= d[-1]:
+            return float(np.interp(n_designs, d, t))
+        slope = max((t[-1] - t[-2]) / (d[-1] - d[-2]), 0.0) if len(d) > 1 else 0.0
+        return t[-1] + slope * (n_designs - d[-1])
 
     @classmethod
-    def through(cls, small: tuple[int, float], large: tuple[int, float]) -> Cost:
-        """The line through two measured ``(designs, seconds)`` points (never negative)."""
-        (n0, t0), (n1, t1) = small, large
-        per_design = max((t1 - t0) / (n1 - n0), 0.0)
-        return cls(fixed=max(t0 - per_design * n0, 0.0), per_design=per_design)
+    def line(cls, fixed: float, per_design: float) -> Cost:
+        """``fixed + per_design * B`` seconds."""
+        return cls((0.0, 1.0), (fixed, fixed + per_design))
+
+    def describe(self) -> str:
+        """E.g. ``"1: 0.0003 s, 1024: 0.05 s"``."""
+        return ", ".join(f"{d:g}: {t:.3g} s" for d, t in zip(self.designs, self.seconds, strict=True))
 
 
 def _median_seconds(fn, repeats: int) -> float:
@@ -69,7 +78,7 @@ def _median_seconds(fn, repeats: int) -> float:
 
 
 #: The cost of a path that cannot answer (never the cheaper one).
-UNAVAILABLE = Cost(math.inf, 0.0)
+UNAVAILABLE = Cost((0.0,), (math.inf,))
 
 
 @dataclass(frozen=True)
@@ -89,38 +98,40 @@ class Costs:
         """Time each path at :data:`MEASURED_BATCHES` designs (Table I, seeded, 42 points; median of
         ``repeats``).  ``operator``, ``loaded_operator``: predictors with ``predict(features, fractions,
         loads=)``; ``exact(features, fractions, loads)``: the exact path (default :func:`solve_rows`
-        here; False: none, :data:`UNAVAILABLE`); ``exact_loaded``: the loaded solver's cost where it
-        runs elsewhere (None: timed here, which compiles its kernel on first use).  About a second on
-        2 cores."""
+        here, on every core; False: none, :data:`UNAVAILABLE`); ``exact_loaded``: the loaded solver's
+        cost where it runs elsewhere (None: timed here, which compiles its kernel on first use).
+        About two seconds on 2 cores."""
         from tdcr.robot.design_space import BENCHMARK_LOADS, sample_designs
 
         if exact is False:  # no solver here (yet): it is never the cheaper path
             exact = lambda f, s, m: None  # noqa: E731
             exact_loaded = UNAVAILABLE
-        exact = solve_rows if exact is None else exact
+        exact = solve_rows if exact is None else exact  # solve_rows: every core
         fractions = np.linspace(0.0, 1.0, 42)
         points = {}
         for n in MEASURED_BATCHES:
             features = sample_designs(n, seed=0).features()
             loads = BENCHMARK_LOADS.sample(n, seed=0).matrix(n)
             exact_loaded_n = min(n, 4)  # a loaded solve takes milliseconds: a few designs give its rate
+            repeats_n = repeats if n <= 128 else 2
             row = {
-                "exact": _median_seconds(lambda f=features: exact(f, fractions, None), repeats),
-                "operator": _median_seconds(lambda f=features: operator.predict(f, fractions, check=False), repeats),
+                "exact": _median_seconds(lambda f=features: exact(f, fractions, None), repeats_n),
+                "operator": _median_seconds(lambda f=features: operator.predict(f, fractions, check=False),
+                                            repeats_n),
             }
             if exact_loaded is None:
                 row["exact_loaded"] = _median_seconds(
                     lambda f=features[:exact_loaded_n], m=loads[:exact_loaded_n]: exact(f, fractions, m),
-                    repeats) * n / exact_loaded_n
+                    repeats_n) * n / exact_loaded_n
             if loaded_operator is not None:
                 row["loaded_operator"] = _median_seconds(
-                    lambda f=features, m=loads: loaded_operator.predict(f, fractions, loads=m, check=False), repeats)
+                    lambda f=features, m=loads: loaded_operator.predict(f, fractions, loads=m, check=False), repeats_n)
             points[n] = row
-        small, large = MEASURED_BATCHES
-        line = {k: Cost.through((small, points[small][k]), (large, points[large][k])) for k in points[small]}
+        measured = {k: Cost(tuple(map(float, MEASURED_BATCHES)), tuple(points[n][k] for n in MEASURED_BATCHES))
+                    for k in points[MEASURED_BATCHES[0]]}
         if exact_loaded is UNAVAILABLE:
-            line["exact"] = UNAVAILABLE
-        return cls(**({"exact_loaded": exact_loaded} | line))
+            measured["exact"] = UNAVAILABLE
+        return cls(**({"exact_loaded": exact_loaded} | measured))
 
 
 @dataclass(frozen=True)

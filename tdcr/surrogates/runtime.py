@@ -153,13 +153,14 @@ def keep_tolerance(arrays: dict[str, np.ndarray], features: np.ndarray, fraction
 
 
 def solve_rows(features: np.ndarray, fractions: np.ndarray, loads: np.ndarray | None, *,
-               pose: bool = True) -> dict[str, np.ndarray]:
+               pose: bool = True, workers: int = 0) -> dict[str, np.ndarray]:
     """The exact solver's tendons ``(m, n, 4, 3)`` (with ``pose``: backbone and rotation too) of
-    ``features`` ``(m, 15)`` under ``loads`` ``(m, 10)`` (None: none), and ``converged`` ``(m,)``."""
+    ``features`` ``(m, 15)`` under ``loads`` ``(m, 10)`` (None: none), and ``converged`` ``(m,)``;
+    on ``workers`` threads (0: every core; a few designs run on the calling thread)."""
     from tdcr.physics import solve
 
     external = None if loads is None or not loaded_rows(loads).any() else ExternalLoads.from_matrix(loads)
-    sol = solve(DesignBatch.from_features(features), fractions, loads=external)
+    sol = solve(DesignBatch.from_features(features), fractions, loads=external, workers=workers)
     out = {"tendons": sol.tendons} | ({"backbone": sol.backbone, "rotation": sol.rotation} if pose else {})
     return out | {"converged": sol.converged}
 

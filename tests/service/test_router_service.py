@@ -62,7 +62,7 @@ def test_designs_with_loads_go_to_the_loaded_operator(server):
 def test_the_router_is_an_oip_model_with_its_costs_and_readiness(server):
     meta = httpx.get(server.url + "/v2/models/auto").json()
     assert meta["platform"] == "tdcr_router" and meta["parameters"]["operator"] == "deeponet_pose_loaded"
-    assert meta["parameters"]["exact_seconds"] == "0 + 0.001 B"
+    assert meta["parameters"]["exact_seconds"] == "0: 0 s, 1: 0.001 s"
     assert httpx.get(server.url + "/v2/models/auto/ready").status_code == 200
     assert httpx.get(server.url + "/readyz").json()["default_model"] == "auto"
 

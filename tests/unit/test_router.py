@@ -17,14 +17,17 @@ from tdcr.surrogates.router import Cost, Costs, Router, choose
 
 GRID = np.linspace(0.0, 1.0, 42)
 #: a solver at 1 ms a design and an operator at 10 ms a call: the solver is cheaper below 10 designs
-COSTS = Costs(exact=Cost(0.0, 1e-3), exact_loaded=Cost(0.0, 5e-2), operator=Cost(1e-2, 1e-6),
-              loaded_operator=Cost(1e-2, 1e-6))
+COSTS = Costs(exact=Cost.line(0.0, 1e-3), exact_loaded=Cost.line(0.0, 5e-2), operator=Cost.line(1e-2, 1e-6),
+              loaded_operator=Cost.line(1e-2, 1e-6))
 
 
-def test_a_cost_line_goes_through_its_two_points():
-    cost = Cost.through((1, 0.002), (32, 0.033))
-    assert cost(1) == pytest.approx(0.002) and cost(32) == pytest.approx(0.033)
-    assert Cost.through((1, 0.002), (32, 0.001)).per_design == 0.0  # never negative
+def test_a_cost_interpolates_its_measured_batches_and_extends_the_last_slope():
+    cost = Cost((1.0, 16.0, 128.0), (0.002, 0.004, 0.010))
+    assert cost(1) == pytest.approx(0.002) and cost(16) == pytest.approx(0.004)
+    assert cost(72) == pytest.approx(0.007)  # halfway between 16 and 128
+    assert cost(240) == pytest.approx(0.016)  # beyond: the last segment's slope, 6 ms per 112 designs
+    assert Cost((1.0, 16.0), (0.002, 0.001))(100) == pytest.approx(0.001)  # never a falling extension
+    assert Cost.line(0.01, 1e-3)(10) == pytest.approx(0.02)
 
 
 def test_the_cheaper_path_wins_and_fallbacks_count_against_the_operator():
@@ -79,7 +82,7 @@ def test_measured_costs_are_lines_of_each_path():
     router = Router.shipped()
     costs = router.costs
     for cost in (costs.exact, costs.exact_loaded, costs.operator, costs.loaded_operator):
-        assert np.isfinite([cost.fixed, cost.per_design]).all() and cost.fixed >= 0 and cost.per_design >= 0
+        assert np.isfinite(cost.seconds).all() and min(cost.seconds) > 0
     assert costs.exact(10) > costs.exact(1)  # a design's solve costs something
 
 
