@@ -10,8 +10,9 @@ HTTP and gRPC, and what an error bound costs, in one interleaved run on one mach
    ``ModelInfer`` over gRPC (raw FP64 contents) on ``auto`` and on the pinned ``deeponet``.  Each
    row counts the answers by ``source``.
 2. In process: each operator's ``Surrogate.predict`` plain and with its bound (``bound=True``), at 1
-   and 1,000 designs, interleaved (medians, and the median of the per-pair ratios), and the exact
-   ``solve`` of the same designs.
+   and 1,000 designs, interleaved (medians, and the median of the per-pair ratios; the difference
+   carries the graphs' run-to-run spread), the bound's own work on an answer already computed
+   (``keep_tolerance``), and the exact ``solve`` of the same designs.
 3. The router's measured costs (``GET /v2/models/auto``) and where its choice flips.
 """
 
@@ -32,7 +33,7 @@ from tdcr.clients.loadtest import grpc_request
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 from tdcr.physics import solve
 from tdcr.robot.design_space import sample_designs
-from tdcr.surrogates.runtime import Surrogate
+from tdcr.surrogates.runtime import Surrogate, keep_tolerance, on_grid_tendons
 
 HTTP_ROWS = {"/predict (router)": ("/predict", {}),
              "/predict (router), tolerance 0.01": ("/predict", {"tolerance": 0.01}),
@@ -93,10 +94,21 @@ def served(requests: int) -> None:
     print("router costs on the server (s, B designs): " + ", ".join(f"{k} {v}" for k, v in auto.items()))
 
 
+def bound_alone(op: Surrogate, features: np.ndarray, grid: np.ndarray, repeats: int) -> float:
+    """Median seconds of the bound's own work on an answer already computed: the one tolerance
+    path (``keep_tolerance``: finiteness, the calibrated bound, the guard) without a tolerance."""
+    matrix = op.load_matrix(None, len(features))
+    out = op.predict(features, grid, loads=matrix, check=False)
+    return median_seconds(lambda: keep_tolerance(out, features, grid, matrix, tendons=on_grid_tendons(out, grid),
+                                                 own=op.predict, calibration=op.calibration,
+                                                 companion=op.companion(), tolerance=None, exact=None), repeats)
+
+
 def in_process() -> None:
     grid = np.linspace(0.0, 1.0, 42)
-    print("\n| in process | designs | plain (ms) | with its bound (ms) | bound cost (ms) | bound / plain |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("\n| in process | designs | plain (ms) | with its bound (ms) | difference (ms) | difference / plain "
+          "| the bound alone (ms) | alone / plain |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for batch, repeats in ((1, 300), (1000, 21)):
         designs = sample_designs(batch, seed=9)
         features = designs.features()
@@ -111,7 +123,9 @@ def in_process() -> None:
                     out.append(time.perf_counter() - started)
             p, b = float(np.median(plain)), float(np.median(bounded))
             ratio = float(np.median(np.array(bounded) / np.array(plain))) - 1.0
-            print(f"| {name} | {batch:,} | {1e3 * p:.3f} | {1e3 * b:.3f} | {1e3 * (b - p):.3f} | {ratio:+.0%} |")
+            own = bound_alone(op, features, grid, repeats)
+            print(f"| {name} | {batch:,} | {1e3 * p:.3f} | {1e3 * b:.3f} | {1e3 * (b - p):.3f} | {ratio:+.0%} "
+                  f"| {1e3 * own:.3f} | {own / p:.0%} |")
         exact = median_seconds(lambda d=designs: solve(d, grid, workers=0), repeats)
         print(f"| exact solve (all cores) | {batch:,} | {1e3 * exact:.3f} | - | - | - |")
 
@@ -119,9 +133,11 @@ def in_process() -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--requests", type=int, default=300)
+    parser.add_argument("--in-process-only", action="store_true", help="skip the served rows (item 1)")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; server and client on the same machine\n")
-    served(args.requests)
+    if not args.in_process_only:
+        served(args.requests)
     in_process()
 
 
