@@ -392,17 +392,19 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
 CHUNKS_PER_THREAD = 4
 #: Fewer designs than this per thread run on the calling thread (a hand-off costs more than they do).
 MIN_DESIGNS_PER_THREAD = 8
-_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:
     """The process's pool of ``threads`` kernel threads, made on first use and kept (a new pool per
-    call cost 3 ms, more than a few designs' solve)."""
+    call cost 3 ms, more than a few designs' solve).  Keyed by the process id too: a forked child
+    (``training/dataset.py``'s process pool) inherits the parent's pools without their threads."""
+    key = (os.getpid(), threads)
     with _POOLS_LOCK:
-        if threads not in _POOLS:
-            _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="tdcr-kernel")
-        return _POOLS[threads]
+        if key not in _POOLS:
+            _POOLS[key] = ThreadPoolExecutor(threads, thread_name_prefix="tdcr-kernel")
+        return _POOLS[key]
 
 
 def _run_kernel(entry, threads: int, n_designs: int, *args) -> None:

@@ -29,7 +29,7 @@ from tdcr.robot.design_space import N_FEATURES, load_warnings, range_warnings
 from tdcr.robot.designs import L_COLUMN, LOAD_COLUMNS, N_LOAD_COLUMNS, ExternalLoads
 from tdcr.search.inverse import model_tip_pose, tip_by_differences
 from tdcr.surrogates.bounds import EXACT, EXACT_TOLERANCE, SOURCES, Calibration
-from tdcr.surrogates.router import Costs, choose
+from tdcr.surrogates.router import Costs, choose, known_bound
 from tdcr.surrogates.runtime import finite_rows, keep_tolerance, on_grid_tendons
 
 #: Media types of the binary path.
@@ -218,19 +218,16 @@ def route(request: ShapeRequest, *, costs: Costs, operator: Operator | None,
           exact: Callable[[ShapeRequest], ExactAnswer], exact_ready: bool = True) -> Prediction:
     """A request that names no model, by the cheaper path that meets its tolerance
     (:func:`tdcr.surrogates.router.choose`): the exact solver (``exact``, for the whole request) or
-    ``operator`` (the default operator for the request's loads; None: the solver only).  The
-    operator's bound is known before its graph runs where its score is the bins; another score
-    (a companion's) is taken as no fallback in the estimate."""
+    ``operator`` (the default operator for the request's loads; None: the solver only), weighed with
+    the operator's bound as known before its graph runs (:func:`tdcr.surrogates.router.known_bound`)."""
     features, loads = request.features, request.loads
     matrix = None if loads is None else np.nan_to_num(loads.matrix(len(features)))
     loaded = np.zeros(len(features), dtype=bool) if matrix is None else loaded_rows(matrix)
-    bound = np.zeros(len(features))
     if operator is None:
         bound = np.full(len(features), np.inf)
-    elif operator.guard is None or operator.guard.calibration is None:
-        bound = np.full(len(features), np.inf if request.tolerance is not None else 0.0)
-    elif operator.guard.calibration.companion is None:
-        bound = operator.guard.calibration.bound(features, None, matrix if operator.predictor.takes_loads else None)
+    else:
+        bound = known_bound(None if operator.guard is None else operator.guard.calibration, features,
+                            matrix if operator.predictor.takes_loads else None, tolerance=request.tolerance)
     choice = choose(costs, bound, loaded=loaded, tolerance=request.tolerance, operator_ready=operator is not None,
                     exact_ready=exact_ready)
     if choice.path == "exact":

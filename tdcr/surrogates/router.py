@@ -10,7 +10,7 @@ Two paths answer a batch of ``B`` designs:
   bending-angle bins: a lookup, known before the graph runs) and, under a ``tolerance``, the exact
   solves of the ``m`` designs whose bound exceeds it.
 
-:meth:`Router.choose` compares the two estimates, ``exact(B)`` against ``operator(B) + exact(m)``,
+:func:`choose` compares the two estimates, ``exact(B)`` against ``operator(B) + exact(m)``,
 from :class:`Costs` measured on this machine (:meth:`Costs.measure`), and takes the cheaper.  A
 request that names a model is served by that model as asked (the router is not consulted).
 """
@@ -28,15 +28,12 @@ from tdcr.surrogates.bounds import EXACT, EXACT_TOLERANCE, SURROGATE, fallback_r
 from tdcr.surrogates.runtime import (
     DEFAULT_MODELS_DIR,
     Surrogate,
-    as_load_matrix,
     best_model,
     check_inputs,
     load_manifest,
     solve_rows,
 )
 
-#: The two paths, as :meth:`Router.choose` names them.
-PATHS = ("exact", "operator")
 #: Batches timed by :meth:`Costs.measure` (designs): a path's cost per design falls with the batch
 #: (an operator's graph call, the solver's threads), so a line through two small batches overrates
 #: a large one.
@@ -103,9 +100,7 @@ class Costs:
         About two seconds on 2 cores."""
         from tdcr.robot.design_space import BENCHMARK_LOADS, sample_designs
 
-        if exact is False:  # no solver here (yet): it is never the cheaper path
-            exact = lambda f, s, m: None  # noqa: E731
-            exact_loaded = UNAVAILABLE
+        timed = {"exact": exact is not False, "exact_loaded": exact is not False and exact_loaded is None}
         exact = solve_rows if exact is None else exact  # solve_rows: every core
         fractions = np.linspace(0.0, 1.0, 42)
         points = {}
@@ -114,12 +109,11 @@ class Costs:
             loads = BENCHMARK_LOADS.sample(n, seed=0).matrix(n)
             exact_loaded_n = min(n, 4)  # a loaded solve takes milliseconds: a few designs give its rate
             repeats_n = repeats if n <= 128 else 2
-            row = {
-                "exact": _median_seconds(lambda f=features: exact(f, fractions, None), repeats_n),
-                "operator": _median_seconds(lambda f=features: operator.predict(f, fractions, check=False),
-                                            repeats_n),
-            }
-            if exact_loaded is None:
+            row = {"operator": _median_seconds(lambda f=features: operator.predict(f, fractions, check=False),
+                                               repeats_n)}
+            if timed["exact"]:
+                row["exact"] = _median_seconds(lambda f=features: exact(f, fractions, None), repeats_n)
+            if timed["exact_loaded"]:
                 row["exact_loaded"] = _median_seconds(
                     lambda f=features[:exact_loaded_n], m=loads[:exact_loaded_n]: exact(f, fractions, m),
                     repeats_n) * n / exact_loaded_n
@@ -129,9 +123,22 @@ class Costs:
             points[n] = row
         measured = {k: Cost(tuple(map(float, MEASURED_BATCHES)), tuple(points[n][k] for n in MEASURED_BATCHES))
                     for k in points[MEASURED_BATCHES[0]]}
-        if exact_loaded is UNAVAILABLE:
-            measured["exact"] = UNAVAILABLE
-        return cls(**({"exact_loaded": exact_loaded} | measured))
+        given = {"exact": UNAVAILABLE, "exact_loaded": UNAVAILABLE if exact is False else exact_loaded}
+        return cls(**({k: v for k, v in given.items() if not timed[k]} | measured))
+
+
+def known_bound(calibration, features: np.ndarray, loads: np.ndarray | None, *,
+                tolerance: float | None) -> np.ndarray:
+    """The operator's error bound of each design ``(B,)`` as far as it is known before its graph
+    runs, for :func:`choose`: the bins' bound (:meth:`tdcr.surrogates.bounds.Calibration.bound`;
+    ``loads`` ``(B, 10)`` for a loaded operator, else None); a score that needs the answer (a
+    companion's) counts as no fallback; without a ``calibration`` every design falls back under a
+    tolerance."""
+    if calibration is None:
+        return np.full(len(features), np.inf if tolerance is not None else 0.0)
+    if calibration.companion is not None:
+        return np.zeros(len(features))
+    return calibration.bound(features, None, loads)
 
 
 @dataclass(frozen=True)
@@ -212,14 +219,13 @@ class Router:
         ``(B,)`` (0: an operator, 1: the solver) and ``path`` (``"exact"`` or the operator's name)
         by the cheaper path (:func:`choose`); ``loads`` as :meth:`Surrogate.predict`'s, ``tolerance``
         relative l2 kept by every answer.  Validated like :meth:`Surrogate.predict`."""
-        fractions, matrix = check_inputs(features, fractions, loads=loads, tolerance=tolerance)
+        fractions, matrix = check_inputs(features, fractions, loads=loads, tolerance=tolerance)  # loads (B, 10)
         features = np.asarray(features, dtype=np.float64)
         fractions = np.asarray(fractions, dtype=np.float64)
-        if matrix is not None:
-            matrix = as_load_matrix(matrix, len(features))
         loaded = np.zeros(len(features), dtype=bool) if matrix is None else loaded_rows(matrix)
         operator = self.operator_for(bool(loaded.any()))
-        bound = np.full(len(features), np.inf) if operator is None else operator.error_bound(features, loads=matrix)
+        bound = np.full(len(features), np.inf) if operator is None else known_bound(
+            operator.calibration, features, operator.load_matrix(matrix, len(features)), tolerance=tolerance)
         choice = choose(self.costs, bound, loaded=loaded, tolerance=tolerance, operator_ready=operator is not None)
         if choice.path == "operator":
             out = operator.predict(features, fractions, loads=matrix, pose=pose, tolerance=tolerance, bound=True,
