@@ -16,12 +16,14 @@ Models and their tensors:
   ``tolerance`` (a number, relative l2) sends the designs whose bound exceeds it to the exact solver;
 * ``exact`` (the solver): ``design`` ``[-1, 3 + 3 N_t]`` for any N_t, the inputs ``gravity``
   ``[-1, 3]``, ``density`` ``[-1]``, ``tip_force`` ``[-1, 3]``, ``tip_moment`` ``[-1, 3]``, and for
-  any robot ``layout`` FP64 ``[-1, N_t, 4]`` (per tendon: angle at s = 0 in rad, end in m,
-  displacement in m, and 1 where the tendon is driven by that displacement, 0 by its tension in
-  ``design``) and ``poisson`` FP64 ``[-1]``; the request parameter ``termination`` (``exact`` or
+  any robot ``layout`` FP64 ``[-1, N_t, 4..8]`` (per tendon: angle at s = 0 in rad, end in m,
+  displacement in m, 1 where the tendon is driven by that displacement, 0 by its tension in
+  ``design``; then, each optional, series stiffness N/m (0: rigid), drive zero m, Capstan friction
+  and motion 1 pull / -1 release) and ``poisson`` FP64 ``[-1]``; the request parameter ``termination`` (``exact`` or
   ``rucker_webster``); the outputs ``converged`` BOOL, ``residual`` FP64, ``status`` INT32 (an
   index into ``tdcr.physics.STATUS``), ``error_estimate`` FP64 (-1: none), ``tension`` FP64
-  ``[-1, N_t]`` N, ``displacement`` FP64 ``[-1, N_t]`` m and ``slack`` BOOL ``[-1, N_t]``;
+  ``[-1, N_t]`` N, ``displacement`` FP64 ``[-1, N_t]`` m, ``tension_profile`` FP64 ``[-1, n, N_t]`` N
+  and ``slack`` BOOL ``[-1, N_t]``;
 * ``inverse`` (inverse kinematics with the exact model): inputs ``design`` ``[1, 15]``,
   ``position`` ``[-1, 3]`` (the targets), optionally ``direction`` ``[-1, 3]`` and ``tension_max``
   ``[1]``; outputs ``tensions`` FP64 ``[-1, 4]`` N, ``position`` (the tips reached), ``error`` (m)
@@ -78,7 +80,7 @@ LOAD_INPUTS = {"gravity": TensorSpec("FP64", (-1, 3)), "density": TensorSpec("FP
                "tip_force": TensorSpec("FP64", (-1, 3)), "tip_moment": TensorSpec("FP64", (-1, 3))}
 #: Any robot's tensors (:data:`tdcr.robot.fields.LAYOUT_COLUMNS`): ``layout`` per tendon (angle rad, end m,
 #: displacement m, displacement-driven 0/1), and each design field of its own (``poisson``).
-LAYOUT_INPUTS = {"layout": TensorSpec("FP64", (-1, -1, len(LAYOUT_COLUMNS)))} | {
+LAYOUT_INPUTS = {"layout": TensorSpec("FP64", (-1, -1, -1))} | {
     name: TensorSpec("FP64", (-1,)) for name in OWN_TENSORS}
 EXACT_INPUTS = SURROGATE_INPUTS | {"design": TensorSpec("FP64", (-1, -1))} | LOAD_INPUTS | LAYOUT_INPUTS
 EXACT_OUTPUTS = {k: v for k, v in SURROGATE_OUTPUTS.items() if k not in GUARD_OUTPUTS} | {
@@ -86,7 +88,9 @@ EXACT_OUTPUTS = {k: v for k, v in SURROGATE_OUTPUTS.items() if k not in GUARD_OU
     "converged": TensorSpec("BOOL", (-1,)), "residual": TensorSpec("FP64", (-1,)),
     "status": TensorSpec("INT32", (-1,)), "error_estimate": TensorSpec("FP64", (-1,)),
     "tension": TensorSpec("FP64", (-1, -1)), "displacement": TensorSpec("FP64", (-1, -1)),
-    "slack": TensorSpec("BOOL", (-1, -1))}
+    "tension_profile": TensorSpec("FP64", (-1, -1, -1)), "slack": TensorSpec("BOOL", (-1, -1))}
+#: The fewest ``layout`` columns (angle, end, displacement, driven); the later ones may be left off.
+MIN_LAYOUT_COLUMNS = LAYOUT_COLUMNS.index("driven") + 1
 #: Inverse kinematics (/inverse with the exact model): one design, the targets of a path.
 INVERSE_INPUTS = {"design": TensorSpec("FP64", (1, N_FEATURES)), "position": TensorSpec("FP64", (-1, 3)),
                   "direction": TensorSpec("FP64", (-1, 3)), "tension_max": TensorSpec("FP64", (1,))}
@@ -336,10 +340,16 @@ def _layout(inputs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
     out = {}
     if "layout" in inputs:
         layout = np.asarray(inputs["layout"], dtype=np.float64)
-        for k, name in enumerate(LAYOUT_COLUMNS):
+        if not MIN_LAYOUT_COLUMNS <= layout.shape[-1] <= len(LAYOUT_COLUMNS):
+            raise InferenceError("invalid", f"input 'layout' must have {MIN_LAYOUT_COLUMNS} to {len(LAYOUT_COLUMNS)} "
+                                            f"columns ({', '.join(LAYOUT_COLUMNS)}; absent ones take their "
+                                            f"defaults), got {layout.shape[-1]}")
+        for k, name in enumerate(LAYOUT_COLUMNS[:layout.shape[-1]]):
             if name == "driven":
                 continue
             out[name] = layout[..., k]
+            if name == "stiffness":  # 0: rigid
+                out[name] = np.where(out[name] == 0.0, np.inf, out[name])
             if LAYOUT_COLUMNS[k + 1:k + 2] == ("driven",):  # an alternative field: NaN where the other drives
                 driven = layout[..., k + 1]
                 if not np.isin(driven, (0.0, 1.0)).all():
@@ -378,6 +388,7 @@ def answer_tensors(decoded: Decoded, answer) -> OutputTensors:
                 "status": ("INT32", g.status.astype(np.int32)),
                 "error_estimate": ("FP64", np.where(np.isnan(g.error_estimate), -1.0, g.error_estimate)),
                 "tension": ("FP64", g.tension), "displacement": ("FP64", g.displacement),
+                "tension_profile": ("FP64", g.tension_profile),
                 "slack": ("BOOL", np.zeros(g.tension.shape, dtype=bool) if g.slack is None else g.slack)}
     if isinstance(answer, InverseAnswer):
         r = answer.results

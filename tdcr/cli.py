@@ -35,11 +35,73 @@ def _cmd_solve(args) -> int:
     from tdcr.api.validation import InvalidRequest, validate_json
     from tdcr.physics.exact import solve_request
 
+    text = _read_text(args.request)
     try:
-        request = validate_json(_read_text(args.request), target="solver", limits=_unlimited())
+        body = json.loads(text)
+    except json.JSONDecodeError:
+        body = text  # the validation path names the JSON error
+    if isinstance(body, dict) and "actuation" in body and "design" in body:  # a robot file: its design, straight
+        body = {"designs": [body["design"]], "points": DEFAULT_POINTS}
+    try:
+        request = validate_json(body, target="solver", limits=_unlimited())
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
     json.dump({"format_version": RESPONSE_FORMAT_VERSION, "results": solve_request(request).results()}, sys.stdout)
+    sys.stdout.write("\n")
+    return 0
+
+
+def _robot_and_recording(robot_path: str, csv_path: str, *, measured: bool):
+    from tdcr.robot.real import RobotFileError, load_robot, read_recording
+
+    try:
+        robot = load_robot(robot_path)
+        return robot, read_recording(csv_path, robot, measured=measured)
+    except RobotFileError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _cmd_replay(args) -> int:
+    import time
+
+    from tdcr.physics.replay import replay, write_predictions
+    from tdcr.search.fit import errors
+
+    robot, recording = _robot_and_recording(args.robot, args.commands, measured=False)
+    start = time.perf_counter()
+    answer = replay(robot, recording.commands, workers=args.workers)
+    seconds = time.perf_counter() - start
+    write_predictions(args.out, robot, recording, answer)
+    n = len(recording.time)
+    summary = {"rows": n, "seconds": seconds, "rows_per_second": n / seconds if seconds else None,
+               "not_converged": int((~answer.converged).sum()), "out": args.out}
+    measured_columns = all(c in recording.header for c in robot.measurement.columns)
+    if measured_columns:  # score it where the file has the measurement too
+        _, scored = _robot_and_recording(args.robot, args.commands, measured=True)
+        summary["errors"] = errors(answer, scored).as_dict()
+    json.dump(summary, sys.stdout, indent=None if args.quiet else 2)
+    sys.stdout.write("\n")
+    return 0
+
+
+def _cmd_fit(args) -> int:
+    from tdcr.search.fit import GROUPS, fit, plot
+
+    groups = tuple(g.strip() for g in args.fit.split(",") if g.strip())
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise UsageError(f"--fit: unknown {', '.join(unknown)}; they are {', '.join(GROUPS)}")
+    robot, train = _robot_and_recording(args.robot, args.train, measured=True)
+    validate = None if args.validate is None else _robot_and_recording(args.robot, args.validate, measured=True)[1]
+    if not train.has_measurement.any():
+        raise UsageError(f"{args.train}: no row has a measurement ({', '.join(robot.measurement.columns)})")
+    result = fit(robot, train, validate=validate, groups=groups, max_iterations=args.max_iterations,
+                 budget=args.budget, progress=not args.quiet, workers=args.workers)
+    result.robot.save(args.out)
+    if args.plot:
+        plot(result, train, validate, args.plot)
+    report = result.report() | {"out": args.out}
+    json.dump(report, sys.stdout, indent=None if args.quiet else 2)
     sys.stdout.write("\n")
     return 0
 
@@ -488,6 +550,29 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("solve", "exact equilibria of the designs in a request JSON (Cosserat solver)")
     p.add_argument("request", help="request JSON file, or - for stdin")
     p.set_defaults(func=_cmd_solve)
+
+    p = command("replay", "a real robot's tip for every command row of a CSV (series-elastic tendons, friction)")
+    p.add_argument("robot", help="robot file (JSON; see tdcr/robot/real.py and openapi/robot.schema.json)")
+    p.add_argument("commands", help="CSV with the robot's time and actuation columns (in order of time)")
+    p.add_argument("--out", required=True, help="predicted tips: CSV in the measurement's columns and unit")
+    p.add_argument("--workers", type=int, default=0, help="kernel threads (default 0: one per core)")
+    p.add_argument("--quiet", action="store_true", help="the summary on one line")
+    p.set_defaults(func=_cmd_replay)
+
+    p = command("fit", "identify a real robot from motion-capture data (the 'design' extra: scipy, matplotlib)")
+    p.add_argument("robot", help="robot file: the start of every parameter")
+    p.add_argument("train", help="CSV of commands and measured tips to fit")
+    p.add_argument("--validate", default=None, help="CSV only scored, by the fitted robot")
+    p.add_argument("--out", required=True, help="the fitted robot file (replay, solve and the service take it)")
+    p.add_argument("--plot", default=None, help="PNG of measured vs predicted tips and the error over time")
+    p.add_argument("--fit", default="E,zero,stiffness,friction,marker,base_position,base_rotation",
+                   help="comma-separated parameter groups: E, zero, stiffness, friction, angle, marker, "
+                        "base_position, base_rotation")
+    p.add_argument("--max-iterations", type=int, default=40, help="least-squares iterations at most")
+    p.add_argument("--budget", type=float, default=240.0, help="seconds of search at most (then the best point)")
+    p.add_argument("--workers", type=int, default=0, help="kernel threads (default 0: one per core)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar; the report on one line")
+    p.set_defaults(func=_cmd_fit)
 
     p = command("inverse", "tensions that reach the targets of an inverse-kinematics request JSON")
     p.add_argument("request", help='{"design": ..., "targets": [{"position": [x, y, z]}, ...]} file, or - for stdin')

@@ -113,9 +113,12 @@ def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[P
         values = values.reshape(designs.n_designs, -1)
         low, high = field.admissible
         given = ~np.isnan(values) if field.alternative_to else np.ones(values.shape, dtype=bool)
+        given &= ~((values == np.inf) & np.isinf(field.fill(designs.L[:1], 1)).all())  # inf: the default (rigid)
         with np.errstate(invalid="ignore"):
             bad = given & (~np.isfinite(values) | ((values >= high) if field.exclusive_max else (values > high))
                            | ((values <= low) if field.exclusive_min else (values < low)))
+            if field.choices:
+                bad |= given & ~np.isin(values, list(field.choices.values()))
             if field.within_length:
                 bad |= values > designs.L[:, None] * (1.0 + FRACTION_ROUNDING)
         for b, i in zip(*np.nonzero(bad), strict=True):
@@ -124,6 +127,9 @@ def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[P
             value = values[b, i]
             if not np.isfinite(value):
                 msg, kind = f"must be a finite number, got {value}", "finite_number"
+            elif field.choices:
+                words = " or ".join(f"{w!r} ({n:g})" for w, n in field.choices.items())
+                msg, kind = f"must be {words}, got {value:.6g}", "not_a_choice"
             elif field.within_length and value > low:
                 msg, kind = (f"must be in (0, L] = {interval(field, high=designs.L[b])}, got {value:.6g}",
                              "end_beyond_length")

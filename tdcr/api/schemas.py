@@ -74,6 +74,9 @@ def _field(field: DesignField, *, replaced_by: str | None = None):
     """``(annotation, FieldInfo)`` of a registry field: a feature as a strict number with its
     admissible bounds (``replaced_by``: another field may drive the tendon instead, so it may be
     absent), an optional field as a number or null with its bounds and default in words."""
+    if field.choices:
+        return (Literal[tuple(field.choices)] | None,
+                Field(None, description=f"{field.description} (default {field.default_words!r})"))
     if not field.feature:
         return _FloatOrNone, _layout(field)
     description = f"{field.description}, {field.unit}"
@@ -290,6 +293,9 @@ class ExactShape(BaseModel):
                                              "displacement")
     displacement: list[float] = Field(description="(N_t,) every tendon's displacement, m: its path length on the "
                                                   "straight rod minus its path length at the equilibrium")
+    tension_profile: list[list[float]] = Field(description="(n, N_t) every tendon's tension at each arclength, N: "
+                                               "its tension where it acts without friction, tension exp(-/+ mu "
+                                               "theta(s)) with friction (theta its wrap angle), 0 beyond its end")
     slack: list[bool] | None = Field(None, description="(N_t,) with displacement actuation: the tendon would need "
                                                        "a push to reach its displacement, so hangs slack at tension 0")
     error_estimate: float | None = Field(None, description="estimated relative l2 error of the tendon positions "

@@ -262,6 +262,14 @@ def _check_actuation(group: DesignGroup, *, jacobian: bool, termination: str) ->
             problems.append(Problem(loc, f"displacement actuation covers tendon loads with termination 'exact' and "
                                     f"no Jacobian: remove {why}, or give the tension", "displacement_unsupported"))
             break
+    for b, i in zip(*np.nonzero(designs.capstan != 0.0), strict=True):
+        loc = ("designs", int(group.rows[b]), "tendons", int(i), "friction")
+        if loaded[b] or jacobian or termination != "exact":
+            why = ("gravity and tip loads" if loaded[b] else "the tip Jacobian" if jacobian
+                   else f"termination {termination!r}")
+            problems.append(Problem(loc, f"friction covers tendon loads with termination 'exact' and no Jacobian: "
+                                    f"remove {why}, or the friction", "friction_unsupported"))
+            break
     if jacobian and termination != "exact":
         problems += [Problem(("designs", int(group.rows[b]), "jacobian"), "the tip Jacobian of segments is the "
                              "consistent model's: use termination 'exact'", "jacobian_with_shortcut")
@@ -346,6 +354,8 @@ def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | 
     per = {"design": [d.__dict__ for d in designs], "tendon": [t.__dict__ for d in designs for t in d.tendons]}
     for f in FIELDS:
         values = [row.get(f.name) for row in per[f.per]]  # flat: designs, or designs x tendons in order
+        if f.choices:  # a field in words (the schema admits only its words)
+            values = [f.choices[v] if isinstance(v, str) else v for v in values]
         shape = (len(designs),) if f.per == "design" else (len(designs), n_t)
         given = np.array(values, dtype=np.float64).reshape(shape)  # numpy reads None as NaN
         absent = np.isnan(given)

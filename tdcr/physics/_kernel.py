@@ -45,7 +45,10 @@ class Rods(NamedTuple):
     K_bt (B, 3) N m^2 (:func:`tdcr.physics.cosserat.material`), ``radius`` (B,) m, ``length``
     (B,) m, tendon ``offset`` (B, N_t) m, ``pitch`` (B, N_t) rad/m, ``tension`` (B, N_t) N,
     ``angle`` (B, N_t) rad at s = 0 and ``end`` (B, N_t) fractions of L where each tendon
-    terminates (1: the tip)."""
+    terminates (1: the tip), ``compliance`` (B, N_t) m/N, 1 / stiffness of each tendon's series
+    elasticity (0: rigid), and ``capstan`` (B, N_t), each tendon's signed Capstan coefficient:
+    tau_i(s) = tau_i(0) exp(capstan_i theta_i(s)) with theta_i the tendon's wrap angle from the base
+    (eq. CAP; -mu pulling, +mu releasing, 0 without friction)."""
 
     kse: np.ndarray
     kbt: np.ndarray
@@ -56,11 +59,14 @@ class Rods(NamedTuple):
     tension: np.ndarray
     angle: np.ndarray
     end: np.ndarray
+    compliance: np.ndarray
+    capstan: np.ndarray
 
 
 class Rod(NamedTuple):
     """One design of :class:`Rods` (:func:`_rod`): ``kse``, ``kbt`` (3,), ``radius`` and ``length``
-    m, tendon ``offset``, ``pitch``, ``tension``, ``angle`` and ``end`` (N_t,)."""
+    m, tendon ``offset``, ``pitch``, ``tension`` (at s = 0), ``angle``, ``end``, ``compliance`` and
+    ``capstan`` (N_t,)."""
 
     kse: np.ndarray
     kbt: np.ndarray
@@ -71,13 +77,15 @@ class Rod(NamedTuple):
     tension: np.ndarray
     angle: np.ndarray
     end: np.ndarray
+    compliance: np.ndarray
+    capstan: np.ndarray
 
 
 @njit(cache=True, error_model="numpy")
 def _rod(rods, b):
     """Design ``b`` of :class:`Rods` ``rods`` as a :class:`Rod` (views, no copies)."""
     return Rod(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
-               rods.tension[b], rods.angle[b], rods.end[b])
+               rods.tension[b], rods.angle[b], rods.end[b], rods.compliance[b], rods.capstan[b])
 
 
 class Grid(NamedTuple):
@@ -102,6 +110,7 @@ class Tolerances(NamedTuple):
     shortcut: bool  #: termination "rucker_webster": only the ending tendon's pull at each end (see _jump)
     linearized: bool  #: the first-order strains at every node instead of Newton (the operators' reference robot)
     warm: bool  #: level 0's Newton starts from ``Shapes.nodes`` (the last solve's strains) instead of the chain
+    displacement_tol: float  #: displacement actuation: Newton on the tensions stops within this, m (find_tensions)
 
 
 class Loads(NamedTuple):
@@ -135,7 +144,8 @@ class Shapes(NamedTuple):
     ``jacobian`` (B, n, 6, N_t) the pose's sensitivity to the tensions, base frame (rows 0-2 dp/dtau
     m/N, 3-5 the rotation vector of dR R^T / dtau rad/N; :func:`_pose_tangent`), or (0, ...) when
     not wanted; ``nodes`` (B, 2 K0 + 1, 6) level 0's node strains (in: the warm starts of
-    ``Tolerances.warm``; out: this solve's), or (0, 0, 6) when not kept."""
+    ``Tolerances.warm``; out: this solve's), or (0, 0, 6) when not kept; ``profile`` (B, n, N_t) N
+    every tendon's tension at the outputs (eq. CAP; 0 beyond its end)."""
 
     backbone: np.ndarray
     rotation: np.ndarray
@@ -151,6 +161,7 @@ class Shapes(NamedTuple):
     displacement: np.ndarray
     jacobian: np.ndarray
     nodes: np.ndarray
+    profile: np.ndarray
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -171,6 +182,63 @@ def _active_tensions(tau, end, act, out):
     tau_i where tendon i continues past it (end_i > act), else 0 (it has terminated)."""
     for i in range(tau.shape[0]):
         out[i] = tau[i] if end[i] > act else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _node_tensions(tau, end, act, gains, k, out):
+    """:func:`_active_tensions` at node ``k`` with friction: tau_i exp(capstan_i theta_i) (eq. CAP),
+    the factors ``gains`` (M, N_t) kept per node; without rows (no friction) the tensions as given."""
+    if gains.shape[0] == 0:
+        _active_tensions(tau, end, act, out)
+        return
+    for i in range(tau.shape[0]):
+        out[i] = tau[i] * gains[k, i] if end[i] > act else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def has_friction(capstan):
+    """Some tendon of ``capstan`` (N_t,) has friction (eq. CAP)."""
+    for c in capstan:
+        if c != 0.0:
+            return True
+    return False
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _relative_rotation(kappa_prev, kappa, h, out):
+    """``out`` (3, 3) = exp(hat(w)), w = h (kappa_prev + kappa) / 2: the rotation between the frames
+    of two nodes h m apart (second order in h, exact for constant curvature; Rodrigues)."""
+    w0, w1, w2 = 0.5 * h * (kappa_prev[0] + kappa[0]), 0.5 * h * (kappa_prev[1] + kappa[1]), \
+        0.5 * h * (kappa_prev[2] + kappa[2])
+    ca, cb, _ = _exp_coefficients(math.sqrt(w0 * w0 + w1 * w1 + w2 * w2))
+    out[0, 0] = 1.0 - cb * (w1 * w1 + w2 * w2)
+    out[1, 1] = 1.0 - cb * (w0 * w0 + w2 * w2)
+    out[2, 2] = 1.0 - cb * (w0 * w0 + w1 * w1)
+    out[0, 1], out[1, 0] = -ca * w2 + cb * w0 * w1, ca * w2 + cb * w0 * w1
+    out[0, 2], out[2, 0] = ca * w1 + cb * w0 * w2, -ca * w1 + cb * w0 * w2
+    out[1, 2], out[2, 1] = -ca * w0 + cb * w1 * w2, ca * w0 + cb * w1 * w2
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _wrap_angle(t_prev, t, turn):
+    """The angle (rad) the tangent of a tendon's path turns between two nodes: the angle between the
+    body-frame unit tangents ``t_prev`` and ``turn`` ``t`` (3,), ``turn`` (3, 3) the frames'
+    relative rotation (:func:`_relative_rotation`).  Summed along s it is theta_i = int |d t_i / ds|
+    ds (a tendon's kink at an end: the jump of its tangent), the wrap angle of eq. (CAP)."""
+    u0 = turn[0, 0] * t[0] + turn[0, 1] * t[1] + turn[0, 2] * t[2]
+    u1 = turn[1, 0] * t[0] + turn[1, 1] * t[1] + turn[1, 2] * t[2]
+    u2 = turn[2, 0] * t[0] + turn[2, 1] * t[1] + turn[2, 2] * t[2]
+    x0, x1, x2 = t_prev[1] * u2 - t_prev[2] * u1, t_prev[2] * u0 - t_prev[0] * u2, t_prev[0] * u1 - t_prev[1] * u0
+    return math.atan2(math.sqrt(x0 * x0 + x1 * x1 + x2 * x2), t_prev[0] * u0 + t_prev[1] * u1 + t_prev[2] * u2)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _unit_tangents(x, rho, drho, out):
+    """Every tendon's body-frame unit tangent t_i = g_i / |g_i| (:func:`_tendon`) at strains ``x``, (N_t, 3)."""
+    for i in range(rho.shape[0]):
+        g0, g1, g2 = _tendon(x[0], x[1], x[2], x[3], x[4], x[5], rho[i, 0], rho[i, 1], drho[i, 0], drho[i, 1])
+        inv = 1.0 / math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        out[i, 0], out[i, 1], out[i, 2] = g0 * inv, g1 * inv, g2 * inv
 
 
 @njit(cache=True, error_model="numpy")
@@ -469,10 +537,11 @@ def _node_strains(x, rho, drho, tau_node, rod, tols, work, jac, low):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes(node_fractions, act, x_nodes, rod, tols, order, stretch):
+def _solve_nodes(node_fractions, act, x_nodes, rod, tols, order, stretch, gains):
     """The strains at the nodes ``node_fractions[order]`` of :class:`Rod` ``rod`` (their tendons those
-    acting at ``act``, see :func:`_node_activity`), each from the start in ``x_nodes`` (M, 6), and
-    (where ``stretch`` (M, N_t) has rows) every tendon's |g_i| there (:func:`_node_stretch`).
+    acting at ``act``, see :func:`_node_activity`, with friction the tensions times ``gains`` (M,
+    N_t), :func:`_node_tensions`), each from the start in ``x_nodes`` (M, 6), and (where
+    ``stretch`` (M, N_t) has rows) every tendon's |g_i| there (:func:`_node_stretch`).
     Returns (all converged, max iterations, max residual)."""
     n_t = rod.offset.shape[0]
     rho = np.empty((n_t, 2))
@@ -485,7 +554,7 @@ def _solve_nodes(node_fractions, act, x_nodes, rod, tols, order, stretch):
     for j in range(order.shape[0]):
         k = order[j]
         _routing(node_fractions[k], rod.length, rod.offset, rod.pitch, rod.angle, rho, drho)
-        _active_tensions(rod.tension, rod.end, act[k], tau_node)
+        _node_tensions(rod.tension, rod.end, act[k], gains, k, tau_node)
         conv, it, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
         _node_stretch(x_nodes[k], rho, drho, stretch, k)
         ok = ok and conv
@@ -820,10 +889,11 @@ def _path_lengths(sig, act, xs, rod, sens, lengths, dlen):
 
 
 @njit(cache=True, error_model="numpy")
-def _sensitivities(sig, act, xs, rod, sens):
+def _sensitivities(sig, act, xs, rod, sens, gains):
     """dx/dtau_k at every node, ``sens`` (2K+1, 6, N_t), by the implicit-function theorem on (W1, W2):
     J dx_k = -a_k with J the Hessian of Phi and a_k = (t_k, rho_k x t_k) for a tendon acting at the
-    node (0 otherwise).  False where J is not positive definite."""
+    node (0 otherwise).  With friction (``gains`` (2K+1, N_t) rows) tau_k(s) = tau_k gain_k(s), and
+    a_k is scaled by gain_k(s) (the wrap angles held fixed).  False where J is not positive definite."""
     length, offset, pitch, angle, tau, end, kse, kbt = (rod.length, rod.offset, rod.pitch, rod.angle, rod.tension,
                                                         rod.end, rod.kse, rod.kbt)
     n_t = offset.shape[0]
@@ -833,7 +903,7 @@ def _sensitivities(sig, act, xs, rod, sens):
     av, d, y, rhs, out = np.empty(6), np.empty(6), np.empty(6), np.empty(6), np.empty(6)
     for node in range(sig.shape[0]):
         _routing(sig[node], length, offset, pitch, angle, rho, drho)
-        _active_tensions(tau, end, act[node], tau_node)
+        _node_tensions(tau, end, act[node], gains, node, tau_node)
         _residual_jacobian(xs[node], rho, drho, tau_node, kse, kbt, res, jac, True, av, _NO_TARGET)
         if not _factor_spd(jac, d, low):
             return False
@@ -847,6 +917,8 @@ def _sensitivities(sig, act, xs, rod, sens):
             gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
             t0, t1, t2 = g0 / gn, g1 / gn, g2 / gn
             ox, oy = rho[q, 0], rho[q, 1]
+            if gains.shape[0]:
+                t0, t1, t2 = t0 * gains[node, q], t1 * gains[node, q], t2 * gains[node, q]
             rhs[0], rhs[1], rhs[2] = -t0, -t1, -t2
             rhs[3], rhs[4], rhs[5] = -oy * t2, ox * t2, -(ox * t1 - oy * t0)
             if not _solve_factored(d, low, rhs, out, y):
@@ -856,9 +928,9 @@ def _sensitivities(sig, act, xs, rod, sens):
     return True
 
 
-#: displacement actuation: Newton on the tensions stops when every driven tendon is within this, m
-DISPLACEMENT_TOL = 1e-11
-#: and gives up after this many iterations
+#: displacement actuation: a step keeps the last Jacobian (a chord step) while each cuts the miss by this factor
+_CHORD_RATE = 0.25
+#: and Newton on the tensions gives up after this many iterations
 MAX_DISPLACEMENT_ITERATIONS = 50
 
 
@@ -866,12 +938,15 @@ MAX_DISPLACEMENT_ITERATIONS = 50
 def find_tensions(rod, target, grid, tols, slack):
     """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
     (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
-    with the ends (:func:`_with_ends`).  The displacement d_i = l0_i - l_i(tau) has the Jacobian
-    -dl/dtau = int A^T J^-1 A ds, symmetric positive semi-definite: Newton on the driven tendons
-    with the exact Jacobian (:func:`_path_lengths`), projected onto tau >= 0.  A tendon whose
-    displacement would need a push (d_i > target_i at tau_i = 0: its path shortened more than it
-    was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged, iterations)."""
-    length, offset, pitch, end, tau = rod.length, rod.offset, rod.pitch, rod.end, rod.tension
+    with the ends (:func:`_with_ends`).  A tendon with series elasticity (``rod.compliance`` c_i =
+    1 / k_i) takes up the pull-in u_i = d_i + c_i tau_i (eq. SE: tau_i = k_i max(0, u_i - d_i)).
+    The displacement d_i = l0_i - l_i(tau) has the Jacobian -dl/dtau = int A^T J^-1 A ds,
+    symmetric positive semi-definite (with friction scaled by each node's gain, the wrap angles
+    held fixed): Newton on the driven tendons with that Jacobian plus diag(c) (:func:`_path_lengths`),
+    projected onto tau >= 0, the Jacobian kept while each step cuts the miss by ``_CHORD_RATE``.  A tendon whose displacement would need a push (d_i > target_i at
+    tau_i = 0: its path shortened more than it was pulled in) is slack: tension 0, ``slack[i]``
+    True.  Returns (converged, iterations)."""
+    length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, rod.compliance
     edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
     k0 = edges.shape[0] - 1
     n_t = offset.shape[0]
@@ -886,27 +961,35 @@ def find_tensions(rod, target, grid, tols, slack):
         l0[i] = undeformed_length(length, offset[i], pitch[i], end[i])
         slack[i] = False
     free = np.zeros(n_t, dtype=np.bool_)
+    gains = np.empty((2 * k0 + 1 if has_friction(rod.capstan) else 0, n_t))
+    stretch = np.empty((2 * k0 + 1, n_t))
+    last_worst = np.inf
     for it in range(MAX_DISPLACEMENT_ITERATIONS):
         xs[:, :] = 0.0
         xs[0, 2] = 1.0
-        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, np.empty((0, n_t)))
-        if not ok or not _sensitivities(sig, act, xs, rod, sens):
+        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains)
+        if not ok:
             return False, it + 1
-        _path_lengths(sig, act, xs, rod, sens, lengths, dlen)
+        _path_lengths_of(sig, act, stretch, rod, lengths)
         # residual and the free set: driven tendons that pull, or at zero tension but short of their target
         n_free, worst = 0, 0.0
         for i in range(n_t):
             free[i] = False
             if target[i] != target[i]:
                 continue
-            miss = (l0[i] - lengths[i]) - target[i]
+            miss = (l0[i] - lengths[i]) + comp[i] * tau[i] - target[i]
             if tau[i] > 0.0 or miss < 0.0:
                 free[i] = True
                 n_free += 1
                 worst = max(worst, abs(miss))
             slack[i] = tau[i] == 0.0 and miss > 0.0
-        if worst <= DISPLACEMENT_TOL:
+        if worst <= tols.displacement_tol:
             return True, it + 1
+        if it == 0 or worst > _CHORD_RATE * last_worst:  # the Jacobian anew (else the last one: a chord step)
+            if not _sensitivities(sig, act, xs, rod, sens, gains):
+                return False, it + 1
+            _path_lengths(sig, act, xs, rod, sens, lengths, dlen)
+        last_worst = worst
         idx = np.empty(n_free, dtype=np.int64)
         c = 0
         for i in range(n_t):
@@ -917,9 +1000,9 @@ def find_tensions(rod, target, grid, tols, slack):
         b = np.empty(n_free)
         for p in range(n_free):
             i = idx[p]
-            b[p] = target[i] - (l0[i] - lengths[i])
+            b[p] = target[i] - (l0[i] - lengths[i]) - comp[i] * tau[i]
             for q in range(n_free):
-                a[p, q] = -dlen[i, idx[q]]
+                a[p, q] = -dlen[i, idx[q]] + (comp[i] if p == q else 0.0)
         step = np.empty(n_free)
         _solve_dense(a, b, step)
         for p in range(n_free):
@@ -928,10 +1011,16 @@ def find_tensions(rod, target, grid, tols, slack):
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def find_tensions_batch(rods, target, grid, tols, slack, status, iterations):
+def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, sequence):
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
-    targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED."""
+    targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED.  With
+    ``sequence`` the designs are one robot's commands in order: each driven tendon's Newton starts
+    from the tension found for the design before (a warm start)."""
     for b in range(rods.length.shape[0]):
+        if sequence and b > 0 and status[b - 1] == OK:
+            for i in range(target.shape[1]):
+                if target[b, i] == target[b, i]:
+                    rods.tension[b, i] = rods.tension[b - 1, i]
         ok, it = find_tensions(_rod(rods, b), target[b], grid, tols, slack[b])
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
@@ -1085,13 +1174,14 @@ class DesignShapes(NamedTuple):
     displacement: np.ndarray
     jacobian: np.ndarray
     nodes: np.ndarray
+    profile: np.ndarray
 
 
 @njit(cache=True, error_model="numpy")
 def _design_shapes(out, b):
     """Design ``b``'s views of the :class:`Shapes` ``out``."""
     return DesignShapes(out.backbone[b], out.rotation[b], out.strains[b], out.tendons[b], out.displacement[b],
-                        out.jacobian[b], out.nodes[b])
+                        out.jacobian[b], out.nodes[b], out.profile[b])
 
 
 @njit(cache=True, error_model="numpy")
@@ -1118,13 +1208,15 @@ def solve_design(rod, grid, tols, view):
     order = np.arange(sig.shape[0])
     keep = view.nodes.shape[0] == sig.shape[0]
     stretch = np.empty((sig.shape[0], n_t))  # |g_i| at the nodes: the path lengths
-    if tols.warm and keep:  # Newton at every node from the last solve's strains
+    friction = has_friction(rod.capstan)
+    gains = np.empty((sig.shape[0] if friction else 0, n_t))  # exp(capstan theta) at the nodes (eq. CAP)
+    if tols.warm and keep and not friction:  # Newton at every node from the last solve's strains
         xs = view.nodes.copy()
-        n_ok, it, res = _solve_nodes(sig, act, xs, rod, tols, order, stretch)
+        n_ok, it, res = _solve_nodes(sig, act, xs, rod, tols, order, stretch, gains)
     else:
         xs = np.zeros((sig.shape[0], 6))
         xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
-        n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch)
+        n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains)
     if keep:
         view.nodes[:, :] = xs
     ok = ok and n_ok
@@ -1147,22 +1239,31 @@ def solve_design(rod, grid, tols, view):
         new_sig = _interleaved(sig)
         new_xs = np.empty((2 * k_steps + 1, 6))
         new_stretch = np.empty((2 * k_steps + 1, n_t))
+        # friction: the wrap angle is level 0's; a new node's gain is its neighbours' geometric mean
+        new_gains = np.empty((2 * k_steps + 1 if friction else 0, n_t))
         for k in range(k_steps):
             new_xs[2 * k] = xs[k]
             new_xs[2 * k + 1] = 0.5 * (xs[k] + xs[k + 1])  # start: the neighbours' mean (error O(h^2))
             new_stretch[2 * k] = stretch[k]
+            if friction:
+                new_gains[2 * k] = gains[k]
+                new_gains[2 * k + 1] = np.sqrt(gains[k] * gains[k + 1])
         new_xs[2 * k_steps] = xs[k_steps]
         new_stretch[2 * k_steps] = stretch[k_steps]
+        if friction:
+            new_gains[2 * k_steps] = gains[k_steps]
         act = _node_activity(new_sig)
         for k in range(k_steps):  # beside a zero-width step (an end) the neighbours' strains jump
             if sig[k + 1] == sig[k]:
                 new_xs[2 * k + 1] = xs[k + 1]
+                if friction:
+                    new_gains[2 * k + 1] = gains[k + 1]
         mids = np.arange(1, 2 * k_steps + 1, 2)
-        n_ok, it, res = _solve_nodes(new_sig, act, new_xs, rod, tols, mids, new_stretch)
+        n_ok, it, res = _solve_nodes(new_sig, act, new_xs, rod, tols, mids, new_stretch, new_gains)
         ok = ok and n_ok
         iters = max(iters, it)
         worst = max(worst, res) if res == res else res
-        sig, xs, stretch = new_sig, new_xs, new_stretch
+        sig, xs, stretch, gains = new_sig, new_xs, new_stretch, new_gains
         out_step = out_step * 2
         end_step = np.where(end_step >= 0, end_step * 2, end_step)
         _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)
@@ -1172,9 +1273,10 @@ def solve_design(rod, grid, tols, view):
     # strains at the outputs: the output edges of the last level (node 2 e is edge e)
     for j in range(n_out):
         view.strains[j, :] = xs[2 * out_step[j]]
+        _node_tensions(rod.tension, end, act[2 * out_step[j]], gains, 2 * out_step[j], view.profile[j])
     if view.jacobian.shape[0] > 0:  # the exact Jacobian: the implicit-function theorem, then eq. (MAG)'s tangent
         sens = np.empty((sig.shape[0], 6, n_t))
-        if _sensitivities(sig, act, xs, rod, sens):
+        if _sensitivities(sig, act, xs, rod, sens, gains):
             _pose_tangent(edges, xs, sens, length, out_step, rot_out, view.jacobian)
         else:
             view.jacobian[:, :, :] = np.nan
@@ -1214,11 +1316,18 @@ def _extrapolate_cubic(sig, x_nodes, k, k1, k2, k3, k4):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch):
+def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, gains):
     """As :func:`_solve_nodes` (``stretch`` too), each node starting from the solved strains of the nodes before
     (Lagrange extrapolation from the last four since the last end, where the strains jump).  The
     tendon angles advance by angle addition between nodes (a rotation per distinct spacing),
-    recomputed exactly every ``_RESYNC`` nodes."""
+    recomputed exactly every ``_RESYNC`` nodes.
+
+    Friction (``gains`` (M, N_t) has rows): the tensions fall (pull) or grow (release) along the
+    path, tau_i(s) = tau_i(0) exp(capstan_i theta_i(s)) (eq. CAP).  The wrap angle theta_i is summed
+    node to node (:func:`_wrap_angle`, so it needs the nodes in order of s): each node's tensions
+    start from theta predicted by the last increment, and the node is solved again with the
+    corrected theta until the tensions move by less than ``_WRAP_TOL`` of themselves.  The factors
+    exp(capstan_i theta_i) are written to ``gains``."""
     length, offset, pitch, angle, tau, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.tension, rod.end
     n_t = offset.shape[0]
     rho = np.empty((n_t, 2))
@@ -1232,6 +1341,11 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch):
     ok = True
     iters = 0
     worst = 0.0
+    friction = gains.shape[0] > 0
+    capstan = rod.capstan
+    theta, theta_new, rate = np.zeros(n_t), np.zeros(n_t), np.zeros(n_t)  # wrap angles, their last rate (rad/m)
+    t_prev, t_now, turn = np.empty((n_t, 3)), np.empty((n_t, 3)), np.empty((3, 3))
+    h = 0.0
     for j in range(order.shape[0]):
         k = order[j]
         last_delta = _advance_angles(j, node_fractions[k], node_fractions[order[j - 1]] if j else 0.0, length, angle,
@@ -1239,11 +1353,23 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch):
         for i in range(n_t):
             rho[i, 0], rho[i, 1] = offset[i] * cos_phi[i], offset[i] * sin_phi[i]
             drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sin_phi[i], offset[i] * pitch[i] * cos_phi[i]
-        _active_tensions(tau, end, act[k], tau_node)
-        changed = False
-        for i in range(n_t):
-            changed = changed or (j > 0 and tau_node[i] != tau_prev[i])
-            tau_prev[i] = tau_node[i]
+        if friction:  # the tensions at the predicted wrap angle; the steps restart where the acting tendons change
+            h = (node_fractions[k] - node_fractions[order[j - 1]]) * length if j else 0.0
+            for i in range(n_t):
+                theta_new[i] = theta[i] + rate[i] * h
+                gains[k, i] = math.exp(capstan[i] * theta_new[i])
+            _node_tensions(tau, end, act[k], gains, k, tau_node)
+            changed = False
+            for i in range(n_t):
+                acting = 1.0 if end[i] > act[k] else 0.0
+                changed = changed or (j > 0 and acting != tau_prev[i])
+                tau_prev[i] = acting
+        else:
+            _active_tensions(tau, end, act[k], tau_node)
+            changed = False
+            for i in range(n_t):
+                changed = changed or (j > 0 and tau_node[i] != tau_prev[i])
+                tau_prev[i] = tau_node[i]
         since = 0 if changed or j == 0 else since + 1
         if since == 0 and j > 0 or since == 1:
             x_nodes[k, :] = x_nodes[order[j - 1]]
@@ -1268,12 +1394,43 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch):
             for a in range(6):
                 x_nodes[k, a] = l1 * x_nodes[k1, a] + l2 * x_nodes[k2, a] + l3 * x_nodes[k3, a]
         conv, it, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
+        if friction:
+            for correction in range(_MAX_WRAP_CORRECTIONS + 1):
+                _unit_tangents(x_nodes[k], rho, drho, t_now)
+                if j:
+                    _relative_rotation(x_nodes[order[j - 1], 3:], x_nodes[k, 3:], h, turn)
+                move = 0.0
+                for i in range(n_t):
+                    new = theta[i] + (_wrap_angle(t_prev[i], t_now[i], turn) if j else 0.0)
+                    if tau_node[i] != 0.0:  # a slack or ended tendon's tension does not move
+                        move = max(move, abs(capstan[i] * (new - theta_new[i])))
+                    theta_new[i] = new
+                if not (move > _WRAP_TOL) or correction == _MAX_WRAP_CORRECTIONS:
+                    break
+                for i in range(n_t):
+                    gains[k, i] = math.exp(capstan[i] * theta_new[i])
+                _node_tensions(tau, end, act[k], gains, k, tau_node)
+                conv, more, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
+                it += more
+            for i in range(n_t):
+                if h > 0.0:  # the rate for the next prediction (a kink at an end is no rate)
+                    rate[i] = (theta_new[i] - theta[i]) / h
+                theta[i] = theta_new[i]
+                gains[k, i] = math.exp(capstan[i] * theta[i])
+                t_prev[i, 0], t_prev[i, 1], t_prev[i, 2] = t_now[i, 0], t_now[i, 1], t_now[i, 2]
         _node_stretch(x_nodes[k], rho, drho, stretch, k)
         ok = ok and conv
         iters = max(iters, it)
         if not (r <= worst):
             worst = r
     return ok, iters, worst
+
+
+#: friction: a node is solved again with its corrected wrap angle at most this many times, while its
+#: tensions would move by more than this fraction (the wrap angle's prediction is exact for
+#: constant curvature; between segments its error is O(h^2))
+_MAX_WRAP_CORRECTIONS = 4
+_WRAP_TOL = 1e-9
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -1824,6 +1981,9 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
     terminal = np.zeros((n_t, 3))
     _end_points(pos[n_out:], rot[n_out:], length, end_step, end, offset, pitch, angle, terminal)
     _clamp_ended(fractions_out, end, terminal, tendons_out)
+    for j in range(n_out):  # without friction each tendon pulls with its tension up to its end
+        for i in range(n_t):
+            view.profile[j, i] = tau[i] if end[i] >= fractions_out[j] else 0.0
     tip_residual = mismatch / length
     residual = worst if worst > tip_residual else tip_residual
     if not _all_finite(residual, tendons_out):

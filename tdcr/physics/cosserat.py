@@ -81,6 +81,9 @@ class SolverOptions:
             (Richardson, see :func:`solve`); a design whose estimate stays above it after
             ``max_level`` halvings of the step is flagged (status ``step_tol_not_met``).
         max_level: how many times the step may be halved per design.
+        displacement_tol: displacement actuation: the largest miss of a driven tendon's pull-in, m
+            (the tensions are found on the base grid to a tenth of it, and once more for the
+            finer grid's miss where that exceeds it).
         linearized: replace the local Newton solve by the first-order strains (the roots of
             (W1, W2) with the tendon tangents of the undeformed rod; the neural operators'
             reference robot).  Tendon loads only; ``converged`` then only flags non-finite
@@ -97,6 +100,7 @@ class SolverOptions:
     step_tol: float = 3e-7
     max_level: int = 4
     linearized: bool = False
+    displacement_tol: float = 1e-10
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,9 @@ class RodSolution:
         slack: ``(B, N_t)``: a displacement-driven tendon that would need a push to reach its
             displacement, so hangs slack at tension 0 (None: no tendon is displacement-driven).
         strains: body strains (nu (1), kappa (rad/m)) at the arclengths, ``(B, n, 6)``.
+        tension_profile: every tendon's tension at the arclengths, N, ``(B, n, N_t)``: ``tension``
+            where it acts without friction, tension exp(-/+ mu theta(s)) with friction (eq. CAP),
+            0 beyond its end.
     """
 
     s: np.ndarray
@@ -150,6 +157,7 @@ class RodSolution:
     displacement: np.ndarray | None = None
     slack: np.ndarray | None = None
     strains: np.ndarray | None = None
+    tension_profile: np.ndarray | None = None
 
 
 __all__ = ["POISSON_RATIO", "STATUS", "TERMINATIONS", "RodSolution", "SolverOptions", "Status", "TipSolver",
@@ -259,6 +267,7 @@ def solve(
     workers: int = 1,
     jacobian: bool = False,
     termination: str = "exact",
+    sequence: bool = False,
 ) -> RodSolution:
     """Equilibrium shapes of a batch of designs.
 
@@ -280,6 +289,9 @@ def solve(
             integrating Rucker & Webster's ODE segment by segment with only the ending tendon's
             pull applied at its end (e.g. tdcr-modeling); it shoots on N(0) and M(0) for such
             designs.  Both agree for designs whose tendons all end at the tip.
+        sequence: the designs are one robot's commands in order (:func:`tdcr.replay`): with
+            displacement actuation each design's tensions start from those found for the one
+            before (the answers equal those of independent solves to the solver's tolerances).
 
     Returns:
         A :class:`RodSolution`.  A design that fails is flagged in ``status`` and ``converged``;
@@ -291,11 +303,13 @@ def solve(
     fractions_out = check_inputs(designs, fractions, loads)
     loaded = loads is not None and not loads.is_zero()
     shortcut = termination == "rucker_webster" and bool(designs.segmented.any())
+    if (designs.capstan != 0.0).any() and (loaded or shortcut or jacobian or opts.linearized):
+        raise ValueError("friction covers tendon loads with consistent termination (no Jacobian, not linearized)")
     if designs.displacement_driven.any():
         if loaded or shortcut or jacobian or opts.linearized:
             raise ValueError("displacement actuation covers tendon loads with consistent termination (no Jacobian, "
                              "not linearized)")
-        return _solve_displacement(designs, fractions_out, opts, workers)
+        return _solve_displacement(designs, fractions_out, opts, workers, sequence=sequence)
     if (loaded or shortcut) and opts.linearized:
         raise ValueError("the linearized model covers tendon loads only, with consistent termination")
     if jacobian and (loaded or opts.linearized or shortcut):
@@ -365,7 +379,8 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
     b, n, n_t = designs.n_designs, fractions_out.shape[0], designs.n_tendons
     rods = kernel.Rods(kse=f64(mat.kse), kbt=f64(mat.kbt), radius=f64(designs.r), length=f64(designs.L),
                        offset=f64(designs.offset), pitch=f64(designs.pitch), tension=f64(designs.tension),
-                       angle=f64(designs.angles), end=f64(designs.end_fractions))
+                       angle=f64(designs.angles), end=f64(designs.end_fractions),
+                       compliance=f64(designs.compliance), capstan=f64(designs.capstan))
     grid = kernel.Grid(edges=f64(edges0), out_step=np.searchsorted(edges0, fractions_out).astype(np.int64),
                        fractions=f64(fractions_out))
     nodes, warm_start = np.empty((b, 0, 6)), False
@@ -377,14 +392,15 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
     tols = kernel.Tolerances(newton_tol=float(opts.newton_tol), max_newton=int(opts.max_newton),
                              step_tol=float(opts.step_tol), max_level=int(opts.max_level),
                              shooting_tol=float(opts.shooting_tol), max_shooting=int(opts.max_shooting),
-                             shortcut=bool(shortcut), linearized=bool(opts.linearized), warm=bool(warm_start))
+                             shortcut=bool(shortcut), linearized=bool(opts.linearized), warm=bool(warm_start),
+                             displacement_tol=0.1 * float(opts.displacement_tol))
     per_design = lambda dtype=np.float64: np.empty(b, dtype=dtype)  # noqa: E731
     out = kernel.Shapes(backbone=np.empty((b, n, 3)), rotation=np.empty((b, n, 3, 3)), strains=np.empty((b, n, 6)),
                         tendons=np.empty((b, n, n_t, 3)), status=per_design(np.int64), residual=per_design(),
                         iterations=per_design(np.int64), level=per_design(np.int64), estimate=per_design(),
                         m0=np.empty((b if loaded else 0, 3)), shoot_jac=np.empty((b if loaded else 0, 3, 3)),
                         displacement=np.empty((b, n_t)), jacobian=np.empty((b, n if jacobian else 0, 6, n_t)),
-                        nodes=nodes)
+                        nodes=nodes, profile=np.empty((b, n, n_t)))
     return kernel, rods, grid, tols, out
 
 
@@ -452,7 +468,7 @@ def _from_kernel(designs: DesignBatch, mat: _Material, fractions_out: np.ndarray
         tendons=out.tendons, force=force, moment=moment, converged=status == 0, residual=out.residual,
         iterations=out.iterations, status=status, error_estimate=out.estimate,
         steps=(len(edges0) - 1) * 2**out.level, tension=designs.tension.copy(), displacement=out.displacement,
-        strains=out.strains, jacobian=out.jacobian if out.jacobian.shape[1] else None,
+        strains=out.strains, jacobian=out.jacobian if out.jacobian.shape[1] else None, tension_profile=out.profile,
     )
 
 
@@ -475,10 +491,14 @@ def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, load
 
 
 def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: SolverOptions,
-                        threads: int) -> RodSolution:
+                        threads: int, *, sequence: bool = False) -> RodSolution:
     """Displacement actuation: the tensions that pull in the displacement-driven tendons' lengths
     (:func:`tdcr.physics._kernel.find_tensions`: Newton with the exact Jacobian of the path
-    lengths, tau >= 0, slack tendons flagged), then the tendon-only solve at those tensions."""
+    lengths, tau >= 0, slack tendons flagged), then the tendon-only solve at those tensions.  A
+    tendon's pull-in is its displacement minus its drive's ``zero``; with a series ``stiffness``
+    k it pulls with k max(0, pull-in - d) (eq. SE), d the length its path shortened.  With
+    ``sequence`` the designs are one robot's commands in order, each started from the tensions
+    found for the one before (:func:`tdcr.replay`)."""
     edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step)
     mat = material(designs)
     kernel, rods, grid, tols, _ = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
@@ -487,16 +507,17 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     b, n_t = designs.n_designs, designs.n_tendons
     slack, found = np.zeros((b, n_t), dtype=np.bool_), np.empty(b, dtype=np.int64)
     iterations = np.empty(b, dtype=np.int64)
-    wanted = np.where(designs.displacement_driven, designs.displacement, np.nan)
+    wanted = np.where(designs.displacement_driven, designs.displacement - designs.resolved("zero"), np.nan)
     target = np.ascontiguousarray(wanted)
     for correction in range(2):
         # the tensions on the base grid; then, once, again for the target moved by what the solve's
         # finer grid (step control) still misses (the grids' lengths differ by O(h^4))
-        _run_kernel(kernel.find_tensions_batch, threads, b, rods, target, grid, tols, slack, found, iterations)
+        _run_kernel(kernel.find_tensions_batch, threads, b, rods, target, grid, tols, slack, found, iterations,
+                    sequence)
         sol = _solve_compiled(designs.replace(tension=rods.tension, displacement=None), fractions_out, edges0, opts,
                               threads)
-        miss = np.where(slack, 0.0, wanted - sol.displacement)
-        if correction or not (np.nan_to_num(np.abs(miss)) > DISPLACEMENT_TOL).any():
+        miss = np.where(slack, 0.0, wanted - sol.displacement - designs.compliance * rods.tension)
+        if correction or not (np.nan_to_num(np.abs(miss)) > opts.displacement_tol).any():
             break
         target = np.ascontiguousarray(target + np.nan_to_num(miss))
     status = sol.status.copy()
@@ -526,8 +547,6 @@ def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
 
 
-#: Displacement actuation: the largest miss of a tendon's displacement, m.
-DISPLACEMENT_TOL = 1e-10
 #: |g_i| (the tendon's path length per unit s) below which a tendon has collapsed.
 COLLAPSED_STRETCH = 1e-2
 

@@ -69,8 +69,9 @@ class SolvedGroup:
     ``arclength`` ``(b, n)`` m; ``backbone`` ``(b, n, 3)`` m; ``rotation`` ``(b, n, 3, 3)``; ``tendons``
     ``(b, n, N_t, 3)`` m; ``converged`` ``(b,)``; ``residual`` ``(b,)`` N; ``status`` ``(b,)`` indices
     into :data:`tdcr.physics.STATUS`; ``error_estimate`` ``(b,)`` (NaN: none); ``tension`` ``(b, N_t)`` N;
-    ``displacement`` ``(b, N_t)`` m; ``slack`` ``(b, N_t)`` or None (no displacement actuation);
-    ``tip_jacobian`` ``(b, 6, N_t)`` or None.
+    ``displacement`` ``(b, N_t)`` m; ``tension_profile`` ``(b, n, N_t)`` N (each tendon's tension at
+    the arclengths); ``slack`` ``(b, N_t)`` or None (no displacement actuation); ``tip_jacobian``
+    ``(b, 6, N_t)`` or None.
     """
 
     rows: np.ndarray
@@ -84,6 +85,7 @@ class SolvedGroup:
     error_estimate: np.ndarray
     tension: np.ndarray
     displacement: np.ndarray
+    tension_profile: np.ndarray
     slack: np.ndarray | None = None
     tip_jacobian: np.ndarray | None = None
 
@@ -92,7 +94,8 @@ class SolvedGroup:
         """The first ``points`` arclengths of ``sol``, made finite."""
         n = slice(points)
         arrays = {"arclength": sol.s[:, n], "backbone": sol.backbone[:, n], "rotation": sol.rotation[:, n],
-                  "tendons": sol.tendons[:, n], "tension": sol.tension, "displacement": sol.displacement}
+                  "tendons": sol.tendons[:, n], "tension": sol.tension, "displacement": sol.displacement,
+                  "tension_profile": sol.tension_profile[:, n]}
         finite = np.isfinite(sol.residual)
         for v in arrays.values():
             finite &= np.isfinite(v.reshape(len(v), -1)).all(axis=1)
@@ -130,7 +133,8 @@ class ExactAnswer:
                        "converged": bool(g.converged[j]), "residual": float(g.residual[j]),
                        "status": STATUS[int(g.status[j])],
                        "error_estimate": None if np.isnan(g.error_estimate[j]) else float(g.error_estimate[j]),
-                       "tension": g.tension[j].tolist(), "displacement": g.displacement[j].tolist()}
+                       "tension": g.tension[j].tolist(), "displacement": g.displacement[j].tolist(),
+                       "tension_profile": g.tension_profile[j].tolist()}
                 if g.slack is not None:
                     out["slack"] = g.slack[j].tolist()
                 if g.tip_jacobian is not None:

@@ -101,6 +101,12 @@ class DesignBatch:
             :data:`DEFAULT_POISSON`.
         displacement: length pulled in of each displacement-driven tendon, m, ``(B, N_t)``, NaN
             where the tendon is driven by its tension; ``None``: every tendon by its tension.
+        stiffness: series stiffness of each tendon and its drive, N/m, ``(B, N_t)`` (inf: rigid);
+            ``None``: rigid.
+        zero: the drive's reading where each tendon is just taut, m, ``(B, N_t)``; ``None``: 0.
+        friction: Capstan coefficient of each tendon in its guides, ``(B, N_t)``; ``None``: 0.
+        motion: each tendon's motion, 1 pulling or -1 releasing (:data:`tdcr.robot.fields.MOTIONS`),
+            ``(B, N_t)``; ``None``: pulling.
     """
 
     E: np.ndarray
@@ -113,6 +119,10 @@ class DesignBatch:
     end: np.ndarray | None = None
     poisson: np.ndarray | None = None
     displacement: np.ndarray | None = None
+    stiffness: np.ndarray | None = None
+    zero: np.ndarray | None = None
+    friction: np.ndarray | None = None
+    motion: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for f in FIELDS:  # the registry's fields (a test checks that they are this class's)
@@ -179,6 +189,17 @@ class DesignBatch:
     def displacement_driven(self) -> np.ndarray:
         """Per tendon ``(B, N_t)``: driven by a displacement (rather than its tension)."""
         return self.departs("displacement")
+
+    @property
+    def compliance(self) -> np.ndarray:
+        """Each tendon's series compliance 1 / stiffness, m/N, ``(B, N_t)`` (0: rigid)."""
+        return 1.0 / self.resolved("stiffness")
+
+    @property
+    def capstan(self) -> np.ndarray:
+        """Each tendon's signed Capstan coefficient, ``(B, N_t)``: tau(s) = tau(0) exp(capstan
+        theta(s)) with theta the wrap angle, -friction pulling, +friction releasing (eq. CAP)."""
+        return -self.resolved("friction") * self.resolved("motion")
 
     @property
     def segmented(self) -> np.ndarray:
@@ -256,8 +277,8 @@ class DesignBatch:
             for i in range(self.n_tendons):
                 replaced = {f.alternative_to for f in alternatives if not np.isnan(given[f.name][b, i])}
                 t = {n: float(getattr(self, n)[b, i]) for n in TENDON_GROUPS if n not in replaced}
-                t |= {n: float(v[b, i]) for n, v in given.items() if BY_NAME[n].per == "tendon"
-                      and not np.isnan(v[b, i])}
+                t |= {n: _json_value(BY_NAME[n], v[b, i]) for n, v in given.items() if BY_NAME[n].per == "tendon"
+                      and np.isfinite(v[b, i])}  # NaN: the alternative drives it; inf: rigid (the default)
                 tendons.append(t)
             design = {n: float(getattr(self, n)[b]) for n in DESIGN_FEATURES} | {"tendons": tendons}
             design |= {n: float(v[b]) for n, v in given.items() if BY_NAME[n].per == "design"}
@@ -275,6 +296,13 @@ class DesignBatch:
                 continue
             fields[f.name] = np.concatenate([np.array(b.resolved(f.name)) for b in batches], axis=0)
         return cls(**fields)
+
+
+def _json_value(field, value: float) -> float | str:
+    """A field's value as a request gives it: its word for a field in words (``motion``), else the number."""
+    if field.choices:
+        return next(word for word, number in field.choices.items() if number == value)
+    return float(value)
 
 
 @dataclass(frozen=True)

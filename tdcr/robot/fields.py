@@ -24,6 +24,8 @@ import numpy as np
 DEFAULT_POISSON = 0.3
 #: Longest admissible backbone, m (also the bound of a tendon's end and of arclengths in metres).
 MAX_LENGTH = 5.0
+#: A tendon's motion through its guides (the sign of its friction, eq. CAP): its word and number.
+MOTIONS: dict[str, float] = {"pull": 1.0, "release": -1.0}
 
 
 def default_angles(n_tendons: int) -> np.ndarray:
@@ -61,6 +63,8 @@ class DesignField:
             ``"layout"`` (a column of the ``layout`` tensor ``[B, N_t, k]``) or ``"own"`` (a tensor
             of its name, ``[B]``).
         inverse: an inverse-kinematics design may give it (not a quantity the inverse finds).
+        choices: a field given in words: each word and the number it stands for (e.g. ``motion``:
+            ``{"pull": 1, "release": -1}``); ``None``: a number.
     """
 
     name: str
@@ -77,6 +81,7 @@ class DesignField:
     within_length: bool = False
     oip: Literal["design", "layout", "own"] = "design"
     inverse: bool = True
+    choices: dict[str, float] | None = None
 
     @property
     def feature(self) -> bool:
@@ -109,6 +114,8 @@ class DesignField:
     @property
     def default_words(self) -> str | float | None:
         """The default as the schemas and :func:`~tdcr.robot.design_space.describe` show it."""
+        if self.choices:
+            return next(word for word, number in self.choices.items() if number == self.default)
         return self.default.words if isinstance(self.default, Default) else self.default
 
 
@@ -137,6 +144,22 @@ FIELDS: tuple[DesignField, ...] = (
                 "deformed path length), instead of a tension: the solver finds the tension (0 where the tendon would "
                 "go slack)", (-1.0, 1.0), refusal="the operators take tensions", alternative_to="tension",
                 oip="layout", inverse=False),
+    DesignField("stiffness", "tendon", "N/m", "series stiffness k of the tendon and its drive (default rigid): a "
+                "displacement u then pulls with tension k max(0, u - zero - d), d the length the path shortened "
+                "(OIP layout: 0 for rigid)", (1e-3, 1e12), exclusive_min=True,
+                default=Default("rigid", lambda L, n: np.inf), refusal="the operators take rigid tendons",
+                oip="layout", inverse=False),
+    DesignField("zero", "tendon", "m", "the drive's reading at which the tendon is just taut on the straight rod "
+                "(subtracted from a displacement)", (-1.0, 1.0), default=0.0,
+                refusal="the operators take tensions", oip="layout", inverse=False),
+    DesignField("friction", "tendon", "", "Capstan friction coefficient mu between the tendon and its guides: the "
+                "tension decays (pull) or grows (release) along the path as d tau / ds = -/+ mu tau |d t / ds|",
+                (0.0, 2.0), default=0.0, refusal="the operators take frictionless tendons", oip="layout",
+                inverse=False),
+    DesignField("motion", "tendon", "", "how the tendon last moved through its guides, the sign of its friction: "
+                "\"pull\" (tension falls from the drive) or \"release\" (it grows)", (-1.0, 1.0),
+                default=MOTIONS["pull"], refusal="the operators take frictionless tendons", oip="layout",
+                inverse=False, choices=MOTIONS),
 )
 #: The fields by name.
 BY_NAME: dict[str, DesignField] = {f.name: f for f in FIELDS}

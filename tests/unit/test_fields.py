@@ -50,6 +50,9 @@ def test_the_schemas_take_the_registry_fields():
     properties = schemas.Tendon.model_json_schema()["properties"]
     for name in tendon:
         f = BY_NAME[name]
+        if f.choices:  # a field in words: its words, or null
+            assert properties[name]["anyOf"][0]["enum"] == list(f.choices), name
+            continue
         bound = properties[name]
         bound = bound if {"minimum", "exclusiveMinimum"} & set(bound) else bound["anyOf"][0]
         low_key = "exclusiveMinimum" if f.exclusive_min else "minimum"
@@ -79,7 +82,8 @@ def test_every_optional_field_is_checked_against_its_bounds(field):
     problems = check_layout(designs.replace(**{field.name: beyond}))
     where = (field.name,) if field.per == "design" else ("tendons", 0, field.name)
     assert ("designs", 0) + where in [p.loc for p in problems]
-    assert any(interval(field) in p.msg or (field.within_length and "(0, L]" in p.msg) for p in problems)
+    assert any(interval(field) in p.msg or (field.within_length and "(0, L]" in p.msg)
+               or (field.choices and all(repr(w) in p.msg for w in field.choices)) for p in problems)
     # and a value inside its bounds (its default where it has one) passes
     inside = field.fill(designs.L, designs.n_tendons)
     inside = np.where(np.isnan(inside), 0.5 * (low + high), inside)
@@ -91,7 +95,10 @@ def test_an_operator_refuses_each_optional_field_by_name(field):
     designs = design_space.sample_designs(2, seed=2)
     default = field.fill(designs.L, designs.n_tendons)
     assert check_standard_layout(designs.replace(**{field.name: default})) == [] or field.alternative_to
-    other = np.where(np.isnan(default), 1e-4, default * 0.8 + 0.01)  # inside its bounds, not its default
+    # inside its bounds, not its default (an infinite default: rigid tendons)
+    other = np.where(np.isnan(default), 1e-4, np.where(np.isinf(default), 1e3, default * 0.8 + 0.01))
+    if field.choices:  # the other word
+        other = np.full(default.shape, [v for v in field.choices.values() if v != field.default][0])
     problems = check_standard_layout(designs.replace(**{field.name: other}))
     where = (field.name,) if field.per == "design" else ("tendons", 0, field.name)
     assert [p.loc for p in problems] == [("designs", 0) + where, ("designs", 1) + where]
@@ -100,7 +107,7 @@ def test_an_operator_refuses_each_optional_field_by_name(field):
 
 
 def test_the_oip_layout_and_the_design_space_follow_the_registry():
-    assert LAYOUT_COLUMNS == ("angle", "end", "displacement", "driven")
+    assert LAYOUT_COLUMNS == ("angle", "end", "displacement", "driven", "stiffness", "zero", "friction", "motion")
     assert OWN_TENSORS == ("poisson",)
     assert set(design_space.describe()["layout"]) == {f.name for f in OPTIONAL}
     designs = _general_designs(4, seed=5)
@@ -109,6 +116,7 @@ def test_the_oip_layout_and_the_design_space_follow_the_registry():
     for f in OPTIONAL:
         np.testing.assert_array_equal(request.groups[0].designs.resolved(f.name), layout[f.name], err_msg=f.name)
     with pytest.raises(ValueError) as info:
-        validate_features(designs.features(), target="solver", points=3, layout={"stiffness": designs.L})
-    assert "not a layout field; they are angle, end, poisson and displacement" in str(info.value)
+        validate_features(designs.features(), target="solver", points=3, layout={"rigidity": designs.L})
+    assert ("not a layout field; they are angle, end, poisson, displacement, stiffness, zero, friction and motion"
+            in str(info.value))
     assert format_location(("designs", 0, "tendons", 1, "end")) == "designs[0].tendons[1].end"

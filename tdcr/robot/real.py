@@ -1,0 +1,311 @@
+"""A real robot: its design, how its drives are commanded and how its tip is measured (``ROBOT.json``),
+and its recordings (CSV files of commands and motion-capture tips).
+
+A robot file (JSON Schema: ``openapi/robot.schema.json``, :data:`ROBOT_SCHEMA`)::
+
+    {"name": "ftdcr_v4",
+     "design": {...a request design (``tdcr.api.schemas.Design``): E, r, L, poisson, and tendons with
+                offset, angle, pitch, end, stiffness, friction, zero...},
+     "actuation": {"columns": [one CSV column per tendon, in tendon order], "unit": "mm" | "m" | "N",
+                   "kind": "displacement" | "tension", "deadband": the least command change that moves
+                   a tendon (the actuation's unit; default 0): below it the tendon holds its motion},
+     "measurement": {"columns": ["tip_x", "tip_y", "tip_z"], "unit": "mm",
+                     "marker": [x, y, z] m in the tip frame,
+                     "base_position": [x, y, z] m and "base_rotation": [x, y, z] rad (a rotation
+                     vector): where the robot's base frame sits in the measurement's frame},
+     "time_column": "timestamp", "label_column": "pattern_label" (optional),
+     "fitted": {...what ``tdcr fit`` found, with standard errors (optional, informative)}}
+
+A command row is a design: the robot's design with each tendon's displacement (or tension) from the
+row, and its ``motion`` (pull or release, the sign of its friction, eq. CAP) from the command
+history (:func:`motions`).  The measured point is base_position + Rot(base_rotation) (p(L) + R(L)
+marker) (:meth:`Measurement.points`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tdcr.robot.designs import DesignBatch
+from tdcr.robot.fields import MOTIONS
+
+#: Units of the actuation and measurement columns: name -> factor to SI (m or N).
+UNITS: dict[str, float] = {"m": 1.0, "mm": 1e-3, "N": 1.0}
+#: What a column of commands drives: the unit names each admits.
+KINDS: dict[str, tuple[str, ...]] = {"displacement": ("m", "mm"), "tension": ("N",)}
+#: The measurement's units (lengths).
+LENGTH_UNITS = ("m", "mm")
+
+
+class RobotFileError(ValueError):
+    """A robot file or recording that cannot be used; the message names the key, column or row
+    (the CLI exits with code 2)."""
+
+
+def rotation_matrix(vector: np.ndarray) -> np.ndarray:
+    """Rot(v) = exp(hat(v)) of rotation vectors ``(..., 3)`` rad (Rodrigues), ``(..., 3, 3)``."""
+    v = np.asarray(vector, dtype=np.float64)
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    k = np.zeros(v.shape[:-1] + (3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    k = k - np.swapaxes(k, -1, -2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(theta > 1e-8, np.sin(theta) / theta, 1.0 - theta**2 / 6.0)
+        b = np.where(theta > 1e-8, (1.0 - np.cos(theta)) / theta**2, 0.5 - theta**2 / 24.0)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+@dataclass(frozen=True)
+class Actuation:
+    """How the drives are commanded: one CSV ``columns`` entry per tendon (tendon order), their
+    ``unit`` (:data:`UNITS`), ``kind`` (:data:`KINDS`) and ``deadband`` (SI, m or N): a command
+    change below it keeps the tendon's motion."""
+
+    columns: tuple[str, ...]
+    unit: str
+    kind: str
+    deadband: float = 0.0
+
+    @property
+    def scale(self) -> float:
+        """Factor from the columns' unit to SI."""
+        return UNITS[self.unit]
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """How the tip is measured: the CSV ``columns`` (x, y, z) in ``unit``, the ``marker`` (3,) m in
+    the tip frame, and the base frame's pose in the measurement frame: ``base_position`` (3,) m and
+    ``base_rotation`` (3,) rad, a rotation vector."""
+
+    columns: tuple[str, ...]
+    unit: str
+    marker: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    base_position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    base_rotation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def scale(self) -> float:
+        """Factor from the columns' unit to m."""
+        return UNITS[self.unit]
+
+    def points(self, tip_position: np.ndarray, tip_rotation: np.ndarray) -> np.ndarray:
+        """The measured points, m, measurement frame, ``(T, 3)``, of tips at ``tip_position`` ``(T, 3)``
+        m with frames ``tip_rotation`` ``(T, 3, 3)`` (base frame): b + Rot(r) (p + R marker)."""
+        local = tip_position + np.einsum("tij,j->ti", tip_rotation, self.marker)
+        return self.base_position + local @ rotation_matrix(self.base_rotation).T
+
+
+@dataclass(frozen=True)
+class Robot:
+    """A real robot (a robot file): its ``design`` (one design, :class:`DesignBatch`), its
+    :class:`Actuation` and :class:`Measurement`, the recording's ``time_column`` and optional
+    ``label_column``, and the file's ``extra`` keys (e.g. ``fitted``), kept as they are."""
+
+    name: str
+    design: DesignBatch
+    actuation: Actuation
+    measurement: Measurement
+    time_column: str = "timestamp"
+    label_column: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_tendons(self) -> int:
+        return self.design.n_tendons
+
+    def to_json(self) -> dict:
+        """The robot file's JSON (the design as a request gives it)."""
+        a, m = self.actuation, self.measurement
+        out = {"name": self.name, "design": self.design.to_dicts()[0],
+               "actuation": {"columns": list(a.columns), "unit": a.unit, "kind": a.kind,
+                             "deadband": a.deadband / a.scale},
+               "measurement": {"columns": list(m.columns), "unit": m.unit, "marker": m.marker.tolist(),
+                               "base_position": m.base_position.tolist(),
+                               "base_rotation": m.base_rotation.tolist()},
+               "time_column": self.time_column}
+        if self.label_column is not None:
+            out["label_column"] = self.label_column
+        return out | self.extra
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
+
+    def designs(self, commands: np.ndarray, motion: np.ndarray | None = None) -> DesignBatch:
+        """One design per command row: ``commands`` ``(T, N_t)`` SI (m of displacement or N of
+        tension, by the actuation's kind) and each tendon's ``motion`` ``(T, N_t)`` (1 pull, -1
+        release; default :func:`motions` of the commands)."""
+        commands = np.asarray(commands, dtype=np.float64)
+        rows = self.design.take(np.zeros(len(commands), dtype=np.int64))
+        motion = motions(commands, self.actuation.deadband) if motion is None else motion
+        if self.actuation.kind == "tension":
+            return rows.replace(tension=commands, displacement=None, motion=motion)
+        return rows.replace(tension=np.zeros_like(commands), displacement=commands, motion=motion)
+
+
+def motions(commands: np.ndarray, deadband: float = 0.0) -> np.ndarray:
+    """Each tendon's motion through its guides at each command row, ``(T, N_t)``: pull (1) where its
+    command rose by more than ``deadband`` since the row before, release (-1) where it fell by more,
+    else (holding) the motion it had; the first row pulls.  ``commands`` ``(T, N_t)``."""
+    commands = np.asarray(commands, dtype=np.float64)
+    out = np.empty(commands.shape)
+    state = np.full(commands.shape[1], MOTIONS["pull"])
+    last = commands[0].copy() if len(commands) else None
+    for t in range(len(commands)):
+        step = commands[t] - last
+        moved = np.abs(step) > deadband
+        state = np.where(moved, np.where(step > 0, MOTIONS["pull"], MOTIONS["release"]), state)
+        last = np.where(moved, commands[t], last)  # a hold accumulates its small steps
+        out[t] = state
+    return out
+
+
+def _vector(value, where: str) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64) if isinstance(value, list) else None
+    if v is None or v.shape != (3,) or not np.isfinite(v).all():
+        raise RobotFileError(f"{where}: must be a list of 3 finite numbers, got {value!r}")
+    return v
+
+
+def _choice(section: dict, key: str, where: str, allowed, default=None):
+    value = section.get(key, default)
+    if value not in allowed:
+        raise RobotFileError(f"{where}.{key}: must be one of {list(allowed)}, got {value!r}")
+    return value
+
+
+def _columns(section: dict, where: str, count: int) -> tuple[str, ...]:
+    cols = section.get("columns")
+    if not isinstance(cols, list) or len(cols) != count or not all(isinstance(c, str) and c for c in cols):
+        raise RobotFileError(f"{where}.columns: must be a list of {count} column names, got {cols!r}")
+    return tuple(cols)
+
+
+def load_robot(source: str | Path | dict) -> Robot:
+    """A :class:`Robot` from a robot file (a path or its parsed JSON).  The design goes through the
+    one validation path (:func:`tdcr.api.validation.validate_json`, the solver's checks); every
+    problem raises :class:`RobotFileError` naming its key."""
+    from tdcr.api.checks import InvalidRequest
+    from tdcr.api.validation import validate_json
+
+    if isinstance(source, dict):
+        data = source
+    else:
+        try:
+            data = json.loads(Path(source).read_text())
+        except OSError as exc:
+            raise RobotFileError(f"{source}: cannot read ({exc.strerror})") from None
+        except json.JSONDecodeError as exc:
+            raise RobotFileError(f"{source}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(data, dict):
+        raise RobotFileError("the robot file must be a JSON object")
+    for key in ("design", "actuation", "measurement"):
+        if not isinstance(data.get(key), dict):
+            raise RobotFileError(f"{key}: missing (an object)")
+    try:
+        request = validate_json({"designs": [data["design"]], "points": 2}, target="solver")
+    except InvalidRequest as exc:
+        raise RobotFileError("; ".join(f"design{_where(p.loc[2:])}: {p.msg}" for p in exc.problems)) from None
+    design = request.groups[0].designs
+    a, m = data["actuation"], data["measurement"]
+    kind = _choice(a, "kind", "actuation", KINDS, "displacement")
+    unit = _choice(a, "unit", "actuation", KINDS[kind])
+    deadband = a.get("deadband", 0.0)
+    if not isinstance(deadband, int | float) or not math.isfinite(deadband) or deadband < 0:
+        raise RobotFileError(f"actuation.deadband: must be a number >= 0, got {deadband!r}")
+    actuation = Actuation(columns=_columns(a, "actuation", design.n_tendons), unit=unit, kind=kind,
+                          deadband=float(deadband) * UNITS[unit])
+    measurement = Measurement(columns=_columns(m, "measurement", 3), unit=_choice(m, "unit", "measurement",
+                                                                                   LENGTH_UNITS),
+                              **{k: _vector(m.get(k, [0.0, 0.0, 0.0]), f"measurement.{k}")
+                                 for k in ("marker", "base_position", "base_rotation")})
+    known = {"name", "design", "actuation", "measurement", "time_column", "label_column"}
+    return Robot(name=str(data.get("name", "robot")), design=design, actuation=actuation, measurement=measurement,
+                 time_column=str(data.get("time_column", "timestamp")), label_column=data.get("label_column"),
+                 extra={k: v for k, v in data.items() if k not in known})
+
+
+def _where(loc: tuple) -> str:
+    return "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recording's rows that the robot can replay: ``time`` ``(T,)`` s, ``labels`` ``(T,)`` (the
+    label column, or ""), ``commands`` ``(T, N_t)`` SI, ``measured`` ``(T, 3)`` m (NaN where the row
+    has no motion-capture value), the CSV's data-row numbers ``rows`` ``(T,)`` (1: the first data
+    row), and ``header`` (the CSV's columns)."""
+
+    time: np.ndarray
+    labels: np.ndarray
+    commands: np.ndarray
+    measured: np.ndarray
+    rows: np.ndarray
+    header: tuple[str, ...]
+
+    @property
+    def has_measurement(self) -> np.ndarray:
+        """Per row ``(T,)``: the row has a motion-capture value."""
+        return np.isfinite(self.measured).all(axis=1)
+
+    @property
+    def skipped(self) -> int:
+        """Rows without a motion-capture value (replayed, not scored)."""
+        return int((~self.has_measurement).sum())
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text) if text.strip() else math.nan
+    except ValueError:
+        return math.nan
+
+
+def read_recording(path: str | Path, robot: Robot, *, measured: bool = True) -> Recording:
+    """A recording of ``robot`` (CSV with a header): its time, command and (with ``measured``)
+    measurement columns.  A missing column, a command that is not a finite number, or a time that is
+    not finite or not increasing raises :class:`RobotFileError` naming the column and row; a row
+    without a motion-capture value is kept with NaN (:attr:`Recording.skipped`)."""
+    try:
+        with open(path, newline="") as f:
+            reader = csv.reader(f)
+            header = tuple(next(reader, ()))
+            lines = list(reader)
+    except OSError as exc:
+        raise RobotFileError(f"{path}: cannot read ({exc.strerror})") from None
+    wanted = [robot.time_column, *robot.actuation.columns] + (list(robot.measurement.columns) if measured else [])
+    missing = [c for c in wanted if c not in header]
+    if missing:
+        raise RobotFileError(f"{path}: missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
+                             f"(the file has {', '.join(header)})")
+    index = {c: header.index(c) for c in header}
+
+    def column(name: str) -> np.ndarray:
+        return np.array([_number(line[index[name]]) if index[name] < len(line) else math.nan for line in lines])
+
+    time = column(robot.time_column)
+    commands = np.stack([column(c) for c in robot.actuation.columns], axis=1) if lines else np.zeros(
+        (0, robot.n_tendons))
+    for name, values in [(robot.time_column, time)] + [(c, commands[:, i]) for i, c in
+                                                       enumerate(robot.actuation.columns)]:
+        bad = np.nonzero(~np.isfinite(values))[0]
+        if bad.size:
+            raise RobotFileError(f"{path}: column {name}, row {bad[0] + 1}: not a finite number "
+                                 f"({lines[bad[0]][index[name]]!r})")
+    back = np.nonzero(np.diff(time) <= 0)[0]
+    if back.size:
+        raise RobotFileError(f"{path}: column {robot.time_column}, row {back[0] + 2}: timestamps must increase "
+                             f"({time[back[0] + 1]!r} after {time[back[0]]!r})")
+    if measured:
+        tips = np.stack([column(c) for c in robot.measurement.columns], axis=1) * robot.measurement.scale
+    else:
+        tips = np.full((len(lines), 3), np.nan)
+    labels = np.array([line[index[robot.label_column]] if robot.label_column in index else "" for line in lines])
+    return Recording(time=time, labels=labels, commands=commands * robot.actuation.scale, measured=tips,
+                     rows=np.arange(1, len(lines) + 1), header=header)

@@ -1,0 +1,338 @@
+"""Identify a real robot from motion-capture data (``tdcr fit``, :func:`fit`).
+
+The model is the physics of :func:`tdcr.physics.replay.replay` (series-elastic tendons with drive
+zeros, Capstan friction that follows each tendon's motion); the fit finds the parameters the data
+can identify by nonlinear least squares on the measured points (``scipy.optimize.least_squares``,
+trust-region reflective with bounds, forward-difference Jacobian):
+
+* ``E``: Young's modulus of the backbone (one backbone: the bending stiffness of every segment);
+* ``zero``: each tendon's drive zero, m (where it is just taut on the straight rod);
+* ``stiffness``: the series stiffness of each segment's tendons, N/m;
+* ``friction``: each segment's Capstan coefficient;
+* ``angle``: a rotation of each segment's tendon angles, rad (rough routing angles);
+* ``marker``, ``base_position``, ``base_rotation``: the measurement's registration (no new solve).
+
+A segment is the tendons that end together.  Every parameter is reported with its standard error
+from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p)).  Errors are the RMS of the
+3-D point error over the rows with a measurement, mm: "plain", and "aligned" after removing the
+mean error over the file (the metric of the public opencr-mujoco calibration).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from tdcr.physics.replay import REPLAY_OPTIONS, Replay, replay
+from tdcr.robot.real import Measurement, Recording, Robot
+
+#: The parameter groups :func:`fit` can identify, in order.
+GROUPS = ("E", "zero", "stiffness", "friction", "angle", "marker", "base_position", "base_rotation")
+#: Those :func:`fit` identifies unless told otherwise (the routing angles of a calibrated robot file are kept).
+DEFAULT_GROUPS = ("E", "zero", "stiffness", "friction", "marker", "base_position", "base_rotation")
+#: Those of the registration (changing them needs no new solve).
+REGISTRATION = ("marker", "base_position", "base_rotation")
+#: Each group's unit of the search (one unit of the optimiser's variable).
+_SCALE = {"E": 0.1, "zero": 1e-3, "stiffness": 0.1, "friction": 0.1, "angle": 0.1, "marker": 1e-3,
+          "base_position": 1e-3, "base_rotation": 0.01}
+#: E, stiffness and friction are searched as logarithms (positive, relative steps).
+_LOG = ("E", "stiffness", "friction")
+#: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons).
+_LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10}
+#: Forward-difference step in the search's units (large against the solver's tolerances).
+DIFF_STEP = 1e-2
+#: A row whose answer is not finite scores this error per coordinate, m.
+FAILED_ERROR = 0.05
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One identified value: ``name`` (e.g. ``zero[3]``), ``value`` and ``stderr`` in ``unit`` (SI)."""
+
+    name: str
+    value: float
+    stderr: float
+    unit: str
+
+
+@dataclass(frozen=True)
+class Errors:
+    """Point errors of a replay against a recording, mm: ``rmse`` (plain), ``aligned`` (after the mean
+    error is removed), ``max``, ``rows`` scored, ``skipped`` rows (no measurement), ``failed`` rows
+    (the solver did not converge), ``per_pattern`` label -> aligned-by-file RMSE (a ``_hold`` row
+    counts with its pattern)."""
+
+    rmse: float
+    aligned: float
+    max: float
+    rows: int
+    skipped: int
+    failed: int
+    per_pattern: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {"rmse_mm": self.rmse, "aligned_rmse_mm": self.aligned, "max_mm": self.max, "rows": self.rows,
+                "skipped": self.skipped, "failed": self.failed, "per_pattern_mm": self.per_pattern}
+
+
+def errors(answer: Replay, recording: Recording) -> Errors:
+    """:class:`Errors` of ``answer`` (:func:`tdcr.physics.replay.replay` of the recording's commands)."""
+    scored = recording.has_measurement
+    err = (answer.points - recording.measured)[scored] * 1e3
+    aligned = err - err.mean(axis=0)
+    dist, dist_aligned = np.linalg.norm(err, axis=1), np.linalg.norm(aligned, axis=1)
+    patterns = np.array([re.sub(r"_hold$", "", str(label)) for label in recording.labels[scored]])
+    per = {p: float(np.sqrt((dist_aligned[patterns == p] ** 2).mean())) for p in dict.fromkeys(patterns)}
+    return Errors(rmse=float(np.sqrt((dist**2).mean())), aligned=float(np.sqrt((dist_aligned**2).mean())),
+                  max=float(dist.max()), rows=int(scored.sum()), skipped=recording.skipped,
+                  failed=int((~answer.converged[scored]).sum()), per_pattern=per)
+
+
+def segments(robot: Robot) -> list[np.ndarray]:
+    """The tendons of each segment (those that end together), base first: index arrays."""
+    ends = robot.design.ends[0]
+    return [np.nonzero(np.isclose(ends, e, rtol=0, atol=1e-9))[0] for e in np.unique(ends)]
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where each parameter sits in the search vector: ``names`` (p,), ``groups`` (p,), ``index`` (p,)
+    (the tendon, segment or coordinate within its group)."""
+
+    names: tuple[str, ...]
+    groups: tuple[str, ...]
+    index: tuple[int, ...]
+
+    @property
+    def physics(self) -> np.ndarray:
+        return np.array([g not in REGISTRATION for g in self.groups], dtype=bool)
+
+
+def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
+    counts = {"E": 1, "zero": robot.n_tendons, "stiffness": len(segments(robot)), "friction": len(segments(robot)),
+              "angle": len(segments(robot)), "marker": 3, "base_position": 3, "base_rotation": 3}
+    names, gs, index = [], [], []
+    for g in GROUPS:
+        if g in groups:
+            for i in range(counts[g]):
+                names.append(g if counts[g] == 1 else f"{g}[{i}]")
+                gs.append(g)
+                index.append(i)
+    return _Layout(tuple(names), tuple(gs), tuple(index))
+
+
+def _values(robot: Robot, layout: _Layout) -> np.ndarray:
+    """The robot's current values of the layout's parameters (search space: logs for :data:`_LOG`)."""
+    d, m, segs = robot.design, robot.measurement, segments(robot)
+    out = []
+    for g, i in zip(layout.groups, layout.index, strict=True):
+        if g == "E":
+            out.append(math.log(d.E[0]))
+        elif g == "zero":
+            out.append(d.resolved("zero")[0, i])
+        elif g in ("stiffness", "friction"):
+            v = d.resolved(g)[0, segs[i]].mean()
+            out.append(math.log(v if np.isfinite(v) and v > 0 else _LOG_START[g]))
+        elif g == "angle":
+            out.append(0.0)
+        else:
+            out.append(getattr(m, g)[i])
+    return np.array(out)
+
+
+def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.ndarray) -> Robot:
+    """The robot with the layout's parameters at ``values`` (search space)."""
+    d, segs = robot.design, segments(robot)
+    fields = {"zero": d.resolved("zero").copy(), "stiffness": d.resolved("stiffness").copy(),
+              "friction": d.resolved("friction").copy(), "angle": base_angles.copy()}
+    E = d.E.copy()
+    reg = {k: getattr(robot.measurement, k).copy() for k in REGISTRATION}
+    for g, i, v in zip(layout.groups, layout.index, values, strict=True):
+        if g == "E":
+            E[0] = math.exp(v)
+        elif g == "zero":
+            fields["zero"][0, i] = v
+        elif g in ("stiffness", "friction"):
+            fields[g][0, segs[i]] = math.exp(v)
+        elif g == "angle":
+            fields["angle"][0, segs[i]] = base_angles[0, segs[i]] + v
+        else:
+            reg[g][i] = v
+    measurement = replace(robot.measurement, **reg)
+    return replace(robot, design=d.replace(E=E, **fields), measurement=measurement)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """The answer of :func:`fit`: the fitted ``robot``, its ``parameters`` with standard errors, the
+    ``train`` and (if given) ``validate`` :class:`Errors`, the replays ``train_replay`` and
+    ``validate_replay``, the ``initial`` train errors, ``seconds`` and ``solves`` (replays run)."""
+
+    robot: Robot
+    parameters: list[Parameter]
+    train: Errors
+    validate: Errors | None
+    train_replay: Replay
+    validate_replay: Replay | None
+    initial: Errors
+    seconds: float
+    solves: int
+
+    def report(self) -> dict:
+        """The fit as JSON (the robot file's ``fitted``)."""
+        return {"parameters": [{"name": p.name, "value": p.value, "stderr": p.stderr, "unit": p.unit}
+                               for p in self.parameters],
+                "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
+                "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves}
+
+
+_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "angle": "rad", "marker": "m",
+          "base_position": "m", "base_rotation": "rad"}
+
+
+def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, groups: Sequence[str] = DEFAULT_GROUPS,
+        max_iterations: int = 30, budget: float = 240.0, progress: bool = False, workers: int = 0) -> FitResult:
+    """Identify ``groups`` (:data:`GROUPS`) of the robot from the recording ``train``.
+
+    Args:
+        robot: the robot file's robot: the start of every parameter.
+        train: the recording fitted (its rows without a measurement are skipped).
+        validate: a recording only scored (the fitted robot replays it).
+        groups: the parameter groups to identify.
+        max_iterations: the most least-squares iterations (each a Jacobian: one replay per
+            physics parameter).
+        budget: seconds after which the search stops at the best point it has (the standard
+            errors and the reports follow, about one more Jacobian).
+        progress: show a progress bar of the replays (tqdm, on stderr).
+        workers: kernel threads (0: one per core).
+    """
+    from scipy.optimize import least_squares
+    from tqdm import tqdm
+
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise ValueError(f"groups: unknown {unknown}; they are {list(GROUPS)}")
+    start = time.perf_counter()
+    layout = _layout(robot, groups)
+    scale = np.array([_SCALE[g] for g in layout.groups])
+    x0 = _values(robot, layout)
+    base_angles = robot.design.angles.copy()
+    scored = train.has_measurement
+    physics = layout.physics
+    cache: dict[bytes, Replay] = {}
+    bar = tqdm(desc="fit: replays", unit="replay", disable=not progress, leave=False)
+    solves = [0]
+    best = {"cost": np.inf, "z": np.zeros(len(x0))}
+
+    def solved(x: np.ndarray) -> Replay:
+        key = np.round(x[physics], 14).tobytes()
+        if key not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            cache[key] = replay(_apply(robot, layout, x, base_angles), train.commands, workers=workers,
+                                options=REPLAY_OPTIONS)
+            solves[0] += 1
+            bar.update(1)
+        return cache[key]
+
+    def residual(z: np.ndarray, *, track: bool = True) -> np.ndarray:
+        if track and time.perf_counter() - start > budget:
+            raise _OutOfTime
+        x = x0 + z * scale
+        fitted = _apply(robot, layout, x, base_angles)
+        answer = solved(x)
+        points = fitted.measurement.points(answer.tip_position, answer.tip_rotation)
+        # a row whose pull-ins were missed still has an equilibrium (at the tensions found): scored as it is
+        err = np.where(np.isfinite(points), points - train.measured, FAILED_ERROR)
+        r = (err[scored] * 1e3).ravel()  # mm
+        cost = float(r @ r)
+        if track and cost < best["cost"]:
+            best["cost"], best["z"] = cost, z.copy()
+        return r
+
+    initial_robot = _apply(robot, layout, x0, base_angles)
+    initial = errors(_replay_points(initial_robot, solved(x0)), train)
+    try:
+        least_squares(residual, np.zeros(len(x0)), diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf",
+                      x_scale="jac")
+    except _OutOfTime:
+        pass
+    z = best["z"]
+    jac = _jacobian(lambda v: residual(v, track=False), z)
+    bar.close()
+    x = x0 + z * scale
+    fitted = _apply(robot, layout, x, base_angles)
+    m, p = jac.shape
+    s2 = best["cost"] / max(m - p, 1)  # mm^2
+    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    stderr = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
+    params = []
+    for name, g, v, se in zip(layout.names, layout.groups, x, stderr, strict=True):
+        value = math.exp(v) if g in _LOG else v
+        params.append(Parameter(name=name, value=float(value), stderr=float(value * se if g in _LOG else se),
+                                unit=_UNITS[g]))
+    train_replay = _replay_points(fitted, solved(x))
+    val_replay = None if validate is None else replay(fitted, validate.commands, workers=workers,
+                                                      options=REPLAY_OPTIONS)
+    seconds = time.perf_counter() - start
+    result_robot = replace(fitted, extra=fitted.extra | {"fitted": {}})
+    out = FitResult(robot=result_robot, parameters=params, train=errors(train_replay, train),
+                    validate=None if validate is None else errors(val_replay, validate), train_replay=train_replay,
+                    validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0])
+    return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
+
+
+class _OutOfTime(Exception):
+    """The fit's time budget is spent."""
+
+
+def _jacobian(residual, z: np.ndarray) -> np.ndarray:
+    """Forward differences of ``residual`` at ``z`` with the step :data:`DIFF_STEP` ``(m, p)``."""
+    r0 = residual(z)
+    jac = np.empty((r0.size, z.size))
+    for j in range(z.size):
+        step = z.copy()
+        step[j] += DIFF_STEP
+        jac[:, j] = (residual(step) - r0) / DIFF_STEP
+    return jac
+
+
+def _replay_points(robot: Robot, answer: Replay) -> Replay:
+    """``answer`` with its measured points under ``robot``'s registration."""
+    return replace(answer, points=robot.measurement.points(answer.tip_position, answer.tip_rotation))
+
+
+def plot(result: FitResult, train: Recording, validate: Recording | None, path: str) -> None:
+    """Measured against predicted tips (x, y, z over the rows) and the error over time, for the
+    train and validation recordings, into ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sets = [("train", train, result.train_replay, result.train)]
+    if validate is not None:
+        sets.append(("validate", validate, result.validate_replay, result.validate))
+    fig, axes = plt.subplots(2, len(sets), figsize=(7 * len(sets), 7), squeeze=False)
+    for col, (name, rec, answer, err) in enumerate(sets):
+        t = rec.time - rec.time[0]
+        ax = axes[0, col]
+        for a, axis in enumerate("xyz"):
+            ax.plot(t, rec.measured[:, a] * 1e3, ".", ms=2, label=f"measured {axis}")
+            ax.plot(t, answer.points[:, a] * 1e3, "-", lw=0.8, label=f"predicted {axis}")
+        ax.set(title=f"{name}: tip, mm (RMSE {err.rmse:.2f}, aligned {err.aligned:.2f})", xlabel="time, s")
+        ax.legend(fontsize=6, ncol=3)
+        ax = axes[1, col]
+        ax.plot(t, np.linalg.norm(answer.points - rec.measured, axis=1) * 1e3, lw=0.8)
+        ax.set(title=f"{name}: |error|, mm (max {err.max:.2f})", xlabel="time, s", ylabel="mm")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+__all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "errors", "fit", "plot", "segments"]
