@@ -521,6 +521,11 @@ def _cmd_openapi(args) -> int:
         Path(args.out).write_text(text)
         print(f"wrote {args.out}: OpenAPI {document['openapi']}, {len(document['paths'])} paths, "
               f"{len(text):,} bytes", file=sys.stderr)
+        from tdcr.robot.real import robot_schema
+
+        robot = Path(args.out).with_name("robot.schema.json")  # the robot file's schema beside it
+        robot.write_text(json.dumps(robot_schema(), indent=2, sort_keys=True) + "\n")
+        print(f"wrote {robot}: the robot file's JSON Schema", file=sys.stderr)
     return 0
 
 

@@ -309,3 +309,39 @@ def read_recording(path: str | Path, robot: Robot, *, measured: bool = True) -> 
     labels = np.array([line[index[robot.label_column]] if robot.label_column in index else "" for line in lines])
     return Recording(time=time, labels=labels, commands=commands * robot.actuation.scale, measured=tips,
                      rows=np.arange(1, len(lines) + 1), header=header)
+
+
+def robot_schema() -> dict:
+    """The robot file's JSON Schema (``openapi/robot.schema.json``); its ``design`` is the solver's
+    request design (``tdcr.api.schemas.Design``)."""
+    from tdcr.api.schemas import Design
+
+    design = Design.model_json_schema(ref_template="#/$defs/{model}")
+    defs = design.pop("$defs", {})
+    vector = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+    columns = {"type": "array", "items": {"type": "string", "minLength": 1}}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema", "title": "tdcr robot file",
+        "description": "A real robot for tdcr replay and tdcr fit (tdcr/robot/real.py): its design, how its drives are "
+                       "commanded (one CSV column per tendon) and how its tip is measured. Other keys are kept.",
+        "type": "object", "required": ["design", "actuation", "measurement"],
+        "properties": {
+            "name": {"type": "string"},
+            "design": design,
+            "actuation": {"type": "object", "required": ["columns", "unit"], "properties": {
+                "columns": columns | {"description": "one column per tendon, in tendon order"},
+                "unit": {"enum": list(UNITS)}, "kind": {"enum": list(KINDS), "default": "displacement"},
+                "deadband": {"type": "number", "minimum": 0, "default": 0,
+                             "description": "the least command change (the actuation's unit) that moves a tendon; "
+                                            "below it the tendon keeps its motion (pull or release)"}}},
+            "measurement": {"type": "object", "required": ["columns", "unit"], "properties": {
+                "columns": columns | {"minItems": 3, "maxItems": 3}, "unit": {"enum": list(LENGTH_UNITS)},
+                "marker": vector | {"description": "the measured point in the tip frame, m"},
+                "base_position": vector | {"description": "the base frame's origin in the measurement frame, m"},
+                "base_rotation": vector | {"description": "the base frame's rotation in the measurement frame, a "
+                                                          "rotation vector, rad"}}},
+            "time_column": {"type": "string", "default": "timestamp"},
+            "label_column": {"type": "string"},
+            "fitted": {"type": "object", "description": "what tdcr fit found: parameters with standard errors, "
+                                                        "train and validation errors (informative)"}},
+        "$defs": defs}

@@ -44,6 +44,11 @@ _SCALE = {"E": 0.1, "zero": 1e-3, "stiffness": 0.1, "friction": 0.1, "angle": 0.
 _LOG = ("E", "stiffness", "friction")
 #: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons).
 _LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10}
+#: The search's bounds of each group's value (logs for :data:`_LOG`): physical ranges, and the
+#: admissible ranges of the design fields.
+_BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffness": (math.log(50.0), math.log(1e7)),
+           "friction": (math.log(1e-3), math.log(1.0)), "angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
+           "base_position": (-0.05, 0.05), "base_rotation": (-0.5, 0.5)}
 #: Forward-difference step in the search's units (large against the solver's tolerances).
 DIFF_STEP = 1e-2
 #: A row whose answer is not finite scores this error per coordinate, m.
@@ -220,7 +225,9 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     start = time.perf_counter()
     layout = _layout(robot, groups)
     scale = np.array([_SCALE[g] for g in layout.groups])
-    x0 = _values(robot, layout)
+    lower = np.array([_BOUNDS[g][0] for g in layout.groups])
+    upper = np.array([_BOUNDS[g][1] for g in layout.groups])
+    x0 = np.clip(_values(robot, layout), lower + 1e-6 * (upper - lower), upper - 1e-6 * (upper - lower))
     base_angles = robot.design.angles.copy()
     scored = train.has_measurement
     physics = layout.physics
@@ -258,8 +265,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     initial_robot = _apply(robot, layout, x0, base_angles)
     initial = errors(_replay_points(initial_robot, solved(x0)), train)
     try:
-        least_squares(residual, np.zeros(len(x0)), diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf",
-                      x_scale="jac")
+        least_squares(residual, np.zeros(len(x0)), bounds=((lower - x0) / scale, (upper - x0) / scale),
+                      diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf", x_scale=1.0)
     except _OutOfTime:
         pass
     z = best["z"]

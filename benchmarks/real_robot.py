@@ -1,0 +1,88 @@
+"""The real robot's targets (issue: a real robot): fit on a recording, replay another, print a table.
+
+    python benchmarks/real_robot.py                      # the shared FTDCR v4 recording
+    python benchmarks/real_robot.py --robot R.json --train T.csv --validate V.csv
+
+Rows: the validation file's RMSE (aligned: the mean error over the file removed; plain), the fit's
+time, and the replay's speed (rows/s on every core; the train file, with the fitted friction and,
+for comparison, without it).  Figures depend on the machine: it is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tdcr.physics.replay import replay  # noqa: E402
+from tdcr.robot.real import load_robot, read_recording  # noqa: E402
+from tdcr.search.fit import errors, fit  # noqa: E402
+
+SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
+TARGETS = {"val aligned RMSE, mm": ("<=", 6.5), "val plain RMSE, mm": ("<=", 8.0), "fit, s": ("<=", 300.0),
+           "replay, rows/s": (">=", 2000.0)}
+
+
+def _rate(robot, commands, repeats: int = 3) -> float:
+    replay(robot, commands[:20])  # compiled
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        replay(robot, commands)
+        best = min(best, time.perf_counter() - start)
+    return len(commands) / best
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
+    parser.add_argument("--train", default=str(SHARED / "train.csv"))
+    parser.add_argument("--validate", default=str(SHARED / "val.csv"))
+    parser.add_argument("--budget", type=float, default=240.0, help="the fit's search budget, s")
+    parser.add_argument("--out", default=None, help="write the fitted robot file here")
+    args = parser.parse_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
+    robot = load_robot(args.robot)
+    train = read_recording(args.train, robot)
+    val = read_recording(args.validate, robot)
+    start = time.perf_counter()
+    result = fit(robot, train, validate=val, budget=args.budget)
+    fit_seconds = time.perf_counter() - start
+    if args.out:
+        result.robot.save(args.out)
+    fitted = result.robot
+    rate = _rate(fitted, train.commands)
+    frictionless = replace(fitted, design=fitted.design.replace(friction=np.zeros(fitted.design.offset.shape)))
+    rate_frictionless = _rate(frictionless, train.commands)
+    start_errors = errors(replay(robot, val.commands), val)
+    print(f"\nfit: {result.solves} replays of {len(train.time)} rows; train RMSE {result.train.rmse:.2f} mm, aligned "
+          f"{result.train.aligned:.2f} mm (start {result.initial.rmse:.2f} / {result.initial.aligned:.2f})")
+    for p in result.parameters:
+        print(f"  {p.name:18s} {p.value:12.5g} +- {p.stderr:.2g} {p.unit}")
+    rows = {"val aligned RMSE, mm": result.validate.aligned, "val plain RMSE, mm": result.validate.rmse,
+            "fit, s": fit_seconds, "replay, rows/s": rate}
+    print(f"\n| quantity | measured | target | met |\n|---|---|---|---|")
+    for name, value in rows.items():
+        op, target = TARGETS[name]
+        met = value <= target if op == "<=" else value >= target
+        print(f"| {name} | {value:.2f} | {op} {target:g} | {'yes' if met else 'NO'} |")
+    print(f"| val max error, mm | {result.validate.max:.2f} | | |")
+    print(f"| val before the fit (robot file as given), aligned / plain mm | {start_errors.aligned:.2f} / "
+          f"{start_errors.rmse:.2f} | | |")
+    print(f"| replay without friction, rows/s | {rate_frictionless:.0f} | | |")
+    print(f"| rows not converged (train, val) | {result.train.failed}, {result.validate.failed} | | |")
+    worst = sorted(result.validate.per_pattern.items(), key=lambda kv: -kv[1])[:5]
+    print("\nval patterns, aligned RMSE mm (worst 5): " + ", ".join(f"{k} {v:.2f}" for k, v in worst))
+
+
+if __name__ == "__main__":
+    main()

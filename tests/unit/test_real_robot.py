@@ -1,0 +1,199 @@
+"""A real robot: series-elastic tendons (eq. SE), Capstan friction along the path (eq. CAP), robot
+files and recordings, replay and the fit's pieces, against closed forms and the answers' own geometry."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tdcr.physics.cosserat import solve
+from tdcr.physics.replay import replay
+from tdcr.robot.designs import DesignBatch
+from tdcr.robot.real import RobotFileError, load_robot, motions, read_recording
+
+pytestmark = pytest.mark.unit
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "ftdcr_v4.json"
+
+
+def _design(n: int = 1, *, tension=(3.0, 0.0, 0.0, 0.0), **fields) -> DesignBatch:
+    d = DesignBatch(E=np.full(n, 30e9), r=np.full(n, 0.001), L=np.full(n, 0.2), offset=np.full((n, 4), 0.008),
+                    pitch=np.zeros((n, 4)), tension=np.tile(np.asarray(tension, float), (n, 1)))
+    return d.replace(**fields) if fields else d
+
+
+FRACTIONS = np.linspace(0.0, 1.0, 41)
+
+
+def test_friction_zero_and_rigid_tendons_give_todays_answers():
+    """friction 0 (either motion) and infinite stiffness, zero 0: today's answers to 1e-12."""
+    designs = _design(3, tension=(3.0, 0.5, 0.0, 1.0), pitch=np.array([[0, 5, -5, 2]] * 3, float))
+    base = solve(designs, FRACTIONS)
+    same = solve(designs.replace(friction=np.zeros((3, 4)), motion=np.array([[1, -1, 1, -1]] * 3, float),
+                                 stiffness=np.full((3, 4), np.inf), zero=np.zeros((3, 4))), FRACTIONS)
+    assert base.converged.all() and same.converged.all()
+    np.testing.assert_allclose(same.tendons, base.tendons, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(base.tension_profile[:, :, 0], 3.0)  # constant without friction
+
+
+@pytest.mark.parametrize("motion", [1.0, -1.0], ids=["pull", "release"])
+def test_the_tension_profile_is_the_capstan_law_of_the_answers_own_geometry(motion):
+    """tau(s) = tau(0) exp(-/+ mu int |dt/ds| ds), the wrap angle measured on the answer's own tendon
+    path (its tangents by finite differences of the returned positions, a fine output grid)."""
+    mu = 0.3
+    fractions = np.linspace(0.0, 1.0, 801)
+    sol = solve(_design(friction=np.full((1, 4), mu), motion=np.full((1, 4), motion),
+                        pitch=np.full((1, 4), 4.0)), fractions)
+    assert sol.converged.all()
+    path = sol.tendons[0, :, 0]  # (n, 3) the pulled tendon, helical
+    tangent = np.diff(path, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1)[:, None]
+    turn = np.arccos(np.clip((tangent[1:] * tangent[:-1]).sum(axis=1), -1.0, 1.0))
+    wrap = np.concatenate([[0.0], np.cumsum(turn)])  # from the first chord's midpoint to each chord's
+    got = 0.5 * (sol.tension_profile[0, 1:, 0] + sol.tension_profile[0, :-1, 0])  # at the chords' midpoints
+    assert wrap[-1] > 0.1 and abs(sol.tension_profile[0, 0, 0] - 3.0) < 1e-15
+    np.testing.assert_allclose(got / got[0], np.exp(-motion * mu * wrap), rtol=2e-6)
+    assert (np.diff(sol.tension_profile[0, :, 0]) * motion <= 0).all()  # falls when pulling, grows releasing
+
+
+def test_a_planar_bend_wraps_as_far_as_the_tip_turns():
+    """A straight tendon bending the rod in a plane: its wrap angle is the tip frame's angle."""
+    sol = solve(_design(friction=np.full((1, 4), 0.2)), FRACTIONS)
+    tip_angle = np.arctan2(sol.rotation[0, -1, 0, 2], sol.rotation[0, -1, 2, 2])
+    wrap = -np.log(sol.tension_profile[0, -1, 0] / 3.0) / 0.2
+    np.testing.assert_allclose(wrap, abs(tip_angle), rtol=1e-7)
+
+
+def test_friction_is_internal_the_rod_and_tendons_carry_no_net_load():
+    """Friction only moves load between tendon and rod: without external loads the total force
+    across every cut, rod plus tendons (tau_i(s) t_i, from the answer's profile and tendon path),
+    is zero to the solver's tolerance."""
+    sol = solve(_design(friction=np.full((1, 4), 0.4), tension=(3.0, 1.0, 0.0, 0.0)), np.linspace(0, 1, 401))
+    path = sol.tendons[0]  # (n, N_t, 3)
+    t = np.gradient(path, axis=0)
+    t /= np.linalg.norm(t, axis=2, keepdims=True)
+    total = sol.force[0] + np.einsum("ni,nij->nj", sol.tension_profile[0], t)
+    assert np.abs(total[5:-5]).max() < 1e-4 * 4.0  # central differences of the path: O(h^2)
+
+
+def test_a_series_spring_pulls_with_k_times_the_pull_in_it_takes_up():
+    """tau = k (u - zero - d) to 1e-9, d the path's shortening in the answer (eq. SE); slack below."""
+    k, zero = np.array([[800.0, 2000.0, 1e5, 500.0]]), np.array([[0.001, 0.0, -0.0005, 0.0]])
+    u = np.array([[0.004, 0.0005, 0.0, -0.002]])
+    sol = solve(_design(tension=(0, 0, 0, 0), displacement=u, stiffness=k, zero=zero), np.ones(1))
+    assert sol.converged.all()
+    expected = np.maximum(k * (u - zero - sol.displacement), 0.0)
+    np.testing.assert_allclose(sol.tension, expected, rtol=0, atol=1e-9 * k.max())
+    assert sol.tension[0, 0] > 0.5 and sol.slack[0, 3]
+    stiff = solve(_design(tension=(0, 0, 0, 0), displacement=u, stiffness=np.full((1, 4), 1e11), zero=zero),
+                  np.ones(1))
+    rigid = solve(_design(tension=(0, 0, 0, 0), displacement=u - zero), np.ones(1))
+    np.testing.assert_allclose(stiff.tension, rigid.tension, rtol=1e-4, atol=1e-6)  # k -> inf: rigid
+
+
+def _loop(mu: float, cycles: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A pull/release loop of one tendon against a series spring, ``cycles`` times: its commands
+    and the tip's x, m."""
+    up = np.linspace(0.0, 0.004, 9)
+    u = np.concatenate([up, up[::-1][1:]] * cycles)[:, None]
+    commands = np.concatenate([u, np.zeros((len(u), 3))], axis=1)
+    designs = _design(len(u), tension=(0, 0, 0, 0), displacement=commands, stiffness=np.full((len(u), 4), 1500.0),
+                      friction=np.full((len(u), 4), mu), motion=motions(commands))
+    sol = solve(designs, np.ones(1), sequence=True)
+    assert sol.converged.all()
+    return u[:, 0], sol.backbone[:, -1, 0]
+
+
+def test_a_pull_release_loop_widens_with_friction_and_repeats_without_drift():
+    widths = []
+    for mu in (0.0, 0.1, 0.3):
+        u, x = _loop(mu)
+        half = len(u) // 2
+        pull, release = x[:9], x[8:17][::-1]  # the same commands, up and down
+        widths.append(np.abs(pull - release).max())
+        np.testing.assert_allclose(x[half:], x[:half], rtol=0, atol=1e-9)  # the second cycle repeats the first (1 nm)
+    assert widths[0] < 1e-12 < widths[1] < widths[2]
+
+
+def test_motions_follow_the_command_history_and_a_hold_keeps_the_last():
+    commands = np.array([[0.0], [1.0], [2.0], [2.0], [1.0], [1.0], [1.02], [3.0]])
+    np.testing.assert_array_equal(motions(commands, deadband=0.05)[:, 0], [1, 1, 1, 1, -1, -1, -1, 1])
+
+
+def test_replay_in_sequence_equals_independent_solves():
+    robot = load_robot(EXAMPLE)
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
+    together = replay(robot, rec.commands)
+    alone = [replay(robot, rec.commands[t:t + 1], motion=together.motion[t:t + 1]) for t in (0, 7, len(rec.time) - 1)]
+    for t, a in zip((0, 7, len(rec.time) - 1), alone, strict=True):
+        np.testing.assert_allclose(a.points[0], together.points[t], rtol=0, atol=1e-8)
+    assert together.converged.all()
+
+
+def _write(tmp_path, text: str, name: str = "c.csv") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+HEADER = "timestamp,pattern_label," + ",".join(f"servo_{s}_mm" for s in (4, 3, 9, 5, 2, 8, 6, 1, 7)) + \
+    ",tip_x,tip_y,tip_z\n"
+
+
+def test_bad_recordings_name_the_column_and_row(tmp_path):
+    robot = load_robot(EXAMPLE)
+    row = lambda t, x="0": f"{t},p,{x},0,0,0,0,0,0,0,0,1,2,180\n"  # noqa: E731
+    with pytest.raises(RobotFileError, match="missing column servo_7_mm"):
+        read_recording(_write(tmp_path, HEADER.replace(",servo_7_mm", "") + "1,p,0,0,0,0,0,0,0,0,1,2,180\n"), robot)
+    with pytest.raises(RobotFileError, match="column servo_4_mm, row 2: not a finite number"):
+        read_recording(_write(tmp_path, HEADER + row(1) + row(2, "nan")), robot)
+    with pytest.raises(RobotFileError, match="column timestamp, row 3: timestamps must increase"):
+        read_recording(_write(tmp_path, HEADER + row(1) + row(2) + row(2)), robot)
+    rec = read_recording(_write(tmp_path, HEADER + row(1) + "2,p,0,0,0,0,0,0,0,0,0,,,\n" + row(3)), robot)
+    assert rec.skipped == 1 and rec.has_measurement.tolist() == [True, False, True]
+
+
+def test_bad_robot_files_name_the_key(tmp_path):
+    good = json.loads(EXAMPLE.read_text())
+    for change, words in [(lambda d: d["actuation"].update(unit="inch"), "actuation.unit: must be one of"),
+                          (lambda d: d["actuation"].update(columns=["a"]), "actuation.columns: must be a list of 9"),
+                          (lambda d: d["design"]["tendons"][2].update(friction=-1), "design.tendons[2].friction"),
+                          (lambda d: d["design"]["tendons"][0].update(motion="push"), "design.tendons[0].motion"),
+                          (lambda d: d["measurement"].update(marker=[0, 0]), "measurement.marker"),
+                          (lambda d: d.pop("measurement"), "measurement: missing")]:
+        data = json.loads(json.dumps(good))
+        change(data)
+        with pytest.raises(RobotFileError, match=words.replace("[", r"\[").replace("]", r"\]")):
+            load_robot(data)
+
+
+def test_the_cli_replays_and_exits_2_on_bad_input(tmp_path):
+    sample = ROOT / "tests" / "data" / "ftdcr_v4_sample.csv"
+    out = tmp_path / "pred.csv"
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "replay", str(EXAMPLE), str(sample), "--out", str(out),
+                          "--quiet"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    summary = json.loads(run.stdout)
+    assert summary["rows"] == len(out.read_text().splitlines()) - 1 and summary["errors"]["rows"] == summary["rows"]
+    assert out.read_text().splitlines()[0] == "timestamp,pattern_label,tip_x,tip_y,tip_z,status"
+    bad = _write(tmp_path, HEADER + "1,p,0,0,0,0,0,0,0,0,0,1,2,180\n0.5,p,0,0,0,0,0,0,0,0,0,1,2,180\n")
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "replay", str(EXAMPLE), str(bad), "--out", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2 and "column timestamp, row 2" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_the_robot_schema_is_committed_and_the_example_follows_it():
+    import jsonschema
+
+    from tdcr.robot.real import robot_schema
+
+    committed = json.loads((ROOT / "openapi" / "robot.schema.json").read_text())
+    assert committed == json.loads(json.dumps(robot_schema())), "run: tdcr openapi"
+    jsonschema.validate(json.loads(EXAMPLE.read_text()), committed)
+    robot = load_robot(EXAMPLE)
+    assert load_robot(robot.to_json()).to_json() == robot.to_json()  # a saved robot file reads back the same
