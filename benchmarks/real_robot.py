@@ -70,7 +70,7 @@ def main() -> None:
         print(f"  {p.name:18s} {p.value:12.5g} +- {p.stderr:.2g} {p.unit}")
     rows = {"val aligned RMSE, mm": result.validate.aligned, "val plain RMSE, mm": result.validate.rmse,
             "fit, s": fit_seconds, "replay, rows/s": rate}
-    print(f"\n| quantity | measured | target | met |\n|---|---|---|---|")
+    print("\n| quantity | measured | target | met |\n|---|---|---|---|")
     for name, value in rows.items():
         op, target = TARGETS[name]
         met = value <= target if op == "<=" else value >= target

@@ -943,9 +943,10 @@ def find_tensions(rod, target, grid, tols, slack):
     The displacement d_i = l0_i - l_i(tau) has the Jacobian -dl/dtau = int A^T J^-1 A ds,
     symmetric positive semi-definite (with friction scaled by each node's gain, the wrap angles
     held fixed): Newton on the driven tendons with that Jacobian plus diag(c) (:func:`_path_lengths`),
-    projected onto tau >= 0, the Jacobian kept while each step cuts the miss by ``_CHORD_RATE``.  A tendon whose displacement would need a push (d_i > target_i at
-    tau_i = 0: its path shortened more than it was pulled in) is slack: tension 0, ``slack[i]``
-    True.  Returns (converged, iterations)."""
+    projected onto tau >= 0, the Jacobian kept while each step cuts the miss by ``_CHORD_RATE``.
+    A tendon whose displacement would need a push (d_i > target_i at tau_i = 0: its path shortened
+    more than it was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged,
+    iterations)."""
     length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, rod.compliance
     edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
     k0 = edges.shape[0] - 1
