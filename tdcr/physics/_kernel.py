@@ -930,6 +930,10 @@ def _sensitivities(sig, act, xs, rod, sens, gains):
 
 #: displacement actuation: a step keeps the last Jacobian (a chord step) while each cuts the miss by this factor
 _CHORD_RATE = 0.25
+#: a step moves no tension by more than _MAX_STEP_N + _MAX_STEP_FRACTION of it (antagonistic tendons
+#: can have several equilibria: small steps follow the one the start is on), and one that does not
+#: lower the squared miss is halved, down to _MIN_DAMPING
+_MAX_STEP_N, _MAX_STEP_FRACTION, _MIN_DAMPING = 1.0, 0.5, 1.0 / 64.0
 #: and Newton on the tensions gives up after this many iterations
 MAX_DISPLACEMENT_ITERATIONS = 50
 
@@ -943,7 +947,9 @@ def find_tensions(rod, target, grid, tols, slack):
     The displacement d_i = l0_i - l_i(tau) has the Jacobian -dl/dtau = int A^T J^-1 A ds,
     symmetric positive semi-definite (with friction scaled by each node's gain, the wrap angles
     held fixed): Newton on the driven tendons with that Jacobian plus diag(c) (:func:`_path_lengths`),
-    projected onto tau >= 0, the Jacobian kept while each step cuts the miss by ``_CHORD_RATE``.
+    projected onto tau >= 0, the Jacobian kept while each step cuts the miss by ``_CHORD_RATE``,
+    each step capped (``_MAX_STEP_N``, ``_MAX_STEP_FRACTION``) and halved while it does not lower
+    the squared miss.
     A tendon whose displacement would need a push (d_i > target_i at tau_i = 0: its path shortened
     more than it was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged,
     iterations)."""
@@ -964,7 +970,8 @@ def find_tensions(rod, target, grid, tols, slack):
     free = np.zeros(n_t, dtype=np.bool_)
     gains = np.empty((2 * k0 + 1 if has_friction(rod.capstan) else 0, n_t))
     stretch = np.empty((2 * k0 + 1, n_t))
-    last_worst = np.inf
+    last_worst, last_merit, alpha = np.inf, np.inf, 1.0
+    tau_before, full_step = np.empty(n_t), np.zeros(n_t)
     for it in range(MAX_DISPLACEMENT_ITERATIONS):
         xs[:, :] = 0.0
         xs[0, 2] = 1.0
@@ -973,7 +980,7 @@ def find_tensions(rod, target, grid, tols, slack):
             return False, it + 1
         _path_lengths_of(sig, act, stretch, rod, lengths)
         # residual and the free set: driven tendons that pull, or at zero tension but short of their target
-        n_free, worst = 0, 0.0
+        n_free, worst, merit = 0, 0.0, 0.0
         for i in range(n_t):
             free[i] = False
             if target[i] != target[i]:
@@ -983,9 +990,16 @@ def find_tensions(rod, target, grid, tols, slack):
                 free[i] = True
                 n_free += 1
                 worst = max(worst, abs(miss))
+                merit += miss * miss
             slack[i] = tau[i] == 0.0 and miss > 0.0
         if worst <= tols.displacement_tol:
             return True, it + 1
+        if not (merit < last_merit) and alpha > _MIN_DAMPING:  # the step overshot: half as far along it
+            alpha *= 0.5
+            for i in range(n_t):
+                tau[i] = max(tau_before[i] + alpha * full_step[i], 0.0)
+            continue
+        last_merit, alpha = merit, 1.0
         if it == 0 or worst > _CHORD_RATE * last_worst:  # the Jacobian anew (else the last one: a chord step)
             if not _sensitivities(sig, act, xs, rod, sens, gains):
                 return False, it + 1
@@ -1006,8 +1020,16 @@ def find_tensions(rod, target, grid, tols, slack):
                 a[p, q] = -dlen[i, idx[q]] + (comp[i] if p == q else 0.0)
         step = np.empty(n_free)
         _solve_dense(a, b, step)
+        reach = 1.0  # at most _MAX_STEP_N + _MAX_STEP_FRACTION tau per tendon and step: stay on the branch
         for p in range(n_free):
-            tau[idx[p]] = max(tau[idx[p]] + step[p], 0.0)
+            cap = _MAX_STEP_N + _MAX_STEP_FRACTION * tau[idx[p]]
+            if abs(step[p]) * reach > cap:
+                reach = cap / abs(step[p])
+        for i in range(n_t):
+            tau_before[i], full_step[i] = tau[i], 0.0
+        for p in range(n_free):
+            full_step[idx[p]] = reach * step[p]
+            tau[idx[p]] = max(tau[idx[p]] + reach * step[p], 0.0)
     return False, MAX_DISPLACEMENT_ITERATIONS
 
 

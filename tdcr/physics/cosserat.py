@@ -30,6 +30,20 @@ M(0) (3 unknowns) with RK4 on (p, R, M), M' = -p' x N (eq. MT), the local
 strains again from (W1, W2), the shooting Jacobian from the variational
 equations, and load continuation only when the direct Newton fails.
 
+Real tendons (docs/real_robot.md).  A displacement-driven tendon with a series stiffness k_i (of
+the tendon and its drive) and a drive zero z_i pulls with
+
+    tau_i = k_i max(0, u_i - z_i - d_i),   d_i = l0_i - l_i                (eq. SE)
+
+(u_i the drive's reading, d_i the length its path shortened; k_i = inf: the rigid u_i - z_i = d_i).
+Capstan friction between a tendon and its guides makes its tension vary along the path,
+
+    d tau_i / ds = c_i tau_i |d t_i / ds|,  tau_i(s) = tau_i(0) exp(c_i theta_i(s))   (eq. CAP)
+
+with c_i = -mu_i while the tendon is pulled in and +mu_i while it is released, t_i its unit
+tangent and theta_i its wrap angle from the base.  Friction is internal to rod and tendons, so
+(W1, W2) hold at every s with tau_i(s) in place of tau_i: the cut's total wrench stays continuous.
+
 Where it runs.  The compiled kernels (:mod:`tdcr.physics._kernel`, numba) are the one
 implementation of the method: tendon loads and external loads, each with the step chosen per
 design from a Richardson estimate (``SolverOptions.step_tol``), the exact Jacobian to the tensions

@@ -32,25 +32,28 @@ from tdcr.physics.replay import REPLAY_OPTIONS, Replay, replay
 from tdcr.robot.real import Measurement, Recording, Robot
 
 #: The parameter groups :func:`fit` can identify, in order.
-GROUPS = ("E", "zero", "stiffness", "friction", "angle", "marker", "base_position", "base_rotation")
+GROUPS = ("E", "zero", "stiffness", "friction", "offset", "angle", "marker", "base_position", "base_rotation")
 #: Those :func:`fit` identifies unless told otherwise (the routing angles of a calibrated robot file are kept).
 DEFAULT_GROUPS = ("E", "zero", "stiffness", "friction", "marker", "base_position", "base_rotation")
 #: Those of the registration (changing them needs no new solve).
 REGISTRATION = ("marker", "base_position", "base_rotation")
 #: Each group's unit of the search (one unit of the optimiser's variable).
-_SCALE = {"E": 0.1, "zero": 1e-3, "stiffness": 0.1, "friction": 0.1, "angle": 0.1, "marker": 1e-3,
+_SCALE = {"E": 0.1, "zero": 1e-3, "stiffness": 0.1, "friction": 0.1, "offset": 0.05, "angle": 0.1, "marker": 1e-3,
           "base_position": 1e-3, "base_rotation": 0.01}
 #: E, stiffness and friction are searched as logarithms (positive, relative steps).
-_LOG = ("E", "stiffness", "friction")
+_LOG = ("E", "stiffness", "friction", "offset")
 #: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons).
 _LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10}
 #: The search's bounds of each group's value (logs for :data:`_LOG`): physical ranges, and the
 #: admissible ranges of the design fields.
 _BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffness": (math.log(50.0), math.log(1e7)),
-           "friction": (math.log(1e-3), math.log(1.0)), "angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
+           "friction": (math.log(1e-3), math.log(1.0)), "offset": (math.log(1e-4), math.log(0.1)),
+           "angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
            "base_position": (-0.05, 0.05), "base_rotation": (-0.5, 0.5)}
 #: Forward-difference step in the search's units (large against the solver's tolerances).
 DIFF_STEP = 1e-2
+#: The fit's loss on the point errors, its scale (mm) and the prior's width (search units, :func:`fit`).
+LOSS, F_SCALE, PRIOR = "soft_l1", 5.0, 3.0
 #: A row whose answer is not finite scores this error per coordinate, m.
 FAILED_ERROR = 0.05
 
@@ -119,8 +122,9 @@ class _Layout:
 
 
 def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
-    counts = {"E": 1, "zero": robot.n_tendons, "stiffness": len(segments(robot)), "friction": len(segments(robot)),
-              "angle": len(segments(robot)), "marker": 3, "base_position": 3, "base_rotation": 3}
+    n_seg = len(segments(robot))
+    counts = {"E": 1, "zero": robot.n_tendons, "stiffness": n_seg, "friction": n_seg, "offset": n_seg, "angle": n_seg,
+              "marker": 3, "base_position": 3, "base_rotation": 3}
     names, gs, index = [], [], []
     for g in GROUPS:
         if g in groups:
@@ -140,7 +144,7 @@ def _values(robot: Robot, layout: _Layout) -> np.ndarray:
             out.append(math.log(d.E[0]))
         elif g == "zero":
             out.append(d.resolved("zero")[0, i])
-        elif g in ("stiffness", "friction"):
+        elif g in ("stiffness", "friction", "offset"):
             v = d.resolved(g)[0, segs[i]].mean()
             out.append(math.log(v if np.isfinite(v) and v > 0 else _LOG_START[g]))
         elif g == "angle":
@@ -154,7 +158,7 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
     """The robot with the layout's parameters at ``values`` (search space)."""
     d, segs = robot.design, segments(robot)
     fields = {"zero": d.resolved("zero").copy(), "stiffness": d.resolved("stiffness").copy(),
-              "friction": d.resolved("friction").copy(), "angle": base_angles.copy()}
+              "friction": d.resolved("friction").copy(), "offset": d.offset.copy(), "angle": base_angles.copy()}
     E = d.E.copy()
     reg = {k: getattr(robot.measurement, k).copy() for k in REGISTRATION}
     for g, i, v in zip(layout.groups, layout.index, values, strict=True):
@@ -162,7 +166,7 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
             E[0] = math.exp(v)
         elif g == "zero":
             fields["zero"][0, i] = v
-        elif g in ("stiffness", "friction"):
+        elif g in ("stiffness", "friction", "offset"):
             fields[g][0, segs[i]] = math.exp(v)
         elif g == "angle":
             fields["angle"][0, segs[i]] = base_angles[0, segs[i]] + v
@@ -196,12 +200,13 @@ class FitResult:
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves}
 
 
-_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "angle": "rad", "marker": "m",
+_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "offset": "m", "angle": "rad", "marker": "m",
           "base_position": "m", "base_rotation": "rad"}
 
 
 def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, groups: Sequence[str] = DEFAULT_GROUPS,
-        max_iterations: int = 30, budget: float = 240.0, progress: bool = False, workers: int = 0) -> FitResult:
+        max_iterations: int = 30, budget: float = 240.0, progress: bool = False, workers: int = 0,
+        loss: str = LOSS, f_scale: float = F_SCALE, prior: float | None = PRIOR) -> FitResult:
     """Identify ``groups`` (:data:`GROUPS`) of the robot from the recording ``train``.
 
     Args:
@@ -215,6 +220,12 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             errors and the reports follow, about one more Jacobian).
         progress: show a progress bar of the replays (tqdm, on stderr).
         workers: kernel threads (0: one per core).
+        loss, f_scale: ``least_squares``'s loss on the point errors and its scale, mm (``"linear"``:
+            plain least squares; ``"soft_l1"``: a point error beyond f_scale counts linearly).
+        prior: the width of a Gaussian prior around the robot file's values, in the search's units
+            (:data:`_SCALE`: 1 mm of a zero, 10 % of E or of a stiffness, ...), against point errors
+            of ``f_scale`` mm; ``None``: none.  It holds what the recording cannot tell apart (E
+            against the tendons' stiffness) at the file's values.
     """
     from scipy.optimize import least_squares
     from tqdm import tqdm
@@ -257,7 +268,9 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         # a row whose pull-ins were missed still has an equilibrium (at the tensions found): scored as it is
         err = np.where(np.isfinite(points), points - train.measured, FAILED_ERROR)
         r = (err[scored] * 1e3).ravel()  # mm
-        cost = float(r @ r)
+        if prior is not None:
+            r = np.concatenate([r, z * (f_scale / prior)])
+        cost = _robust_cost(r, loss, f_scale)
         if track and cost < best["cost"]:
             best["cost"], best["z"] = cost, z.copy()
         return r
@@ -266,7 +279,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     initial = errors(_replay_points(initial_robot, solved(x0)), train)
     try:
         least_squares(residual, np.zeros(len(x0)), bounds=((lower - x0) / scale, (upper - x0) / scale),
-                      diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf", x_scale=1.0)
+                      diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf", x_scale=1.0, loss=loss,
+                      f_scale=f_scale)
     except _OutOfTime:
         pass
     z = best["z"]
@@ -275,7 +289,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     x = x0 + z * scale
     fitted = _apply(robot, layout, x, base_angles)
     m, p = jac.shape
-    s2 = best["cost"] / max(m - p, 1)  # mm^2
+    r_best = residual(z, track=False)
+    s2 = float(r_best @ r_best) / max(m - p, 1)  # mm^2
     cov = s2 * np.linalg.pinv(jac.T @ jac)
     stderr = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
     params = []
@@ -292,6 +307,15 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                     validate=None if validate is None else errors(val_replay, validate), train_replay=train_replay,
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0])
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
+
+
+def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
+    """The cost ``least_squares`` minimises (times 2): sum rho(r^2) of the residuals ``r``."""
+    if loss == "linear":
+        return float(r @ r)
+    if loss == "soft_l1":
+        return float((2.0 * f_scale**2 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)).sum())
+    raise ValueError(f"loss: 'linear' or 'soft_l1', got {loss!r}")
 
 
 class _OutOfTime(Exception):

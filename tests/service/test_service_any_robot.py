@@ -110,7 +110,7 @@ for name in ("design", "layout", "poisson", "s"):
     tensor = module.InferInput(name, list(arrays[name].shape), "FP64")
     tensor.set_data_from_numpy(arrays[name])
     inputs.append(tensor)
-names = ("tendons", "tension", "displacement", "slack", "status")
+names = ("tendons", "tension", "displacement", "slack", "status", "tension_profile")
 out = {}
 for termination in ("exact", "rucker_webster"):
     rows = inputs if termination == "exact" else inputs[:1] + inputs[3:]  # no displacement: the shortcut
@@ -125,6 +125,58 @@ except Exception as exc:
 np.savez(path + ".npz", **out)
 print(json.dumps(errors))
 """
+
+
+def real_robots() -> DesignBatch:
+    """:func:`robots` with series-elastic tendons, drive zeros and friction, pulling and releasing."""
+    d = robots()
+    shape = d.offset.shape
+    return d.replace(stiffness=np.full(shape, 2500.0), zero=np.full(shape, -2e-4), friction=np.full(shape, 0.2),
+                     motion=np.where(np.arange(shape[1]) % 2, -1.0, 1.0)[None, :].repeat(shape[0], axis=0))
+
+
+def test_exact_json_takes_a_real_robot_file_design_and_answers_tension_profiles(server):
+    from pathlib import Path
+
+    from tdcr.robot.real import load_robot
+
+    robot = load_robot(Path(__file__).resolve().parents[2] / "examples" / "ftdcr_v4.json")
+    design = robot.design.to_dicts()[0]  # the robot file's design, as the file gives it
+    design["tendons"][0] |= {"displacement": 0.002, "friction": 0.1, "motion": "release"}
+    answer = httpx.post(server.url + "/exact", json={"points": 11, "designs": [design]})
+    assert answer.status_code == 200, answer.text
+    (result,) = answer.json()["results"]
+    local = solve(robot.design.replace(displacement=np.where(np.arange(9) == 0, 0.002, robot.design.displacement),
+                                       friction=np.where(np.arange(9) == 0, 0.1, 0.0)[None],
+                                       motion=np.where(np.arange(9) == 0, -1.0, 1.0)[None]), np.linspace(0, 1, 11))
+    assert result["status"] == "converged"
+    np.testing.assert_allclose(result["tension_profile"], local.tension_profile[0], rtol=1e-12, atol=1e-12)
+    assert result["tension_profile"][-1][0] == 0.0 < result["tension_profile"][0][0]  # ends at 0.06 m
+    design["tip_force"] = [0.01, 0.0, 0.0]  # friction covers tendon loads only: refused by name
+    answer = httpx.post(server.url + "/exact", json={"points": 11, "designs": [design]})
+    assert answer.status_code == 422 and "designs[0].tendons[0].friction" in answer.text
+
+
+@pytest.mark.parametrize("protocol", ["http", "grpc"])
+def test_oip_exact_model_takes_the_real_robot_layout_columns(server, tmp_path, protocol):
+    d = real_robots()
+    layout = np.stack([d.angles, d.ends, np.nan_to_num(d.displacement), d.displacement_driven.astype(float),
+                       d.resolved("stiffness"), d.resolved("zero"), d.resolved("friction"), d.resolved("motion")],
+                      axis=-1)
+    path = tmp_path / "robots.npz"
+    np.savez(path, design=d.features(), layout=layout, poisson=d.poissons, s=S)
+    script = tmp_path / "client.py"
+    script.write_text(TRITON_SCRIPT)
+    url = server.url.removeprefix("http://") if protocol == "http" else server.grpc_target
+    run = subprocess.run([sys.executable, str(script), protocol, url, str(path)], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    got = np.load(str(path) + ".npz")
+    exact = solve(d, S)
+    assert (got["exact_status"] == 0).all()
+    np.testing.assert_allclose(got["exact_tension"], exact.tension, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got["exact_tension_profile"], exact.tension_profile, rtol=1e-12, atol=1e-12)
+    assert not np.allclose(exact.tension_profile[:, 0], exact.tension_profile[:, -1])  # friction acted
 
 
 @pytest.mark.parametrize("protocol", ["http", "grpc"])
@@ -146,6 +198,7 @@ def test_oip_exact_model_takes_the_layout_tensor_and_termination(server, tmp_pat
     np.testing.assert_allclose(got["exact_tension"], exact.tension, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(got["exact_displacement"], exact.displacement, rtol=1e-12, atol=1e-15)
     np.testing.assert_array_equal(got["exact_slack"], exact.slack)
+    np.testing.assert_allclose(got["exact_tension_profile"], exact.tension_profile, rtol=1e-12, atol=1e-12)
     # without the layout tensor: 6 evenly spaced tendons to the tip, nu 0.3 (its own defaults)
     plain = solve(DesignBatch.from_features(d.features()), S, termination="rucker_webster")
     assert relative_l2(got["rucker_webster_tendons"].astype(np.float64), plain.tendons).max() < 1e-6
