@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import errors, fit  # noqa: E402
+from tdcr.search.fit import BUDGET, errors, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 TARGETS = {"val aligned RMSE, mm": ("<=", 6.5), "val plain RMSE, mm": ("<=", 8.0), "fit, s": ("<=", 300.0),
@@ -47,7 +47,7 @@ def main() -> None:
     parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
     parser.add_argument("--train", default=str(SHARED / "train.csv"))
     parser.add_argument("--validate", default=str(SHARED / "val.csv"))
-    parser.add_argument("--budget", type=float, default=240.0, help="the fit's search budget, s")
+    parser.add_argument("--budget", type=float, default=BUDGET, help="the fit's search budget, s")
     parser.add_argument("--out", default=None, help="write the fitted robot file here")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")

@@ -541,6 +541,10 @@ class FORMATTER(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from tdcr.search.fit import BUDGET as FIT_BUDGET
+    from tdcr.search.fit import DEFAULT_GROUPS as FIT_DEFAULT_GROUPS
+    from tdcr.search.fit import GROUPS as FIT_GROUPS
+    from tdcr.search.fit import MAX_ITERATIONS as FIT_MAX_ITERATIONS
     from tdcr.surrogates.bounds import CALIBRATION_DESIGNS, CALIBRATION_SEED
     from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
@@ -570,11 +574,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", default=None, help="CSV only scored, by the fitted robot")
     p.add_argument("--out", required=True, help="the fitted robot file (replay, solve and the service take it)")
     p.add_argument("--plot", default=None, help="PNG of measured vs predicted tips and the error over time")
-    p.add_argument("--fit", default="E,zero,stiffness,friction,marker,base_position,base_rotation",
-                   help="comma-separated parameter groups: E, zero, stiffness, friction, angle, marker, "
-                        "base_position, base_rotation")
-    p.add_argument("--max-iterations", type=int, default=40, help="least-squares iterations at most")
-    p.add_argument("--budget", type=float, default=240.0, help="seconds of search at most (then the best point)")
+    p.add_argument("--fit", default=",".join(FIT_DEFAULT_GROUPS),
+                   help=f"comma-separated parameter groups, of {', '.join(FIT_GROUPS)} (tdcr/search/fit.py)")
+    p.add_argument("--max-iterations", type=int, default=FIT_MAX_ITERATIONS, help="least-squares iterations at most")
+    p.add_argument("--budget", type=float, default=FIT_BUDGET, help="seconds of search at most (then the best point)")
     p.add_argument("--workers", type=int, default=0, help="kernel threads (default 0: one per core)")
     p.add_argument("--quiet", action="store_true", help="no progress bar; the report on one line")
     p.set_defaults(func=_cmd_fit)

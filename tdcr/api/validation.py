@@ -250,26 +250,21 @@ def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: 
 
 
 def _check_actuation(group: DesignGroup, *, jacobian: bool, termination: str) -> list[Problem]:
-    """Problems of what the solver covers: displacement actuation under tendon loads, consistent
-    termination and no Jacobian; the Jacobian of segments under consistent termination."""
+    """Problems of what the solver covers: displacement actuation and friction under tendon loads,
+    consistent termination and no Jacobian; the Jacobian of segments under consistent termination."""
     designs, problems = group.designs, []
     loaded = np.zeros(len(group.rows), dtype=bool) if group.loads is None else _loaded(_zero_absent(group.loads))
-    for b, i in zip(*np.nonzero(designs.displacement_driven), strict=True):
-        loc = ("designs", int(group.rows[b]), "tendons", int(i), "displacement")
-        if loaded[b] or jacobian or termination != "exact":
-            why = ("gravity and tip loads" if loaded[b] else "the tip Jacobian" if jacobian
-                   else f"termination {termination!r}")
-            problems.append(Problem(loc, f"displacement actuation covers tendon loads with termination 'exact' and "
-                                    f"no Jacobian: remove {why}, or give the tension", "displacement_unsupported"))
-            break
-    for b, i in zip(*np.nonzero(designs.capstan != 0.0), strict=True):
-        loc = ("designs", int(group.rows[b]), "tendons", int(i), "friction")
-        if loaded[b] or jacobian or termination != "exact":
-            why = ("gravity and tip loads" if loaded[b] else "the tip Jacobian" if jacobian
-                   else f"termination {termination!r}")
-            problems.append(Problem(loc, f"friction covers tendon loads with termination 'exact' and no Jacobian: "
-                                    f"remove {why}, or the friction", "friction_unsupported"))
-            break
+    for where, field, what, instead in [(designs.displacement_driven, "displacement", "displacement actuation",
+                                         "give the tension"),
+                                        (designs.capstan != 0.0, "friction", "friction", "the friction")]:
+        for b, i in zip(*np.nonzero(where), strict=True):
+            if loaded[b] or jacobian or termination != "exact":
+                why = ("gravity and tip loads" if loaded[b] else "the tip Jacobian" if jacobian
+                       else f"termination {termination!r}")
+                problems.append(Problem(("designs", int(group.rows[b]), "tendons", int(i), field),
+                                        f"{what} covers tendon loads with termination 'exact' and no Jacobian: "
+                                        f"remove {why}, or {instead}", f"{field}_unsupported"))
+                break
     if jacobian and termination != "exact":
         problems += [Problem(("designs", int(group.rows[b]), "jacobian"), "the tip Jacobian of segments is the "
                              "consistent model's: use termination 'exact'", "jacobian_with_shortcut")

@@ -127,6 +127,20 @@ print(json.dumps(errors))
 """
 
 
+def _triton(server, tmp_path, protocol: str, d: DesignBatch, layout: np.ndarray):
+    """:data:`TRITON_SCRIPT` in a process of its own on designs ``d`` with the ``layout`` tensor:
+    the finished process and the arrays it received."""
+    path = tmp_path / "robots.npz"
+    np.savez(path, design=d.features(), layout=layout, poisson=d.poissons, s=S)
+    script = tmp_path / "client.py"
+    script.write_text(TRITON_SCRIPT)
+    url = server.url.removeprefix("http://") if protocol == "http" else server.grpc_target
+    run = subprocess.run([sys.executable, str(script), protocol, url, str(path)], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    return run, np.load(str(path) + ".npz")
+
+
 def real_robots() -> DesignBatch:
     """:func:`robots` with series-elastic tendons, drive zeros and friction, pulling and releasing."""
     d = robots()
@@ -163,15 +177,7 @@ def test_oip_exact_model_takes_the_real_robot_layout_columns(server, tmp_path, p
     layout = np.stack([d.angles, d.ends, np.nan_to_num(d.displacement), d.displacement_driven.astype(float),
                        d.resolved("stiffness"), d.resolved("zero"), d.resolved("friction"), d.resolved("motion")],
                       axis=-1)
-    path = tmp_path / "robots.npz"
-    np.savez(path, design=d.features(), layout=layout, poisson=d.poissons, s=S)
-    script = tmp_path / "client.py"
-    script.write_text(TRITON_SCRIPT)
-    url = server.url.removeprefix("http://") if protocol == "http" else server.grpc_target
-    run = subprocess.run([sys.executable, str(script), protocol, url, str(path)], capture_output=True, text=True,
-                         timeout=120)
-    assert run.returncode == 0, run.stderr
-    got = np.load(str(path) + ".npz")
+    run, got = _triton(server, tmp_path, protocol, d, layout)
     exact = solve(d, S)
     assert (got["exact_status"] == 0).all()
     np.testing.assert_allclose(got["exact_tension"], exact.tension, rtol=1e-12, atol=1e-12)
@@ -183,15 +189,7 @@ def test_oip_exact_model_takes_the_real_robot_layout_columns(server, tmp_path, p
 def test_oip_exact_model_takes_the_layout_tensor_and_termination(server, tmp_path, protocol):
     d = robots()
     layout = np.stack([d.angles, d.ends, np.nan_to_num(d.displacement), d.displacement_driven.astype(float)], axis=-1)
-    path = tmp_path / "robots.npz"
-    np.savez(path, design=d.features(), layout=layout, poisson=d.poissons, s=S)
-    script = tmp_path / "client.py"
-    script.write_text(TRITON_SCRIPT)
-    url = server.url.removeprefix("http://") if protocol == "http" else server.grpc_target
-    run = subprocess.run([sys.executable, str(script), protocol, url, str(path)], capture_output=True, text=True,
-                         timeout=120)
-    assert run.returncode == 0, run.stderr
-    got = np.load(str(path) + ".npz")
+    run, got = _triton(server, tmp_path, protocol, d, layout)
     exact = solve(d, S)
     assert (got["exact_status"] == 0).all()
     assert relative_l2(got["exact_tendons"].astype(np.float64), exact.tendons).max() < 1e-6  # FP32 on the wire

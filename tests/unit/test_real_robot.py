@@ -197,3 +197,32 @@ def test_the_robot_schema_is_committed_and_the_example_follows_it():
     jsonschema.validate(json.loads(EXAMPLE.read_text()), committed)
     robot = load_robot(EXAMPLE)
     assert load_robot(robot.to_json()).to_json() == robot.to_json()  # a saved robot file reads back the same
+
+
+def test_fit_recovers_a_known_robot_from_its_own_replay():
+    """A recording made by the solver from a known robot (with friction): the fit, started from
+    perturbed values, finds E, the drive zeros and the base position again and replays it to ~0 error."""
+    from dataclasses import replace
+
+    from tdcr.robot.real import Recording
+    from tdcr.search.fit import fit
+
+    truth = load_robot(EXAMPLE)
+    truth = replace(truth, design=truth.design.replace(friction=np.full((1, 9), 0.1),
+                                                       zero=np.linspace(-3e-4, 3e-4, 9)[None]),
+                    measurement=replace(truth.measurement, base_position=np.array([0.002, -0.001, -0.004])))
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", truth)
+    made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands,
+                     measured=replay(truth, rec.commands).points, rows=rec.rows, header=rec.header)
+    start = replace(truth, design=truth.design.replace(E=np.array([40e9]), zero=np.zeros((1, 9))),
+                    measurement=replace(truth.measurement, base_position=np.zeros(3)))
+    result = fit(start, made, groups=("E", "zero", "base_position"), loss="linear", prior=None,
+                 max_iterations=20, budget=120)
+    assert result.initial.rmse > 2.0 and result.train.rmse < 0.05  # mm
+    values = {p.name: p.value for p in result.parameters}
+    assert values["E"] == pytest.approx(50e9, rel=2e-2)
+    taut = replay(truth, rec.commands).tension.max(axis=0) > 0.0  # a tendon slack throughout shows no zero
+    assert taut.sum() >= 7
+    np.testing.assert_allclose(np.array([values[f"zero[{i}]"] for i in range(9)])[taut],
+                               truth.design.resolved("zero")[0, taut], atol=2e-5)
+    np.testing.assert_allclose([values[f"base_position[{i}]"] for i in range(3)], [0.002, -0.001, -0.004], atol=2e-4)
