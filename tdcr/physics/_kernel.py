@@ -1453,7 +1453,7 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, 
 #: tensions would move by more than this fraction (the wrap angle's prediction is exact for
 #: constant curvature; between segments its error is O(h^2))
 _MAX_WRAP_CORRECTIONS = 4
-_WRAP_TOL = 1e-9
+_WRAP_TOL = 1e-7
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
