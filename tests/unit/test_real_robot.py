@@ -226,3 +226,11 @@ def test_fit_recovers_a_known_robot_from_its_own_replay():
     np.testing.assert_allclose(np.array([values[f"zero[{i}]"] for i in range(9)])[taut],
                                truth.design.resolved("zero")[0, taut], atol=2e-5)
     np.testing.assert_allclose([values[f"base_position[{i}]"] for i in range(3)], [0.002, -0.001, -0.004], atol=2e-4)
+
+
+def test_tdcr_solve_takes_a_robot_file():
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "solve", str(ROOT / "examples" / "ftdcr_v4_fitted.json")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    (result,) = json.loads(run.stdout)["results"]
+    assert result["status"] == "converged" and len(result["tension_profile"][0]) == 9
