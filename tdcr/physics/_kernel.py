@@ -1294,9 +1294,13 @@ def solve_design(rod, grid, tols, view):
         estimate = _masked_richardson(tendons_out, prev, out_step)
         prev[:, :, :] = tendons_out
     # strains at the outputs: the output edges of the last level (node 2 e is edge e)
+    profile = view.profile
     for j in range(n_out):
-        view.strains[j, :] = xs[2 * out_step[j]]
-        _node_tensions(rod.tension, end, act[2 * out_step[j]], gains, 2 * out_step[j], view.profile[j])
+        node = 2 * out_step[j]
+        view.strains[j, :] = xs[node]
+        for i in range(n_t):  # :func:`_node_tensions` at the output's node, without a view per output
+            gain = gains[node, i] if friction else 1.0
+            profile[j, i] = rod.tension[i] * gain if end[i] > act[node] else 0.0
     if view.jacobian.shape[0] > 0:  # the exact Jacobian: the implicit-function theorem, then eq. (MAG)'s tangent
         sens = np.empty((sig.shape[0], 6, n_t))
         if _sensitivities(sig, act, xs, rod, sens, gains):
