@@ -65,8 +65,10 @@ class Rods(NamedTuple):
 
 class Rod(NamedTuple):
     """One design of :class:`Rods` (:func:`_rod`): ``kse``, ``kbt`` (3,), ``radius`` and ``length``
-    m, tendon ``offset``, ``pitch``, ``tension`` (at s = 0), ``angle``, ``end``, ``compliance`` and
-    ``capstan`` (N_t,)."""
+    m, tendon ``offset``, ``pitch``, ``tension`` (at s = 0), ``angle`` and ``end`` (N_t,).  The
+    tendons' ``compliance`` and ``capstan`` of :class:`Rods` travel beside it, to the functions that
+    read them (a named tuple of more arrays costs every call that passes it: the loaded kernel's
+    RK4 stages ran 10 % slower with them in it)."""
 
     kse: np.ndarray
     kbt: np.ndarray
@@ -77,15 +79,13 @@ class Rod(NamedTuple):
     tension: np.ndarray
     angle: np.ndarray
     end: np.ndarray
-    compliance: np.ndarray
-    capstan: np.ndarray
 
 
 @njit(cache=True, error_model="numpy")
 def _rod(rods, b):
     """Design ``b`` of :class:`Rods` ``rods`` as a :class:`Rod` (views, no copies)."""
     return Rod(rods.kse[b], rods.kbt[b], rods.radius[b], rods.length[b], rods.offset[b], rods.pitch[b],
-               rods.tension[b], rods.angle[b], rods.end[b], rods.compliance[b], rods.capstan[b])
+               rods.tension[b], rods.angle[b], rods.end[b])
 
 
 class Grid(NamedTuple):
@@ -939,10 +939,10 @@ MAX_DISPLACEMENT_ITERATIONS = 50
 
 
 @njit(cache=True, error_model="numpy")
-def find_tensions(rod, target, grid, tols, slack):
+def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
     """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
     (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
-    with the ends (:func:`_with_ends`).  A tendon with series elasticity (``rod.compliance`` c_i =
+    with the ends (:func:`_with_ends`).  A tendon with series elasticity (``compliance`` c_i =
     1 / k_i) takes up the pull-in u_i = d_i + c_i tau_i (eq. SE: tau_i = k_i max(0, u_i - d_i)).
     The displacement d_i = l0_i - l_i(tau) has the Jacobian -dl/dtau = int A^T J^-1 A ds,
     symmetric positive semi-definite (with friction scaled by each node's gain, the wrap angles
@@ -953,7 +953,7 @@ def find_tensions(rod, target, grid, tols, slack):
     A tendon whose displacement would need a push (d_i > target_i at tau_i = 0: its path shortened
     more than it was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged,
     iterations)."""
-    length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, rod.compliance
+    length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, compliance
     edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
     k0 = edges.shape[0] - 1
     n_t = offset.shape[0]
@@ -968,14 +968,14 @@ def find_tensions(rod, target, grid, tols, slack):
         l0[i] = undeformed_length(length, offset[i], pitch[i], end[i])
         slack[i] = False
     free = np.zeros(n_t, dtype=np.bool_)
-    gains = np.empty((2 * k0 + 1 if has_friction(rod.capstan) else 0, n_t))
+    gains = np.empty((2 * k0 + 1 if has_friction(capstan) else 0, n_t))
     stretch = np.empty((2 * k0 + 1, n_t))
     last_worst, last_merit, alpha = np.inf, np.inf, 1.0
     tau_before, full_step = np.empty(n_t), np.zeros(n_t)
     for it in range(MAX_DISPLACEMENT_ITERATIONS):
         xs[:, :] = 0.0
         xs[0, 2] = 1.0
-        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains)
+        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
         if not ok:
             return False, it + 1
         _path_lengths_of(sig, act, stretch, rod, lengths)
@@ -1044,7 +1044,7 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
             for i in range(target.shape[1]):
                 if target[b, i] == target[b, i]:
                     rods.tension[b, i] = rods.tension[b - 1, i]
-        ok, it = find_tensions(_rod(rods, b), target[b], grid, tols, slack[b])
+        ok, it = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols, slack[b])
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
 
@@ -1208,8 +1208,9 @@ def _design_shapes(out, b):
 
 
 @njit(cache=True, error_model="numpy")
-def solve_design(rod, grid, tols, view):
-    """One design, the :class:`Rod` ``rod``, on the base :class:`Grid` ``grid`` with every tendon end
+def solve_design(rod, capstan, grid, tols, view):
+    """One design, the :class:`Rod` ``rod`` with its tendons' ``capstan`` (N_t,) (eq. CAP), on the
+    base :class:`Grid` ``grid`` with every tendon end
     added (:func:`_with_ends`) and :class:`Tolerances` ``tols``.  Writes into the :class:`DesignShapes`
     ``view``: backbone (n, 3), frames (n, 3, 3), strains (n, 6), tendon positions (n, N_t, 3) and
     displacements (N_t,) at the outputs, the pose Jacobian (n, 6, N_t) where ``view.jacobian`` has
@@ -1231,7 +1232,7 @@ def solve_design(rod, grid, tols, view):
     order = np.arange(sig.shape[0])
     keep = view.nodes.shape[0] == sig.shape[0]
     stretch = np.empty((sig.shape[0], n_t))  # |g_i| at the nodes: the path lengths
-    friction = has_friction(rod.capstan)
+    friction = has_friction(capstan)
     gains = np.empty((sig.shape[0] if friction else 0, n_t))  # exp(capstan theta) at the nodes (eq. CAP)
     if tols.warm and keep and not friction:  # Newton at every node from the last solve's strains
         xs = view.nodes.copy()
@@ -1239,7 +1240,7 @@ def solve_design(rod, grid, tols, view):
     else:
         xs = np.zeros((sig.shape[0], 6))
         xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
-        n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains)
+        n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
     if keep:
         view.nodes[:, :] = xs
     ok = ok and n_ok
@@ -1343,7 +1344,7 @@ def _extrapolate_cubic(sig, x_nodes, k, k1, k2, k3, k4):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, gains):
+def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, gains, capstan):
     """As :func:`_solve_nodes` (``stretch`` too), each node starting from the solved strains of the nodes before
     (Lagrange extrapolation from the last four since the last end, where the strains jump).  The
     tendon angles advance by angle addition between nodes (a rotation per distinct spacing),
@@ -1369,7 +1370,6 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, 
     iters = 0
     worst = 0.0
     friction = gains.shape[0] > 0
-    capstan = rod.capstan
     theta, theta_new, rate = np.zeros(n_t), np.zeros(n_t), np.zeros(n_t)  # wrap angles, their last rate (rad/m)
     t_prev, t_now, turn = np.empty((n_t, 3)), np.empty((n_t, 3)), np.empty((3, 3))
     h = 0.0
@@ -1466,7 +1466,7 @@ def solve_batch(rods, grid, tols, out):
     without the GIL (:func:`tdcr.physics.cosserat._run_kernel` runs chunks side by side), into
     the :class:`Shapes` ``out``."""
     for b in range(rods.length.shape[0]):
-        res = solve_design(_rod(rods, b), grid, tols, _design_shapes(out, b))
+        res = solve_design(_rod(rods, b), rods.capstan[b], grid, tols, _design_shapes(out, b))
         _store_summary(out, b, res)
 
 
