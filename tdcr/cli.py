@@ -51,7 +51,7 @@ def _cmd_solve(args) -> int:
     return 0
 
 
-def _robot_and_recording(robot_path: str, csv_path: str, *, measured: bool):
+def _robot_and_recording(robot_path: str, csv_path: str, *, measured: bool | None):
     from tdcr.robot.real import RobotFileError, load_robot, read_recording
 
     try:
@@ -67,7 +67,7 @@ def _cmd_replay(args) -> int:
     from tdcr.physics.replay import replay, write_predictions
     from tdcr.search.fit import errors
 
-    robot, recording = _robot_and_recording(args.robot, args.commands, measured=False)
+    robot, recording = _robot_and_recording(args.robot, args.commands, measured=None)  # scored where measured
     start = time.perf_counter()
     answer = replay(robot, recording.commands, workers=args.workers)
     seconds = time.perf_counter() - start
@@ -75,10 +75,8 @@ def _cmd_replay(args) -> int:
     n = len(recording.time)
     summary = {"rows": n, "seconds": seconds, "rows_per_second": n / seconds if seconds else None,
                "not_converged": int((~answer.converged).sum()), "out": args.out}
-    measured_columns = all(c in recording.header for c in robot.measurement.columns)
-    if measured_columns:  # score it where the file has the measurement too
-        _, scored = _robot_and_recording(args.robot, args.commands, measured=True)
-        summary["errors"] = errors(answer, scored).as_dict()
+    if all(c in recording.header for c in robot.measurement.columns):
+        summary["errors"] = errors(answer, recording).as_dict()
     json.dump(summary, sys.stdout, indent=None if args.quiet else 2)
     sys.stdout.write("\n")
     return 0

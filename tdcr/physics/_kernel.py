@@ -205,18 +205,14 @@ def has_friction(capstan):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _relative_rotation(kappa_prev, kappa, h, out):
+def _relative_rotation(kappa_prev, kappa, h, twist, out, step_p):
     """``out`` (3, 3) = exp(hat(w)), w = h (kappa_prev + kappa) / 2: the rotation between the frames
-    of two nodes h m apart (second order in h, exact for constant curvature; Rodrigues)."""
-    w0, w1, w2 = 0.5 * h * (kappa_prev[0] + kappa[0]), 0.5 * h * (kappa_prev[1] + kappa[1]), \
-        0.5 * h * (kappa_prev[2] + kappa[2])
-    ca, cb, _ = _exp_coefficients(math.sqrt(w0 * w0 + w1 * w1 + w2 * w2))
-    out[0, 0] = 1.0 - cb * (w1 * w1 + w2 * w2)
-    out[1, 1] = 1.0 - cb * (w0 * w0 + w2 * w2)
-    out[2, 2] = 1.0 - cb * (w0 * w0 + w1 * w1)
-    out[0, 1], out[1, 0] = -ca * w2 + cb * w0 * w1, ca * w2 + cb * w0 * w1
-    out[0, 2], out[2, 0] = ca * w1 + cb * w0 * w2, -ca * w1 + cb * w0 * w2
-    out[1, 2], out[2, 1] = -ca * w0 + cb * w1 * w2, ca * w0 + cb * w1 * w2
+    of two nodes h m apart (second order in h, exact for constant curvature), by the Magnus step's
+    exponential (:func:`_se3_exp` of the twist (0, w); ``twist`` (6,) and ``step_p`` (3,) workspace)."""
+    for a in range(3):
+        twist[a] = 0.0
+        twist[3 + a] = 0.5 * h * (kappa_prev[a] + kappa[a])
+    _se3_exp(twist, out, step_p)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -1372,6 +1368,7 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, 
     friction = gains.shape[0] > 0
     theta, theta_new, rate = np.zeros(n_t), np.zeros(n_t), np.zeros(n_t)  # wrap angles, their last rate (rad/m)
     t_prev, t_now, turn = np.empty((n_t, 3)), np.empty((n_t, 3)), np.empty((3, 3))
+    twist, step_p = np.empty(6), np.empty(3)
     h = 0.0
     for j in range(order.shape[0]):
         k = order[j]
@@ -1425,7 +1422,7 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, 
             for correction in range(_MAX_WRAP_CORRECTIONS + 1):
                 _unit_tangents(x_nodes[k], rho, drho, t_now)
                 if j:
-                    _relative_rotation(x_nodes[order[j - 1], 3:], x_nodes[k, 3:], h, turn)
+                    _relative_rotation(x_nodes[order[j - 1], 3:], x_nodes[k, 3:], h, twist, turn, step_p)
                 move = 0.0
                 for i in range(n_t):
                     new = theta[i] + (_wrap_angle(t_prev[i], t_now[i], turn) if j else 0.0)

@@ -267,11 +267,11 @@ def _number(text: str) -> float:
         return math.nan
 
 
-def read_recording(path: str | Path, robot: Robot, *, measured: bool = True) -> Recording:
-    """A recording of ``robot`` (CSV with a header): its time, command and (with ``measured``)
-    measurement columns.  A missing column, a command that is not a finite number, or a time that is
-    not finite or not increasing raises :class:`RobotFileError` naming the column and row; a row
-    without a motion-capture value is kept with NaN (:attr:`Recording.skipped`)."""
+def read_recording(path: str | Path, robot: Robot, *, measured: bool | None = True) -> Recording:
+    """A recording of ``robot`` (CSV with a header): its time, command and (with ``measured``; None:
+    where the file has them) measurement columns.  A missing column, a command that is not a finite
+    number, or a time that is not finite or not increasing raises :class:`RobotFileError` naming the
+    column and row; a row without a motion-capture value is kept with NaN (:attr:`Recording.skipped`)."""
     try:
         with open(path, newline="") as f:
             reader = csv.reader(f)
@@ -279,6 +279,8 @@ def read_recording(path: str | Path, robot: Robot, *, measured: bool = True) -> 
             lines = list(reader)
     except OSError as exc:
         raise RobotFileError(f"{path}: cannot read ({exc.strerror})") from None
+    if measured is None:
+        measured = all(c in header for c in robot.measurement.columns)
     wanted = [robot.time_column, *robot.actuation.columns] + (list(robot.measurement.columns) if measured else [])
     missing = [c for c in wanted if c not in header]
     if missing:

@@ -322,8 +322,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     val_replay = None if validate is None else replay(fitted, validate.commands, workers=workers,
                                                       options=REPLAY_OPTIONS)
     seconds = time.perf_counter() - start
-    result_robot = replace(fitted, extra=fitted.extra | {"fitted": {}})
-    out = FitResult(robot=result_robot, parameters=params, train=errors(train_replay, train),
+    out = FitResult(robot=fitted, parameters=params, train=errors(train_replay, train),
                     validate=None if validate is None else errors(val_replay, validate), train_replay=train_replay,
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0])
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
