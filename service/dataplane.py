@@ -33,6 +33,7 @@ class DataPlane:
         self.metrics = metrics
         self.loaded = False
         self.starting = False  # the models are being loaded and the solver started (service.state.start)
+        self.in_flight = 0  # inferences awaiting a worker thread or a solver process (event-loop thread only)
 
     # -- health and metadata ----------------------------------------------------------------------
 
@@ -77,11 +78,23 @@ class DataPlane:
     async def infer(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,
                     version: str | None = None, protocol: str, endpoint: str) -> InferenceResponse:
         """``request`` on the model ``name`` (None: the default of ``kind``; given ``kind``, only a
-        model of that kind), with its latency and count under ``protocol`` and ``endpoint``."""
+        model of that kind), with its latency and count under ``protocol`` and ``endpoint``.
+
+        A request the model :meth:`~service.model.Model.answers_inline` (a few designs on a bounded
+        path) is answered right here on the event loop when no other inference is in flight: the
+        hand-off to a worker thread and back would cost more than its work.  Under concurrency every
+        request goes to the workers, where the operators' batchers group them."""
         model = self.model(name, kind=kind, version=version)
         started = time.perf_counter()
         with _validation_errors():
-            response = await model.infer(request)
+            if not self.in_flight and model.answers_inline(request):
+                response = model.infer_blocking(request)
+            else:
+                self.in_flight += 1
+                try:
+                    response = await model.infer(request)
+                finally:
+                    self.in_flight -= 1
         return self._record(model, response, started, protocol, endpoint)
 
     def infer_blocking(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,

@@ -13,9 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.model import VERSION, InferenceError, ModelSpec, Tensors
+from service.model import VERSION, InferenceError, ModelSpec, Peek, Tensors
 from service.oip import (
     DATATYPES,
+    LOAD_INPUTS,
     InferRequest,
     OipCodec,
     OutputTensors,
@@ -124,6 +125,15 @@ def encode_raw(model: str, tensors: OutputTensors, *, request_id: str | None) ->
 class GrpcCodec(OipCodec):
     """OIP over gRPC: a ``ModelInferRequest`` in; a ``ModelInferResponse``, or its serialised bytes
     with raw contents when the request was raw, out."""
+
+    def peek(self, payload: pb.ModelInferRequest) -> Peek | None:
+        """The designs (the ``design`` tensor's first dimension), tolerance and loads of ``payload``,
+        read from its tensors' headers (None without a ``design`` tensor of two dimensions)."""
+        designs = [t.shape for t in payload.inputs if t.name == "design"]
+        if len(designs) != 1 or len(designs[0]) != 2:
+            return None
+        return Peek(designs=int(designs[0][0]), tolerance="tolerance" in payload.parameters,
+                    loads=any(t.name in LOAD_INPUTS for t in payload.inputs))
 
     def wire_decode(self, payload: pb.ModelInferRequest, spec: ModelSpec) -> InferRequest:
         return decode(payload, inputs=spec.inputs, outputs=spec.outputs, required=spec.required)

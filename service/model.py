@@ -21,7 +21,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Literal, Protocol
+from typing import Any, Literal, NamedTuple, Protocol
 
 from tdcr.api.validation import Limits, Problem, quote
 
@@ -29,6 +29,9 @@ from tdcr.api.validation import Limits, Problem, quote
 VERSION = "1"
 #: What a model answers: surrogate shapes, exact shapes, or inverse kinematics.
 Kind = Literal["surrogate", "solver", "inverse"]
+#: The most designs a request may have for a model to answer it on the event loop
+#: (:meth:`Model.answers_inline`): one to a few designs take well under a millisecond.
+INLINE_DESIGNS = 4
 #: Error kinds (the ``tdcr_errors`` metric's label too).
 ERROR_KINDS = ("invalid", "not_found", "too_large", "saturated", "unavailable", "deadline")
 
@@ -82,12 +85,27 @@ class Codec(Protocol):
     def encode(self, decoded: Any, answer: Any) -> Any: ...
 
 
+class Peek(NamedTuple):
+    """What a codec can tell of a request without decoding it: its ``designs`` (the first dimension
+    of its design tensor), and whether it asks a ``tolerance`` or gives ``loads``."""
+
+    designs: int
+    tolerance: bool
+    loads: bool
+
+
 @dataclass(frozen=True)
 class InferenceRequest:
     """What a transport hands the data plane: its ``payload`` and the ``codec`` that reads it."""
 
     payload: Any
     codec: Codec
+
+    def peek(self) -> Peek | None:
+        """The codec's :class:`Peek` of the payload (None: a codec that cannot tell, or a payload it
+        will refuse)."""
+        peek = getattr(self.codec, "peek", None)
+        return None if peek is None else peek(self.payload)
 
 
 @dataclass(frozen=True)
@@ -175,6 +193,12 @@ class Model(ABC):
     def infer_blocking(self, request: InferenceRequest) -> InferenceResponse:
         """As :meth:`infer`, on the calling (worker) thread; models with ``blocking`` only."""
         raise NotImplementedError(f"model {self.name!r} answers asynchronously only")
+
+    def answers_inline(self, request: InferenceRequest) -> bool:
+        """Whether :meth:`infer_blocking` of ``request`` is short and bounded (a few designs, no path
+        that waits on another process), so that the data plane may run it on the event loop when
+        nothing else is in flight, saving the hand-off to a worker thread and back."""
+        return False
 
     def close(self) -> None:  # noqa: B027 - most models hold nothing to release
         """Release threads and processes (at shutdown)."""

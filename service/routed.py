@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from starlette.concurrency import run_in_threadpool
 
-from service.model import InferenceRequest, InferenceResponse, Model
+from service.model import INLINE_DESIGNS, InferenceRequest, InferenceResponse, Model
 from service.oip import LOAD_INPUTS, SURROGATE_INPUTS, SURROGATE_OUTPUTS
 from service.solver import ExactModel
 from service.surrogate import SurrogateModel
@@ -110,6 +110,13 @@ class RoutedModel(Model):
 
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         return await run_in_threadpool(self.infer_blocking, request)
+
+    def answers_inline(self, request: InferenceRequest) -> bool:
+        """A few tendon-only designs without a tolerance, with the solver's kernels in this process:
+        either path is then short (:meth:`solve` here, or one graph run)."""
+        peek = request.peek()
+        return (self.exact_here and peek is not None and peek.designs <= INLINE_DESIGNS and not peek.tolerance
+                and not peek.loads)
 
     def infer_blocking(self, request: InferenceRequest) -> InferenceResponse:
         decoded = request.codec.decode(request.payload, self.spec)

@@ -9,7 +9,7 @@ import orjson
 from starlette.concurrency import run_in_threadpool
 
 from service.batching import Batcher
-from service.model import InferenceRequest, InferenceResponse, Model
+from service.model import INLINE_DESIGNS, InferenceRequest, InferenceResponse, Model
 from service.oip import LOAD_INPUTS, SURROGATE_INPUTS, SURROGATE_OUTPUTS
 from tdcr.api.checks import InvalidRequest, check_model_loads
 from tdcr.api.validation import InverseProblem, Limits
@@ -55,6 +55,11 @@ class SurrogateModel(Model):
 
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         return await run_in_threadpool(self.infer_blocking, request)  # decode, run and encode in one thread hop
+
+    def answers_inline(self, request: InferenceRequest) -> bool:
+        """A few designs without a tolerance: one graph run (a tolerance may wait on the solver)."""
+        peek = request.peek()
+        return peek is not None and peek.designs <= INLINE_DESIGNS and not peek.tolerance
 
     def infer_blocking(self, request: InferenceRequest) -> InferenceResponse:
         decoded = request.codec.decode(request.payload, self.spec)

@@ -339,3 +339,66 @@ def test_fractions_within_rounding_are_clamped_and_beyond_refused(stub, model):
         stub.ModelInfer(_request(model, features, outputs=["tendons"], s=np.array([0.0, 0.5, 1 + 1e-8])))
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "s[2]: must be a fraction of L in [0, 1]" in err.value.details()
+
+
+def test_the_codec_peeks_at_designs_tolerance_and_loads_without_decoding():
+    from service.grpc_codec import GrpcCodec
+    from service.model import Peek
+
+    codec, features = GrpcCodec(), sample_designs(3, seed=1).features()
+    assert codec.peek(_request("auto", features)) == Peek(designs=3, tolerance=False, loads=False)
+    loaded = _request("auto", features[:1], tip_force=np.zeros((1, 3)))
+    assert codec.peek(loaded) == Peek(designs=1, tolerance=False, loads=True)
+    asked = _request("auto", features[:2])
+    asked.parameters["tolerance"].double_param = 0.01
+    assert codec.peek(asked).tolerance
+    assert codec.peek(_request("auto", features[0])) is None  # one dimension: decode refuses it, by name
+    assert codec.peek(pb.ModelInferRequest(model_name="auto")) is None
+
+
+def test_the_data_plane_answers_a_short_request_on_the_event_loop_only_when_nothing_else_is_in_flight():
+    """A model that :meth:`answers_inline` is run on the loop's own thread when no inference is in
+    flight, and on a worker thread (its ``infer``) while another one is."""
+    import asyncio
+    import threading
+
+    from starlette.concurrency import run_in_threadpool
+
+    from service.dataplane import DataPlane
+    from service.metrics import Metrics
+    from service.model import InferenceRequest, InferenceResponse, Model, ModelRepository
+
+    class Echo(Model):
+        name, kind, platform, inputs, outputs, blocking = "echo", "surrogate", "test", {}, {}, True
+
+        def answers_inline(self, request):
+            return request.payload == "short"
+
+        async def infer(self, request):
+            return await run_in_threadpool(self.infer_blocking, request)
+
+        def infer_blocking(self, request):
+            if request.payload == "slow":
+                threading.Event().wait(0.2)
+            return InferenceResponse(threading.get_ident(), 1)
+
+    repository = ModelRepository()
+    repository.register(Echo())
+    plane = DataPlane(repository, Metrics.create())
+
+    async def main():
+        loop_thread = threading.get_ident()
+        ask = lambda payload: plane.infer("echo", InferenceRequest(payload, None), protocol="grpc",  # noqa: E731
+                                          endpoint="ModelInfer")
+        alone = (await ask("short")).body
+        long = (await ask("long")).body
+        slow = asyncio.ensure_future(ask("slow"))
+        await asyncio.sleep(0.05)
+        beside = (await ask("short")).body
+        await slow
+        return loop_thread, alone, long, beside
+
+    loop_thread, alone, long, beside = asyncio.run(main())
+    assert alone == loop_thread
+    assert long != loop_thread and beside != loop_thread
+    assert plane.in_flight == 0

@@ -234,3 +234,27 @@ def test_tdcr_solve_takes_a_robot_file():
     assert run.returncode == 0, run.stderr
     (result,) = json.loads(run.stdout)["results"]
     assert result["status"] == "converged" and len(result["tension_profile"][0]) == 9
+
+
+def test_register_finds_a_base_turned_by_half_a_turn_and_the_fit_starts_there():
+    """The rigid registration (Kabsch) of a replay to points measured in a frame turned by about
+    half a turn recovers that base pose exactly (same physics): least squares from the file's pose
+    could not; the fit then starts from it and ends at ~0 error."""
+    from dataclasses import replace
+
+    from tdcr.robot.real import Recording
+    from tdcr.search.fit import fit, register
+
+    robot = load_robot(EXAMPLE)
+    turned = np.array([0.03, -0.02, 2.9])
+    truth = replace(robot, measurement=replace(robot.measurement, base_position=np.array([0.01, -0.02, 0.005]),
+                                               base_rotation=turned))
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", truth)
+    answer = replay(robot, rec.commands)
+    made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands, measured=truth.measurement.points(
+        answer.tip_position, answer.tip_rotation), rows=rec.rows, header=rec.header)
+    found = register(robot, answer, made).measurement
+    np.testing.assert_allclose(found.base_rotation, turned, atol=1e-9)
+    np.testing.assert_allclose(found.base_position, truth.measurement.base_position, atol=1e-9)
+    result = fit(robot, made, groups=("base_position", "base_rotation"), max_iterations=3, budget=60)
+    assert result.initial.rmse > 50.0 and result.train.rmse < 1e-3  # mm
