@@ -7,8 +7,10 @@ HTTP and gRPC, and what an error bound costs, in one interleaved run on one mach
    Table I design (seeded) each round; each round sends the same body to every row in turn, so drift
    hits the rows alike (42 points): ``/predict`` without a model (the router: the cheaper of the
    solver and the default operator), with tolerances, pinned to operators, ``/exact``; then OIP v2
-   ``ModelInfer`` over gRPC (raw FP64 contents) on ``auto`` and on the pinned ``deeponet``.  Each
-   row counts the answers by ``source``.
+   ``ModelInfer`` over gRPC (raw FP64 contents) on ``auto`` and on the pinned ``deeponet``, on this
+   server (a few designs answered on the event loop) and on a second one started with
+   ``TDCR_INLINE=false`` (every request handed to a worker thread), and gRPC's no-op ``ServerLive``,
+   the transport's own floor on this machine.  Each HTTP row counts the answers by ``source``.
 2. In process: each operator's ``Surrogate.predict`` plain and with its bound (``bound=True``), at 1
    and 1,000 designs, interleaved (medians, and the median of the per-pair ratios; the difference
    carries the graphs' run-to-run spread), the bound's own work on an answer already computed
@@ -30,6 +32,7 @@ from exact_latency import design_json  # benchmarks/ is the script's folder
 
 from service.process import ROOT, ServerProcess
 from tdcr.clients.loadtest import grpc_request
+from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 from tdcr.physics import solve
 from tdcr.robot.design_space import sample_designs
@@ -43,6 +46,8 @@ HTTP_ROWS = {"/predict (router)": ("/predict", {}),
              "/predict deeponet_pose_loaded (pinned, bounded)": ("/predict", {"model": "deeponet_pose_loaded"}),
              "/exact": ("/exact", {})}
 GRPC_ROWS = ("auto", "deeponet")
+#: The gRPC rows' servers: this one (inline) and one with ``TDCR_INLINE=false``.
+GRPC_SERVERS = ("", " (worker thread: TDCR_INLINE=false)")
 OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose", "deeponet_pose_loaded", "fno_pose_loaded")
 
 
@@ -58,12 +63,17 @@ def median_seconds(fn, repeats: int) -> float:
 
 def served(requests: int) -> None:
     feats = sample_designs(requests + 20, seed=8).features()
-    rows = list(HTTP_ROWS) + [f"gRPC ModelInfer {m}" for m in GRPC_ROWS]
+    grpc_rows = ["gRPC ServerLive (no-op)"] + [f"gRPC ModelInfer {m}{where}" for where in GRPC_SERVERS
+                                               for m in GRPC_ROWS]
+    rows = list(HTTP_ROWS) + grpc_rows
     times: dict[str, list[float]] = {label: [] for label in rows}
     sources: dict[str, dict[str, int]] = {label: {} for label in HTTP_ROWS}
-    with ServerProcess(ROOT / "models") as server, httpx.Client(base_url=server.url, timeout=60) as client, \
-            grpc.insecure_channel(server.grpc_target) as channel:
-        stub = pb_grpc.GRPCInferenceServiceStub(channel)
+    with ServerProcess(ROOT / "models") as server, ServerProcess(ROOT / "models", inline=False) as threaded, \
+            httpx.Client(base_url=server.url, timeout=60) as client, \
+            grpc.insecure_channel(server.grpc_target) as channel, \
+            grpc.insecure_channel(threaded.grpc_target) as threaded_channel:
+        stubs = dict(zip(GRPC_SERVERS, (pb_grpc.GRPCInferenceServiceStub(channel),
+                                        pb_grpc.GRPCInferenceServiceStub(threaded_channel)), strict=True))
         auto = client.get("/v2/models/auto").json()["parameters"]
         for k, f in enumerate(feats):
             for label, (route, extra) in HTTP_ROWS.items():
@@ -76,13 +86,18 @@ def served(requests: int) -> None:
                     times[label].append(1e3 * elapsed)
                     source = r.json()["results"][0].get("source", "exact")
                     sources[label][source] = sources[label].get(source, 0) + 1
-            for model in GRPC_ROWS:
-                request = grpc_request(model, f[None, :], None)
-                started = time.perf_counter()
-                stub.ModelInfer(request)
-                elapsed = time.perf_counter() - started
-                if k >= 20:
-                    times[f"gRPC ModelInfer {model}"].append(1e3 * elapsed)
+            started = time.perf_counter()
+            stubs[""].ServerLive(pb.ServerLiveRequest())
+            if k >= 20:
+                times["gRPC ServerLive (no-op)"].append(1e3 * (time.perf_counter() - started))
+            for where, stub in stubs.items():
+                for model in GRPC_ROWS:
+                    request = grpc_request(model, f[None, :], None)
+                    started = time.perf_counter()
+                    stub.ModelInfer(request)
+                    elapsed = time.perf_counter() - started
+                    if k >= 20:
+                        times[f"gRPC ModelInfer {model}{where}"].append(1e3 * elapsed)
     print("| one design, 42 points | requests | p50 (ms) | p90 (ms) | p99 (ms) | answered by |")
     print("|---|---:|---:|---:|---:|---|")
     for label in rows:
@@ -91,6 +106,10 @@ def served(requests: int) -> None:
         print(f"| {label} | {len(times[label])} | {p50:.2f} | {p90:.2f} | {p99:.2f} | {by} |")
     ratio = np.median(np.array(times["/predict (router)"]) / np.array(times["/exact"]))
     print(f"\n/predict (router) / /exact, same body, median of per-round ratios: {ratio:.2f}")
+    for model in GRPC_ROWS:
+        inline = np.array(times[f"gRPC ModelInfer {model}"]) / np.array(times[f"gRPC ModelInfer {model}{GRPC_SERVERS[1]}"])
+        print(f"gRPC {model}: on the event loop / on a worker thread, median of per-round ratios: "
+              f"{np.median(inline):.2f}")
     print("router costs on the server (s, B designs): " + ", ".join(f"{k} {v}" for k, v in auto.items()))
 
 
@@ -134,11 +153,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--requests", type=int, default=300)
     parser.add_argument("--in-process-only", action="store_true", help="skip the served rows (item 1)")
+    parser.add_argument("--served-only", action="store_true", help="skip the in-process rows (item 2)")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; server and client on the same machine\n")
     if not args.in_process_only:
         served(args.requests)
-    in_process()
+    if not args.served_only:
+        in_process()
 
 
 if __name__ == "__main__":

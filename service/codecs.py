@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import orjson
 
-from service.model import InverseAnswer, ModelSpec
+from service.model import InverseAnswer, ModelSpec, Peek
 from tdcr.api.schemas import RESPONSE_FORMAT_VERSION
 from tdcr.api.validation import InverseProblem, ShapeRequest, validate_inverse, validate_json
 from tdcr.physics.exact import ExactAnswer
@@ -34,6 +34,9 @@ class PredictCodec:
     or ``.npz`` bytes with ``npz``."""
 
     npz: bool = False
+
+    def peek(self, payload: ShapeRequest) -> Peek:
+        return Peek(designs=payload.n_designs, tolerance=payload.tolerance is not None, loads=payload.n_loaded > 0)
 
     def decode(self, payload: ShapeRequest, spec: ModelSpec) -> Decoded:
         return Decoded(payload)

@@ -26,10 +26,12 @@ STARTING = "starting: loading the models and starting the solver processes (the 
 
 class DataPlane:
     """Inference, readiness and metadata of the models of ``repository``; ``loaded``: the models
-    loaded as configured (no problem at startup)."""
+    loaded as configured (no problem at startup); ``inline``: short requests may be answered on the
+    event loop (:meth:`infer`)."""
 
-    def __init__(self, repository: ModelRepository, metrics: Metrics):
+    def __init__(self, repository: ModelRepository, metrics: Metrics, *, inline: bool = True):
         self.repository = repository
+        self.inline = inline
         self.metrics = metrics
         self.loaded = False
         self.starting = False  # the models are being loaded and the solver started (service.state.start)
@@ -76,18 +78,20 @@ class DataPlane:
     # -- inference ------------------------------------------------------------------------------
 
     async def infer(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,
-                    version: str | None = None, protocol: str, endpoint: str) -> InferenceResponse:
+                    version: str | None = None, loads: bool = False, protocol: str,
+                    endpoint: str) -> InferenceResponse:
         """``request`` on the model ``name`` (None: the default of ``kind``; given ``kind``, only a
         model of that kind), with its latency and count under ``protocol`` and ``endpoint``.
 
         A request the model :meth:`~service.model.Model.answers_inline` (a few designs on a bounded
         path) is answered right here on the event loop when no other inference is in flight: the
         hand-off to a worker thread and back would cost more than its work.  Under concurrency every
-        request goes to the workers, where the operators' batchers group them."""
-        model = self.model(name, kind=kind, version=version)
+        request goes to the workers, where the operators' batchers group them.  ``loads``: the
+        designs have loads (without a name: the kind's default for loads)."""
+        model = self.model(name, kind=kind, version=version, loads=loads)
         started = time.perf_counter()
         with _validation_errors():
-            if not self.in_flight and model.answers_inline(request):
+            if self.idle and model.answers_inline(request):
                 response = model.infer_blocking(request)
             else:
                 self.in_flight += 1
@@ -96,6 +100,11 @@ class DataPlane:
                 finally:
                     self.in_flight -= 1
         return self._record(model, response, started, protocol, endpoint)
+
+    @property
+    def idle(self) -> bool:
+        """Whether a short request may be answered on the event loop now (:meth:`infer`)."""
+        return self.inline and not self.in_flight
 
     def infer_blocking(self, name: str | None, request: InferenceRequest, *, kind: Kind | None = None,
                        version: str | None = None, loads: bool = False, protocol: str,

@@ -28,6 +28,8 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="request body limit, bytes")
     onnx_threads: int = Field(0, ge=0, description="chunks of a large batch run side by side (0: one per core)")
     batch_max_designs: int = Field(4096, ge=1, description="designs of concurrent /predict requests run together")
+    inline: bool = Field(True, description="answer a request of a few designs without a tolerance on the event "
+                                           "loop when no other inference is in flight (saves two thread hand-offs)")
     onnx_chunk: int = Field(512, ge=1, description="large batches run as chunks of this many designs")
     exact_workers: int = Field(1, ge=1, description="solver processes behind /exact")
     exact_max_designs: int = Field(2000, ge=1, description="designs per /exact request")

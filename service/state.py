@@ -36,7 +36,8 @@ class ServiceState:
     @classmethod
     def create(cls, settings: Settings) -> ServiceState:
         metrics = Metrics.create()
-        return cls(settings=settings, metrics=metrics, plane=DataPlane(ModelRepository(), metrics))
+        return cls(settings=settings, metrics=metrics, plane=DataPlane(ModelRepository(), metrics,
+                                                                     inline=settings.inline))
 
     @property
     def repository(self) -> ModelRepository:

@@ -2,6 +2,8 @@
 
 A thin codec: on one worker thread the body is validated (it names the model), the data plane runs
 it on that surrogate (or the default) and :class:`service.codecs.PredictCodec` encodes the answer.
+A small JSON body that finds the service idle is validated on the event loop instead, and the data
+plane then answers it there too when its model may (:meth:`service.dataplane.DataPlane.infer`).
 """
 
 from __future__ import annotations
@@ -20,6 +22,9 @@ from tdcr.api.validation import InvalidRequest, Limits
 from tdcr.surrogates.engine import NPY, NPZ, QUERY_FIELDS, prepare_json, prepare_npy
 
 router = APIRouter(tags=["predict"])
+#: A JSON body of at most this many bytes (a few designs) is validated on the event loop when the
+#: service is idle: a hand-off to a worker thread costs more than that.
+INLINE_BODY_BYTES = 4096
 
 
 def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits,
@@ -70,8 +75,18 @@ async def predict(request: Request, state: State) -> Response:
     body = await request.body()
     params = {k: request.query_params.getlist(k) for k in request.query_params}
     npz = NPZ in request.headers.get("accept", "")
-    answer = await run_in_threadpool(_answer, state.plane, body, binary, params,
-                                            state.settings.predict_limits(), npz)
+    plane = state.plane
+    if not binary and len(body) <= INLINE_BODY_BYTES and plane.idle:
+        try:
+            shapes = prepare_json(body, limits=state.settings.predict_limits())
+            answer = await plane.infer(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)), kind="surrogate",
+                                       loads=shapes.n_loaded > 0, protocol=HTTP, endpoint="/predict")
+        except InvalidRequest as exc:
+            raise from_invalid(exc) from None
+        except InferenceError as exc:
+            raise from_inference(exc) from None
+    else:
+        answer = await run_in_threadpool(_answer, plane, body, binary, params, state.settings.predict_limits(), npz)
     if npz:
         return Response(answer.body.content, media_type=NPZ, headers={"X-TDCR-Model": answer.body.model})
     return Response(answer.body, media_type="application/json")

@@ -282,6 +282,7 @@ def solve(
     jacobian: bool = False,
     termination: str = "exact",
     sequence: bool = False,
+    validated: bool = False,
 ) -> RodSolution:
     """Equilibrium shapes of a batch of designs.
 
@@ -306,6 +307,9 @@ def solve(
         sequence: the designs are one robot's commands in order (:func:`tdcr.replay`): with
             displacement actuation each design's tensions start from those found for the one
             before (the answers equal those of independent solves to the solver's tolerances).
+        validated: the designs, loads and fractions come from the one validation path
+            (:mod:`tdcr.api.validation`, as :func:`tdcr.physics.exact.solve_request`'s do): its
+            checks are not run a second time.
 
     Returns:
         A :class:`RodSolution`.  A design that fails is flagged in ``status`` and ``converged``;
@@ -314,7 +318,7 @@ def solve(
     opts = options or SolverOptions()
     if termination not in TERMINATIONS:
         raise ValueError(f"termination must be one of {list(TERMINATIONS)}, got {termination!r}")
-    fractions_out = check_inputs(designs, fractions, loads)
+    fractions_out = np.asarray(fractions, dtype=np.float64) if validated else check_inputs(designs, fractions, loads)
     loaded = loads is not None and not loads.is_zero()
     shortcut = termination == "rucker_webster" and bool(designs.segmented.any())
     if (designs.capstan != 0.0).any() and (loaded or shortcut or jacobian or opts.linearized):

@@ -99,7 +99,8 @@ class SolvedGroup:
         finite = np.isfinite(sol.residual)
         for v in arrays.values():
             finite &= np.isfinite(v.reshape(len(v), -1)).all(axis=1)
-        arrays = {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in arrays.items()}
+        if not finite.all():
+            arrays = {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in arrays.items()}
         status = np.where(finite, sol.status, Status.NOT_FINITE).astype(np.int32)
         return cls(rows=rows, **arrays, converged=sol.converged & finite,
                    residual=np.where(finite, sol.residual, NOT_FINITE_RESIDUAL), status=status,
@@ -165,7 +166,7 @@ def solve_request(request: ShapeRequest, *, options: SolverOptions | None = None
     for group in request.groups:
         with np.errstate(all="ignore"):  # overflow of an extreme design is reported in its flags
             sol = solve(group.designs, fractions, loads=group.loads, options=options, jacobian=request.jacobian,
-                        termination=request.termination)
+                        termination=request.termination, validated=True)
         tip_jacobian = np.nan_to_num(sol.jacobian[:, tip_index]) if request.jacobian else None
         groups.append(SolvedGroup.of(group.rows, sol, points=request.fractions.size, tip_jacobian=tip_jacobian))
     return ExactAnswer(fractions=request.fractions, groups=tuple(groups))
