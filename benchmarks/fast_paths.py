@@ -107,7 +107,8 @@ def served(requests: int) -> None:
     ratio = np.median(np.array(times["/predict (router)"]) / np.array(times["/exact"]))
     print(f"\n/predict (router) / /exact, same body, median of per-round ratios: {ratio:.2f}")
     for model in GRPC_ROWS:
-        inline = np.array(times[f"gRPC ModelInfer {model}"]) / np.array(times[f"gRPC ModelInfer {model}{GRPC_SERVERS[1]}"])
+        threaded = np.array(times[f"gRPC ModelInfer {model}{GRPC_SERVERS[1]}"])
+        inline = np.array(times[f"gRPC ModelInfer {model}"]) / threaded
         print(f"gRPC {model}: on the event loop / on a worker thread, median of per-round ratios: "
               f"{np.median(inline):.2f}")
     print("router costs on the server (s, B designs): " + ", ".join(f"{k} {v}" for k, v in auto.items()))
