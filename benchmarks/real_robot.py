@@ -63,7 +63,7 @@ def main() -> None:
     rate = _rate(fitted, train.commands)
     frictionless = replace(fitted, design=fitted.design.replace(friction=np.zeros(fitted.design.offset.shape)))
     rate_frictionless = _rate(frictionless, train.commands)
-    start_errors = errors(replay(robot, val.commands), val)
+    start_errors = errors(replay(robot, val.commands, time=val.time), val)
     print(f"\nfit: {result.solves} replays of {len(train.time)} rows; train RMSE {result.train.rmse:.2f} mm, aligned "
           f"{result.train.aligned:.2f} mm (start {result.initial.rmse:.2f} / {result.initial.aligned:.2f})")
     for p in result.parameters:

@@ -69,7 +69,7 @@ def _cmd_replay(args) -> int:
 
     robot, recording = _robot_and_recording(args.robot, args.commands, measured=None)  # scored where measured
     start = time.perf_counter()
-    answer = replay(robot, recording.commands, workers=args.workers)
+    answer = replay(robot, recording.commands, time=recording.time, workers=args.workers)
     seconds = time.perf_counter() - start
     write_predictions(args.out, robot, recording, answer)
     n = len(recording.time)

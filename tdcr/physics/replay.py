@@ -5,7 +5,8 @@ tendon's displacement (or tension) from the row and its motion from the command 
 release, the sign of its friction, eq. CAP; a hold keeps the last).  Given the motions the rows are
 independent equilibria, so they are solved side by side on every core, each run of rows in order
 with warm starts (``solve(..., sequence=True)``); the measured point of each tip follows from the
-robot's marker and base pose (:meth:`tdcr.robot.real.Measurement.points`).
+robot's marker and base pose, seen through its lag in time when the rows' times are given
+(:meth:`tdcr.robot.real.Measurement.points`, eq. LAG).
 """
 
 from __future__ import annotations
@@ -47,14 +48,16 @@ class Replay:
         return self.status == 0
 
 
-def replay(robot: Robot, commands: np.ndarray, *, motion: np.ndarray | None = None, workers: int = 0,
-           options: SolverOptions = REPLAY_OPTIONS) -> Replay:
+def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None, motion: np.ndarray | None = None,
+           workers: int = 0, options: SolverOptions = REPLAY_OPTIONS) -> Replay:
     """The robot's tip for each command row.
 
     Args:
         robot: the robot (:func:`tdcr.robot.real.load_robot`).
         commands: ``(T, N_t)`` SI (m of displacement or N of tension, by ``robot.actuation.kind``),
             in the order they were sent.
+        time: the rows' times ``(T,)`` s: the measured points follow the equilibria with the
+            measurement's ``time_constant`` (eq. LAG); ``None``: each row's equilibrium as it is.
         motion: each tendon's motion per row ``(T, N_t)`` (default: from the command history,
             :func:`tdcr.robot.real.motions`).
         workers: kernel threads (0: one per core).
@@ -65,7 +68,7 @@ def replay(robot: Robot, commands: np.ndarray, *, motion: np.ndarray | None = No
     sol = solve(robot.designs(commands, motion), np.ones(1),
                 options=options, workers=workers, sequence=True)
     position, rotation = sol.backbone[:, -1], sol.rotation[:, -1]
-    return Replay(points=robot.measurement.points(position, rotation), tip_position=position,
+    return Replay(points=robot.measurement.points(position, rotation, time), tip_position=position,
                   tip_rotation=rotation, tension=sol.tension, motion=motion, status=sol.status.astype(np.int32))
 
 

@@ -12,14 +12,17 @@ A robot file (JSON Schema: ``openapi/robot.schema.json``, :data:`ROBOT_SCHEMA`):
      "measurement": {"columns": ["tip_x", "tip_y", "tip_z"], "unit": "mm",
                      "marker": [x, y, z] m in the tip frame,
                      "base_position": [x, y, z] m and "base_rotation": [x, y, z] rad (a rotation
-                     vector): where the robot's base frame sits in the measurement's frame},
+                     vector): where the robot's base frame sits in the measurement's frame,
+                     "time_constant": s, with which the measured tip follows each row's
+                     equilibrium (eq. LAG; default 0: at once)},
      "time_column": "timestamp", "label_column": "pattern_label" (optional),
      "fitted": {...what ``tdcr fit`` found, with standard errors (optional, informative)}}
 
 A command row is a design: the robot's design with each tendon's displacement (or tension) from the
 row, and its ``motion`` (pull or release, the sign of its friction, eq. CAP) from the command
 history (:func:`motions`).  The measured point is base_position + Rot(base_rotation) (p(L) + R(L)
-marker) (:meth:`Measurement.points`).
+marker) (:meth:`Measurement.points`), seen through a first-order lag in time (:func:`settle`, eq. LAG)
+when the robot has a ``time_constant``.
 """
 
 from __future__ import annotations
@@ -81,25 +84,50 @@ class Actuation:
 @dataclass(frozen=True)
 class Measurement:
     """How the tip is measured: the CSV ``columns`` (x, y, z) in ``unit``, the ``marker`` (3,) m in
-    the tip frame, and the base frame's pose in the measurement frame: ``base_position`` (3,) m and
-    ``base_rotation`` (3,) rad, a rotation vector."""
+    the tip frame, the base frame's pose in the measurement frame: ``base_position`` (3,) m and
+    ``base_rotation`` (3,) rad, a rotation vector; and the ``time_constant`` s with which the
+    measured tip follows the equilibrium of each row (eq. LAG, :func:`settle`; 0: at once)."""
 
     columns: tuple[str, ...]
     unit: str
     marker: np.ndarray = field(default_factory=lambda: np.zeros(3))
     base_position: np.ndarray = field(default_factory=lambda: np.zeros(3))
     base_rotation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    time_constant: float = 0.0
 
     @property
     def scale(self) -> float:
         """Factor from the columns' unit to m."""
         return UNITS[self.unit]
 
-    def points(self, tip_position: np.ndarray, tip_rotation: np.ndarray) -> np.ndarray:
+    def points(self, tip_position: np.ndarray, tip_rotation: np.ndarray, time: np.ndarray | None = None) -> np.ndarray:
         """The measured points, m, measurement frame, ``(T, 3)``, of tips at ``tip_position`` ``(T, 3)``
-        m with frames ``tip_rotation`` ``(T, 3, 3)`` (base frame): b + Rot(r) (p + R marker)."""
+        m with frames ``tip_rotation`` ``(T, 3, 3)`` (base frame): b + Rot(r) (p + R marker); with the
+        rows' ``time`` ``(T,)`` s, seen through the lag of the ``time_constant`` (:func:`settle`)."""
         local = tip_position + np.einsum("tij,j->ti", tip_rotation, self.marker)
-        return self.base_position + local @ rotation_matrix(self.base_rotation).T
+        static = self.base_position + local @ rotation_matrix(self.base_rotation).T
+        return static if time is None else settle(static, time, self.time_constant)
+
+
+def settle(points: np.ndarray, time: np.ndarray, time_constant: float) -> np.ndarray:
+    """What a first-order lag with ``time_constant`` T (s) shows of ``points`` ``(T_rows, 3)``, each
+    row's equilibrium, at the rows' ``time`` ``(T_rows,)`` s (eq. LAG): the measured point relaxes
+    towards each new equilibrium q_t,
+
+        y_0 = q_0,   y_t = q_t + (y_{t-1} - q_t) exp(-(t_t - t_{t-1}) / T),
+
+    the step response of a first-order system between two samples (the robot still settling when the
+    motion capture samples it).  T = 0 gives ``points``; a row that is not finite passes through, and
+    the next starts afresh from its own equilibrium."""
+    points = np.asarray(points, dtype=np.float64)
+    if time_constant <= 0.0 or len(points) < 2:
+        return points
+    keep = np.exp(-np.diff(np.asarray(time, dtype=np.float64)) / time_constant)  # (T_rows - 1,)
+    out = points.copy()
+    for t in range(1, len(points)):
+        if np.isfinite(out[t - 1]).all():
+            out[t] = points[t] + keep[t - 1] * (out[t - 1] - points[t])
+    return out
 
 
 @dataclass(frozen=True)
@@ -128,7 +156,7 @@ class Robot:
                              "deadband": a.deadband / a.scale},
                "measurement": {"columns": list(m.columns), "unit": m.unit, "marker": m.marker.tolist(),
                                "base_position": m.base_position.tolist(),
-                               "base_rotation": m.base_rotation.tolist()},
+                               "base_rotation": m.base_rotation.tolist(), "time_constant": m.time_constant},
                "time_column": self.time_column}
         if self.label_column is not None:
             out["label_column"] = self.label_column
@@ -221,8 +249,13 @@ def load_robot(source: str | Path | dict) -> Robot:
         raise RobotFileError(f"actuation.deadband: must be a number >= 0, got {deadband!r}")
     actuation = Actuation(columns=_columns(a, "actuation", design.n_tendons), unit=unit, kind=kind,
                           deadband=float(deadband) * UNITS[unit])
+    time_constant = m.get("time_constant", 0.0)
+    if isinstance(time_constant, bool) or not isinstance(time_constant, int | float) or not (
+            math.isfinite(time_constant) and time_constant >= 0):
+        raise RobotFileError(f"measurement.time_constant: must be a number of seconds >= 0, got {time_constant!r}")
     measurement = Measurement(columns=_columns(m, "measurement", 3), unit=_choice(m, "unit", "measurement",
                                                                                    LENGTH_UNITS),
+                              time_constant=float(time_constant),
                               **{k: _vector(m.get(k, [0.0, 0.0, 0.0]), f"measurement.{k}")
                                  for k in ("marker", "base_position", "base_rotation")})
     known = {"name", "design", "actuation", "measurement", "time_column", "label_column"}
@@ -341,7 +374,10 @@ def robot_schema() -> dict:
                 "marker": vector | {"description": "the measured point in the tip frame, m"},
                 "base_position": vector | {"description": "the base frame's origin in the measurement frame, m"},
                 "base_rotation": vector | {"description": "the base frame's rotation in the measurement frame, a "
-                                                          "rotation vector, rad"}}},
+                                                          "rotation vector, rad"},
+                "time_constant": {"type": "number", "minimum": 0, "default": 0,
+                                  "description": "s: the measured tip follows each row's equilibrium with this "
+                                                 "first-order lag (0: at once)"}}},
             "time_column": {"type": "string", "default": "timestamp"},
             "label_column": {"type": "string"},
             "fitted": {"type": "object", "description": "what tdcr fit found: parameters with standard errors, "

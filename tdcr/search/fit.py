@@ -12,7 +12,9 @@ trust-region reflective with bounds, forward-difference Jacobian):
 * ``stiffness``: instead, a series stiffness per segment's tendons, N/m;
 * ``friction``: each segment's Capstan coefficient;
 * ``angle``: a rotation of each segment's tendon angles, rad (rough routing angles);
-* ``marker``, ``base_position``, ``base_rotation``: the measurement's registration (no new solve).
+* ``marker``, ``base_position``, ``base_rotation``: the measurement's registration, and
+  ``time_constant``: the lag with which the measured tip follows the equilibria (eq. LAG, s); none
+  needs a new solve.
   A robot file's rough registration (e.g. its tendon angles in another frame than the motion
   capture's) is first replaced by the rigid motion that best aligns the first replay's points with
   the measured ones (Kabsch, :func:`register`) when that lowers the error: least squares alone
@@ -39,25 +41,28 @@ from tdcr.robot.real import Measurement, Recording, Robot
 
 #: The parameter groups :func:`fit` can identify, in order.
 GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "offset", "angle", "marker", "base_position",
-          "base_rotation")
+          "base_rotation", "time_constant")
 #: Those :func:`fit` identifies unless told otherwise (the routing angles of a calibrated robot file are kept).
-DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "offset", "marker", "base_position", "base_rotation")
-#: Those of the registration (changing them needs no new solve).
-REGISTRATION = ("marker", "base_position", "base_rotation")
+DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "offset", "marker", "base_position", "base_rotation",
+                  "time_constant")
+#: Those of the measurement (changing them needs no new solve).
+REGISTRATION = ("marker", "base_position", "base_rotation", "time_constant")
 #: Each group's unit of the search (one unit of the optimiser's variable).
 _SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction": 0.1, "offset": 0.05, "angle": 0.1,
-          "marker": 1e-3, "base_position": 1e-3, "base_rotation": 0.01}
+          "marker": 1e-3, "base_position": 1e-3, "base_rotation": 0.01, "time_constant": 0.1}
 #: Searched as logarithms (positive, relative steps).
-_LOG = ("E", "elasticity", "stiffness", "friction", "offset")
-#: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons).
-_LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10}
+_LOG = ("E", "elasticity", "stiffness", "friction", "offset", "time_constant")
+#: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons,
+#: no lag: at 0 s the lag's gradient vanishes).
+_LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10, "time_constant": 0.2}
 #: The search's bounds of each group's value (logs for :data:`_LOG`): physical ranges, and the
 #: admissible ranges of the design fields.
 _BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffness": (math.log(50.0), math.log(1e7)),
            "drive_compliance": (math.log(1e-9), math.log(0.1)), "tendon_EA": (math.log(1.0), math.log(1e9)),
            "friction": (math.log(1e-3), math.log(1.0)), "offset": (math.log(1e-4), math.log(0.1)),
            "angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
-           "base_position": (-0.25, 0.25), "base_rotation": (-4.0, 4.0)}
+           "base_position": (-0.25, 0.25), "base_rotation": (-4.0, 4.0),
+           "time_constant": (math.log(1e-3), math.log(5.0))}
 #: The least-squares iterations (each a Jacobian) and the search's budget, s: on the shared recording 15
 #: iterations take 210 s on 2 cores; more fit train closer and validate worse.
 MAX_ITERATIONS, BUDGET = 15, 270.0
@@ -137,7 +142,7 @@ class _Layout:
 def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
     n_seg = len(segments(robot))
     counts = {"E": 1, "zero": robot.n_tendons, "elasticity": 2, "stiffness": n_seg, "friction": n_seg, "offset": n_seg,
-              "angle": n_seg, "marker": 3, "base_position": 3, "base_rotation": 3}
+              "angle": n_seg, "marker": 3, "base_position": 3, "base_rotation": 3, "time_constant": 1}
     names, gs, index = [], [], []
     for g in GROUPS:
         if g in groups:
@@ -165,6 +170,8 @@ def _values(robot: Robot, layout: _Layout) -> np.ndarray:
             out.append(math.log(v if np.isfinite(v) and v > 0 else _LOG_START[g]))
         elif g == "angle":
             out.append(0.0)
+        elif g == "time_constant":
+            out.append(math.log(m.time_constant if m.time_constant > 0 else _LOG_START[g]))
         else:
             out.append(getattr(m, g)[i])
     return np.array(out)
@@ -177,7 +184,7 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
               "friction": d.resolved("friction").copy(), "offset": d.offset.copy(), "angle": base_angles.copy()}
     E = d.E.copy()
     elastic = [np.nan, np.nan]  # the drive's compliance c0 (m/N) and the tendons' axial stiffness EA (N)
-    reg = {k: getattr(robot.measurement, k).copy() for k in REGISTRATION}
+    reg = {k: np.copy(getattr(robot.measurement, k)) for k in REGISTRATION}
     for g, i, v in zip(layout.groups, layout.index, values, strict=True):
         if g == "E":
             E[0] = math.exp(v)
@@ -189,10 +196,13 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
             fields[g][0, segs[i]] = math.exp(v)
         elif g == "angle":
             fields["angle"][0, segs[i]] = base_angles[0, segs[i]] + v
+        elif g == "time_constant":
+            reg[g] = math.exp(v)
         else:
             reg[g][i] = v
     if not np.isnan(elastic).any():  # eq. SE's k of a tendon of length end: 1 / k = c0 + end / EA
         fields["stiffness"] = 1.0 / (elastic[0] + d.ends / elastic[1])
+    reg["time_constant"] = float(reg["time_constant"])
     measurement = replace(robot.measurement, **reg)
     return replace(robot, design=d.replace(E=E, **fields), measurement=measurement)
 
@@ -225,7 +235,7 @@ class FitResult:
 _NAMES = {"elasticity": ("drive_compliance", "tendon_EA")}
 _NAME_UNITS = {"drive_compliance": "m/N", "tendon_EA": "N"}
 _UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "offset": "m", "angle": "rad", "marker": "m",
-          "base_position": "m", "base_rotation": "rad"}
+          "base_position": "m", "base_rotation": "rad", "time_constant": "s"}
 
 
 def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, groups: Sequence[str] = DEFAULT_GROUPS,
@@ -288,7 +298,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         x = x0 + z * scale
         fitted = _apply(robot, layout, x, base_angles)
         answer = solved(x)
-        points = fitted.measurement.points(answer.tip_position, answer.tip_rotation)
+        points = fitted.measurement.points(answer.tip_position, answer.tip_rotation, train.time)
         # a row whose pull-ins were missed still has an equilibrium (at the tensions found): scored as it is
         err = np.where(np.isfinite(points), points - train.measured, FAILED_ERROR)
         r = (err[scored] * 1e3).ravel()  # mm
@@ -300,10 +310,10 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         return r
 
     initial_robot = _apply(robot, layout, x0, base_angles)
-    initial = errors(_replay_points(initial_robot, solved(x0)), train)
+    initial = errors(_replay_points(initial_robot, solved(x0), train.time), train)
     if {"base_position", "base_rotation"} <= set(groups):
         registered = register(initial_robot, solved(x0), train)
-        better = errors(_replay_points(registered, solved(x0)), train)
+        better = errors(_replay_points(registered, solved(x0), train.time), train)
         if better.rmse < initial.rmse:
             moved = _values(registered, layout)
             for k, g in enumerate(layout.groups):
@@ -330,9 +340,9 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         value = math.exp(v) if g in _LOG else v
         params.append(Parameter(name=name, value=float(value), stderr=float(value * se if g in _LOG else se),
                                 unit=_NAME_UNITS.get(name) or _UNITS[g]))
-    train_replay = _replay_points(fitted, solved(x))
-    val_replay = None if validate is None else replay(fitted, validate.commands, workers=workers,
-                                                      options=REPLAY_OPTIONS)
+    train_replay = _replay_points(fitted, solved(x), train.time)
+    val_replay = None if validate is None else replay(fitted, validate.commands, time=validate.time,
+                                                      workers=workers, options=REPLAY_OPTIONS)
     seconds = time.perf_counter() - start
     out = FitResult(robot=fitted, parameters=params, train=errors(train_replay, train),
                     validate=None if validate is None else errors(val_replay, validate), train_replay=train_replay,
@@ -379,9 +389,9 @@ def _jacobian(residual, z: np.ndarray) -> np.ndarray:
     return jac
 
 
-def _replay_points(robot: Robot, answer: Replay) -> Replay:
-    """``answer`` with its measured points under ``robot``'s registration."""
-    return replace(answer, points=robot.measurement.points(answer.tip_position, answer.tip_rotation))
+def _replay_points(robot: Robot, answer: Replay, time: np.ndarray) -> Replay:
+    """``answer`` with its measured points under ``robot``'s measurement (rows at ``time`` ``(T,)`` s)."""
+    return replace(answer, points=robot.measurement.points(answer.tip_position, answer.tip_rotation, time))
 
 
 def plot(result: FitResult, train: Recording, validate: Recording | None, path: str) -> None:

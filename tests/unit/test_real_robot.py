@@ -165,6 +165,7 @@ def test_bad_robot_files_name_the_key(tmp_path):
                           (lambda d: d["design"]["tendons"][2].update(friction=-1), "design.tendons[2].friction"),
                           (lambda d: d["design"]["tendons"][0].update(motion="push"), "design.tendons[0].motion"),
                           (lambda d: d["measurement"].update(marker=[0, 0]), "measurement.marker"),
+                          (lambda d: d["measurement"].update(time_constant=-0.1), "measurement.time_constant: must"),
                           (lambda d: d.pop("measurement"), "measurement: missing")]:
         data = json.loads(json.dumps(good))
         change(data)
@@ -210,13 +211,14 @@ def test_fit_recovers_a_known_robot_from_its_own_replay():
     truth = load_robot(EXAMPLE)
     truth = replace(truth, design=truth.design.replace(friction=np.full((1, 9), 0.1),
                                                        zero=np.linspace(-3e-4, 3e-4, 9)[None]),
-                    measurement=replace(truth.measurement, base_position=np.array([0.002, -0.001, -0.004])))
+                    measurement=replace(truth.measurement, base_position=np.array([0.002, -0.001, -0.004]),
+                                        time_constant=0.35))
     rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", truth)
     made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands,
-                     measured=replay(truth, rec.commands).points, rows=rec.rows, header=rec.header)
+                     measured=replay(truth, rec.commands, time=rec.time).points, rows=rec.rows, header=rec.header)
     start = replace(truth, design=truth.design.replace(E=np.array([40e9]), zero=np.zeros((1, 9))),
-                    measurement=replace(truth.measurement, base_position=np.zeros(3)))
-    result = fit(start, made, groups=("E", "zero", "base_position"), loss="linear", prior=None,
+                    measurement=replace(truth.measurement, base_position=np.zeros(3), time_constant=0.0))
+    result = fit(start, made, groups=("E", "zero", "base_position", "time_constant"), loss="linear", prior=None,
                  max_iterations=20, budget=120)
     assert result.initial.rmse > 2.0 and result.train.rmse < 0.05  # mm
     values = {p.name: p.value for p in result.parameters}
@@ -226,6 +228,38 @@ def test_fit_recovers_a_known_robot_from_its_own_replay():
     np.testing.assert_allclose(np.array([values[f"zero[{i}]"] for i in range(9)])[taut],
                                truth.design.resolved("zero")[0, taut], atol=2e-5)
     np.testing.assert_allclose([values[f"base_position[{i}]"] for i in range(3)], [0.002, -0.001, -0.004], atol=2e-4)
+    assert values["time_constant"] == pytest.approx(0.35, rel=2e-2)
+
+
+def test_the_lag_is_the_step_response_of_a_first_order_system():
+    """eq. LAG against its closed form: after a step of the equilibrium from a to b at row 1, the
+    measured point at row k >= 1 is b + (a - b) exp(-(t_k - t_0) / T) for uneven sample times; T = 0
+    shows the equilibria as they are; a row that is not finite passes through and the next starts
+    afresh; the robot's measured points with the rows' times are the lag of its static points."""
+    from dataclasses import replace
+
+    from tdcr.robot.real import settle
+
+    t = np.array([0.0, 0.4, 1.1, 1.5, 3.0, 3.2])
+    a, b = np.array([1.0, -2.0, 0.5]), np.array([0.0, 1.0, 2.5])
+    q = np.array([a] + [b] * 5)
+    expected = b + (a - b) * np.exp(-(t - t[0]) / 0.7)[:, None]
+    np.testing.assert_allclose(settle(q, t, 0.7), expected, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(settle(q, t, 0.0), q)
+    q_nan = q.copy()
+    q_nan[2] = np.nan
+    lagged = settle(q_nan, t, 0.7)
+    assert np.isnan(lagged[2]).all()
+    np.testing.assert_array_equal(lagged[3], b)  # afresh from its own equilibrium
+    np.testing.assert_allclose(lagged[4:], np.tile(b, (2, 1)), rtol=0, atol=1e-15)
+    robot = load_robot(EXAMPLE)
+    lagging = replace(robot.measurement, time_constant=0.3, marker=np.array([0.0, 0.003, 0.008]),
+                      base_rotation=np.array([0.1, -0.2, 0.3]))
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
+    answer = replay(robot, rec.commands)
+    np.testing.assert_allclose(lagging.points(answer.tip_position, answer.tip_rotation, rec.time),
+                               settle(lagging.points(answer.tip_position, answer.tip_rotation), rec.time, 0.3),
+                               rtol=0, atol=1e-15)
 
 
 def test_tdcr_solve_takes_a_robot_file():
