@@ -78,7 +78,8 @@ FAILED_ERROR = 0.05
 
 @dataclass(frozen=True)
 class Parameter:
-    """One identified value: ``name`` (e.g. ``zero[3]``), ``value`` and ``stderr`` in ``unit`` (SI)."""
+    """One identified value: ``name`` (e.g. ``zero[3]``), ``value`` and ``stderr`` in ``unit`` (SI;
+    ``inf`` where the data do not move it: not identified, ``null`` in the report)."""
 
     name: str
     value: float
@@ -225,7 +226,8 @@ class FitResult:
 
     def report(self) -> dict:
         """The fit as JSON (the robot file's ``fitted``)."""
-        return {"parameters": [{"name": p.name, "value": p.value, "stderr": p.stderr, "unit": p.unit}
+        return {"parameters": [{"name": p.name, "value": p.value,
+                                "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit}
                                for p in self.parameters],
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves}
@@ -335,6 +337,10 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     s2 = float(r_best @ r_best) / max(m - p, 1)  # mm^2
     cov = s2 * np.linalg.pinv(jac.T @ jac)
     stderr = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
+    # a parameter the residuals do not move (e.g. a lag far below the sampling interval) is not
+    # identified: its variance is unbounded, not the 0 the pseudo-inverse gives its null direction
+    column = np.linalg.norm(jac, axis=0)
+    stderr[column <= 1e-9 * max(float(column.max()), 1e-300)] = np.inf
     params = []
     for name, g, v, se in zip(layout.names, layout.groups, x, stderr, strict=True):
         value = math.exp(v) if g in _LOG else v

@@ -292,3 +292,25 @@ def test_register_finds_a_base_turned_by_half_a_turn_and_the_fit_starts_there():
     np.testing.assert_allclose(found.base_position, truth.measurement.base_position, atol=1e-9)
     result = fit(robot, made, groups=("base_position", "base_rotation"), max_iterations=3, budget=60)
     assert result.initial.rmse > 50.0 and result.train.rmse < 1e-3  # mm
+
+
+def test_a_parameter_the_data_do_not_move_is_reported_as_not_identified():
+    """A lag of 2 ms under samples 0.5-11 s apart moves no measured point (exp(-250) = 0): its
+    standard error is unbounded (inf, null in the report), not the pseudo-inverse's 0, while the
+    marker beside it is identified."""
+    from dataclasses import replace
+
+    from tdcr.robot.real import Recording
+    from tdcr.search.fit import fit
+
+    robot = load_robot(EXAMPLE)
+    robot = replace(robot, measurement=replace(robot.measurement, time_constant=0.002))
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
+    made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands,
+                     measured=replay(robot, rec.commands).points + 1e-4 * np.sin(np.arange(len(rec.time)))[:, None],
+                     rows=rec.rows, header=rec.header)
+    result = fit(robot, made, groups=("marker", "time_constant"), max_iterations=2, budget=60)
+    found = {p.name: p for p in result.parameters}
+    assert found["time_constant"].stderr == np.inf and np.isfinite(found["marker[0]"].stderr)
+    reported = {p["name"]: p for p in result.report()["parameters"]}
+    assert reported["time_constant"]["stderr"] is None and reported["marker[0]"]["stderr"] > 0
