@@ -123,10 +123,11 @@ def settle(points: np.ndarray, time: np.ndarray, time_constant: float) -> np.nda
     if time_constant <= 0.0 or len(points) < 2:
         return points
     keep = np.exp(-np.diff(np.asarray(time, dtype=np.float64)) / time_constant)  # (T_rows - 1,)
+    finite = np.isfinite(points).all(axis=1)
     out = points.copy()
     for t in range(1, len(points)):
-        if np.isfinite(out[t - 1]).all():
-            out[t] = points[t] + keep[t - 1] * (out[t - 1] - points[t])
+        if finite[t - 1]:  # out[t - 1] is finite exactly where points[t - 1] is
+            out[t] += keep[t - 1] * (out[t - 1] - points[t])
     return out
 
 
