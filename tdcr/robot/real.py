@@ -209,6 +209,14 @@ def _choice(section: dict, key: str, where: str, allowed, default=None):
     return value
 
 
+def _nonnegative(section: dict, key: str, where: str) -> float:
+    """``section[key]`` (default 0), a finite number >= 0."""
+    value = section.get(key, 0.0)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
+        raise RobotFileError(f"{where}.{key}: must be a number >= 0, got {value!r}")
+    return float(value)
+
+
 def _columns(section: dict, where: str, count: int) -> tuple[str, ...]:
     cols = section.get("columns")
     if not isinstance(cols, list) or len(cols) != count or not all(isinstance(c, str) and c for c in cols):
@@ -245,18 +253,11 @@ def load_robot(source: str | Path | dict) -> Robot:
     a, m = data["actuation"], data["measurement"]
     kind = _choice(a, "kind", "actuation", KINDS, "displacement")
     unit = _choice(a, "unit", "actuation", KINDS[kind])
-    deadband = a.get("deadband", 0.0)
-    if not isinstance(deadband, int | float) or not math.isfinite(deadband) or deadband < 0:
-        raise RobotFileError(f"actuation.deadband: must be a number >= 0, got {deadband!r}")
     actuation = Actuation(columns=_columns(a, "actuation", design.n_tendons), unit=unit, kind=kind,
-                          deadband=float(deadband) * UNITS[unit])
-    time_constant = m.get("time_constant", 0.0)
-    if isinstance(time_constant, bool) or not isinstance(time_constant, int | float) or not (
-            math.isfinite(time_constant) and time_constant >= 0):
-        raise RobotFileError(f"measurement.time_constant: must be a number of seconds >= 0, got {time_constant!r}")
+                          deadband=_nonnegative(a, "deadband", "actuation") * UNITS[unit])
     measurement = Measurement(columns=_columns(m, "measurement", 3), unit=_choice(m, "unit", "measurement",
                                                                                    LENGTH_UNITS),
-                              time_constant=float(time_constant),
+                              time_constant=_nonnegative(m, "time_constant", "measurement"),
                               **{k: _vector(m.get(k, [0.0, 0.0, 0.0]), f"measurement.{k}")
                                  for k in ("marker", "base_position", "base_rotation")})
     known = {"name", "design", "actuation", "measurement", "time_column", "label_column"}

@@ -185,7 +185,9 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
               "friction": d.resolved("friction").copy(), "offset": d.offset.copy(), "angle": base_angles.copy()}
     E = d.E.copy()
     elastic = [np.nan, np.nan]  # the drive's compliance c0 (m/N) and the tendons' axial stiffness EA (N)
-    reg = {k: np.copy(getattr(robot.measurement, k)) for k in REGISTRATION}
+    m = robot.measurement
+    reg = {"marker": m.marker.copy(), "base_position": m.base_position.copy(),
+           "base_rotation": m.base_rotation.copy(), "time_constant": m.time_constant}
     for g, i, v in zip(layout.groups, layout.index, values, strict=True):
         if g == "E":
             E[0] = math.exp(v)
@@ -203,8 +205,7 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
             reg[g][i] = v
     if not np.isnan(elastic).any():  # eq. SE's k of a tendon of length end: 1 / k = c0 + end / EA
         fields["stiffness"] = 1.0 / (elastic[0] + d.ends / elastic[1])
-    reg["time_constant"] = float(reg["time_constant"])
-    measurement = replace(robot.measurement, **reg)
+    measurement = replace(m, **reg)
     return replace(robot, design=d.replace(E=E, **fields), measurement=measurement)
 
 
