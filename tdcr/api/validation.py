@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -119,7 +120,7 @@ class ShapeRequest:
             raise ValueError("the designs have different tendon counts")
         return self.groups[0].loads
 
-    @property
+    @cached_property  # the request is immutable; routing and admission each ask
     def n_loaded(self) -> int:
         """Designs the solver shoots for: non-zero gravity, tip force or tip moment, or segments
         under Rucker & Webster's rule."""
@@ -131,7 +132,7 @@ class ShapeRequest:
             count += int(shooting.sum())
         return count
 
-    @property
+    @cached_property
     def n_displacement(self) -> int:
         """Designs with a displacement-driven tendon (the solver first finds their tensions)."""
         return sum(int(g.designs.displacement_driven.any(axis=1).sum()) for g in self.groups)

@@ -57,6 +57,7 @@ turns their outputs into a :class:`RodSolution`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import threading
@@ -269,6 +270,23 @@ def _step_grid(fractions_out: np.ndarray, max_step: float) -> tuple[np.ndarray, 
     return edges, np.diff(edges), np.searchsorted(edges, fractions_out)
 
 
+#: Base grids kept by :func:`_base_edges` (a service asks for the same few point sets again and again).
+BASE_GRIDS_KEPT = 64
+
+
+def _base_edges(fractions_out: np.ndarray, max_step: float) -> np.ndarray:
+    """The base grid's edges ``(K+1,)`` from 0 to the tip (the path lengths need s = L) through the
+    output points ``fractions_out`` ``(n,)``: :func:`_step_grid`'s, remembered per point set and step
+    (it cost 0.1 ms, as much as one design's solve).  A fresh copy each call: callers own it."""
+    return _cached_base_edges(np.ascontiguousarray(fractions_out, dtype=np.float64).tobytes(), float(max_step)).copy()
+
+
+@functools.lru_cache(maxsize=BASE_GRIDS_KEPT)
+def _cached_base_edges(fractions_bytes: bytes, max_step: float) -> np.ndarray:
+    edges, _, _ = _step_grid(np.append(np.frombuffer(fractions_bytes), 1.0), max_step)
+    return edges
+
+
 # --------------------------------------------------------------------------- public entry
 
 
@@ -381,7 +399,7 @@ def _solve_tendon_only(designs: DesignBatch, fractions_out: np.ndarray, opts: So
     """Tendon loads only: the tendon-only kernel, step control per design (``opts.step_tol``) except
     for the linearized model (the base grid); ``warm`` (one design's copies: :class:`TipSolver`)
     starts Newton from the last solve's strains and keeps this one's."""
-    edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step)  # to the tip: the path lengths
+    edges0 = _base_edges(fractions_out, opts.max_step)
     return _solve_compiled(designs, fractions_out, edges0, opts, threads, jacobian=jacobian, warm=warm)
 
 
@@ -497,7 +515,7 @@ def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, load
     step controlled per design like the tendon-only kernel."""
     mat = material(designs)
     f_g, f_tip, m_tip = loads.resolved(designs.n_designs, mat.area)
-    edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step_loads)
+    edges0 = _base_edges(fractions_out, opts.max_step_loads)
     kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=True,
                                                    shortcut=shortcut)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
@@ -517,7 +535,7 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     k it pulls with k max(0, pull-in - d) (eq. SE), d the length its path shortened.  With
     ``sequence`` the designs are one robot's commands in order, each started from the tensions
     found for the one before (:func:`tdcr.replay`)."""
-    edges0, _, _ = _step_grid(np.append(fractions_out, 1.0), opts.max_step)
+    edges0 = _base_edges(fractions_out, opts.max_step)
     mat = material(designs)
     kernel, rods, grid, tols, _ = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
     start = np.where(designs.displacement_driven, 0.0, designs.tension)
@@ -558,8 +576,9 @@ def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
     # Newton stopped (or divided by |g_i| = 0) beside a collapsed tendon
     failed = np.nonzero((status == Status.NEWTON_FAILED) | (status == Status.NOT_FINITE)
                         & np.isfinite(out.tendons).all(axis=(1, 2, 3)))[0]
-    status[failed[tendon_collapsed(designs.take(failed), fractions_out, out.strains[failed])]] = \
-        Status.TENDON_COLLAPSED
+    if failed.size:
+        status[failed[tendon_collapsed(designs.take(failed), fractions_out, out.strains[failed])]] = \
+            Status.TENDON_COLLAPSED
     if warm is not None:  # a failed solve is no place to start from
         warm.nodes, warm.valid = out.nodes, bool((status == Status.CONVERGED).all())
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)

@@ -97,8 +97,9 @@ class SolvedGroup:
                   "tendons": sol.tendons[:, n], "tension": sol.tension, "displacement": sol.displacement,
                   "tension_profile": sol.tension_profile[:, n]}
         finite = np.isfinite(sol.residual)
-        for v in arrays.values():
-            finite &= np.isfinite(v.reshape(len(v), -1)).all(axis=1)
+        if not (finite.all() and all(np.isfinite(v).all() for v in arrays.values())):  # else all finite
+            for v in arrays.values():
+                finite &= np.isfinite(v.reshape(len(v), -1)).all(axis=1)
         if not finite.all():
             arrays = {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in arrays.items()}
         status = np.where(finite, sol.status, Status.NOT_FINITE).astype(np.int32)
@@ -148,6 +149,8 @@ class ExactAnswer:
         if len(self.groups) != 1:
             raise ValueError("the designs have different tendon counts")
         g = self.groups[0]
+        if (g.rows == np.arange(len(g.rows))).all():  # already in request order (one group always is)
+            return g
         order = np.argsort(g.rows, kind="stable")
         return SolvedGroup(**{f.name: None if getattr(g, f.name) is None else getattr(g, f.name)[order]
                               for f in dataclasses.fields(SolvedGroup)})

@@ -193,13 +193,17 @@ class DesignBatch:
     @property
     def compliance(self) -> np.ndarray:
         """Each tendon's series compliance 1 / stiffness, m/N, ``(B, N_t)`` (0: rigid)."""
-        return 1.0 / self.resolved("stiffness")
+        if self.stiffness is None:  # rigid: the default's 1 / inf without filling it in
+            return np.zeros(self.offset.shape)
+        return 1.0 / self.stiffness
 
     @property
     def capstan(self) -> np.ndarray:
         """Each tendon's signed Capstan coefficient, ``(B, N_t)``: tau(s) = tau(0) exp(capstan
         theta(s)) with theta the wrap angle, -friction pulling, +friction releasing (eq. CAP)."""
-        return -self.resolved("friction") * self.resolved("motion")
+        if self.friction is None:  # frictionless: 0 whatever the motion
+            return np.zeros(self.offset.shape)
+        return -self.friction * self.resolved("motion")
 
     @property
     def segmented(self) -> np.ndarray:

@@ -133,11 +133,12 @@ def known_bound(calibration, features: np.ndarray, loads: np.ndarray | None, *,
     runs, for :func:`choose`: the bins' bound (:meth:`tdcr.surrogates.bounds.Calibration.bound`;
     ``loads`` ``(B, 10)`` for a loaded operator, else None); a score that needs the answer (a
     companion's) counts as no fallback; without a ``calibration`` every design falls back under a
-    tolerance."""
-    if calibration is None:
-        return np.full(len(features), np.inf if tolerance is not None else 0.0)
-    if calibration.companion is not None:
+    tolerance.  Without a tolerance nothing falls back (:func:`~tdcr.surrogates.bounds.fallback_rows`),
+    so the bound is not computed: zeros."""
+    if tolerance is None or (calibration is not None and calibration.companion is not None):
         return np.zeros(len(features))
+    if calibration is None:
+        return np.full(len(features), np.inf)
     return calibration.bound(features, None, loads)
 
 
