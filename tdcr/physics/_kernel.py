@@ -926,6 +926,8 @@ def _sensitivities(sig, act, xs, rod, sens, gains):
 
 #: displacement actuation: a step keeps the last Jacobian (a chord step) while each cuts the miss by this factor
 _CHORD_RATE = 0.25
+#: and with friction while each cuts it by this factor (the secant updates keep the Jacobian current)
+_SECANT_RATE = 0.6
 #: a step moves no tension by more than _MAX_STEP_N + _MAX_STEP_FRACTION of it (antagonistic tendons
 #: can have several equilibria: small steps follow the one the start is on), and one that does not
 #: lower the squared miss is halved, down to _MIN_DAMPING
@@ -943,7 +945,9 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
     The displacement d_i = l0_i - l_i(tau) has the Jacobian -dl/dtau = int A^T J^-1 A ds,
     symmetric positive semi-definite (with friction scaled by each node's gain, the wrap angles
     held fixed): Newton on the driven tendons with that Jacobian plus diag(c) (:func:`_path_lengths`),
-    projected onto tau >= 0, the Jacobian kept while each step cuts the miss by ``_CHORD_RATE``,
+    projected onto tau >= 0, the Jacobian kept while each step cuts the miss by ``_CHORD_RATE``
+    (with friction, whose Jacobian misses the wrap angles' change, by ``_SECANT_RATE``, and updated
+    after each kept step by Broyden's secant, :func:`_secant_update`),
     each step capped (``_MAX_STEP_N``, ``_MAX_STEP_FRACTION``) and halved while it does not lower
     the squared miss.
     A tendon whose displacement would need a push (d_i > target_i at tau_i = 0: its path shortened
@@ -968,6 +972,9 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
     stretch = np.empty((2 * k0 + 1, n_t))
     last_worst, last_merit, alpha = np.inf, np.inf, 1.0
     tau_before, full_step = np.empty(n_t), np.zeros(n_t)
+    # with friction the Jacobian holds the wrap angles fixed: a secant (Broyden) update adds what it misses
+    secant = has_friction(capstan)
+    misses, miss_before = np.zeros(n_t), np.zeros(n_t)
     for it in range(MAX_DISPLACEMENT_ITERATIONS):
         xs[:, :] = 0.0
         xs[0, 2] = 1.0
@@ -982,6 +989,7 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
             if target[i] != target[i]:
                 continue
             miss = (l0[i] - lengths[i]) + comp[i] * tau[i] - target[i]
+            misses[i] = miss
             if tau[i] > 0.0 or miss < 0.0:
                 free[i] = True
                 n_free += 1
@@ -996,10 +1004,13 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
                 tau[i] = max(tau_before[i] + alpha * full_step[i], 0.0)
             continue
         last_merit, alpha = merit, 1.0
-        if it == 0 or worst > _CHORD_RATE * last_worst:  # the Jacobian anew (else the last one: a chord step)
+        if it == 0 or worst > (_SECANT_RATE if secant else _CHORD_RATE) * last_worst:  # the Jacobian anew
+            # (else the last one: a chord step, with friction updated by the secant)
             if not _sensitivities(sig, act, xs, rod, sens, gains):
                 return False, it + 1
             _path_lengths(sig, act, xs, rod, sens, lengths, dlen)
+        elif secant:
+            _secant_update(dlen, comp, target, tau, tau_before, misses, miss_before)
         last_worst = worst
         idx = np.empty(n_free, dtype=np.int64)
         c = 0
@@ -1022,11 +1033,34 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
             if abs(step[p]) * reach > cap:
                 reach = cap / abs(step[p])
         for i in range(n_t):
-            tau_before[i], full_step[i] = tau[i], 0.0
+            tau_before[i], full_step[i], miss_before[i] = tau[i], 0.0, misses[i]
         for p in range(n_free):
             full_step[idx[p]] = reach * step[p]
             tau[idx[p]] = max(tau[idx[p]] + reach * step[p], 0.0)
     return False, MAX_DISPLACEMENT_ITERATIONS
+
+
+@njit(cache=True, error_model="numpy")
+def _secant_update(dlen, comp, target, tau, tau_before, misses, miss_before):
+    """Broyden's update of the path lengths' Jacobian ``dlen`` (N_t, N_t) (in place) with the last
+    step: J = -dlen + diag(c) the miss's Jacobian, dt = tau - tau_before and dm its change in miss
+    (``misses`` - ``miss_before``, each (N_t,)), J += (dm - J dt) dt^T / (dt^T dt), on the rows of the
+    driven tendons (``target`` not NaN), so that J dt = dm holds afterwards."""
+    n_t = tau.shape[0]
+    norm = 0.0
+    for j in range(n_t):
+        norm += (tau[j] - tau_before[j]) ** 2
+    if not norm > 0.0:
+        return
+    for i in range(n_t):
+        if target[i] != target[i]:
+            continue
+        predicted = comp[i] * (tau[i] - tau_before[i])
+        for j in range(n_t):
+            predicted -= dlen[i, j] * (tau[j] - tau_before[j])
+        surprise = (misses[i] - miss_before[i]) - predicted
+        for j in range(n_t):
+            dlen[i, j] -= surprise * (tau[j] - tau_before[j]) / norm
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

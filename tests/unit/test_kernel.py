@@ -209,3 +209,29 @@ def test_the_numpy_routing_is_the_kernels_routing():
             np.testing.assert_allclose(rho[b, k, :, :2], mine, rtol=0, atol=1e-15)
             np.testing.assert_allclose(drho[b, k, :, :2], mine_d, rtol=0, atol=1e-14)
     assert (rho[..., 2] == 0).all() and (drho[..., 2] == 0).all()
+
+
+def test_the_secant_update_of_the_tension_newton_matches_its_last_step():
+    """Broyden's update (friction's tension Newton): afterwards the miss's Jacobian J = -dlen + diag(c)
+    maps the last step dt onto the change in miss dm on every driven tendon's row, and leaves the
+    tension-driven tendon's row (target NaN) and any direction orthogonal to dt as they were."""
+    from tdcr.physics._compiled import kernel
+
+    rng = np.random.default_rng(3)
+    n_t = 4
+    dlen, comp = rng.normal(size=(n_t, n_t)), rng.uniform(0.0, 1e-3, n_t)
+    target = np.array([0.01, np.nan, 0.02, 0.0])
+    tau_before, tau = rng.uniform(0, 5, n_t), rng.uniform(0, 5, n_t)
+    miss_before, misses = rng.normal(size=n_t), rng.normal(size=n_t)
+    updated = dlen.copy()
+    kernel._secant_update(updated, comp, target, tau, tau_before, misses, miss_before)
+    dt = tau - tau_before
+    jacobian = -updated + np.diag(comp)
+    driven = ~np.isnan(target)
+    np.testing.assert_allclose((jacobian @ dt)[driven], (misses - miss_before)[driven], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(updated[~driven], dlen[~driven])
+    orthogonal = np.linalg.svd(dt[None, :])[2][1]  # a direction with dt . v = 0
+    np.testing.assert_allclose(updated @ orthogonal, dlen @ orthogonal, rtol=0, atol=1e-12)
+    unchanged = dlen.copy()
+    kernel._secant_update(unchanged, comp, target, tau_before, tau_before, misses, miss_before)  # no step
+    np.testing.assert_array_equal(unchanged, dlen)
