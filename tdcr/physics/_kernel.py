@@ -937,7 +937,7 @@ MAX_DISPLACEMENT_ITERATIONS = 50
 
 
 @njit(cache=True, error_model="numpy")
-def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
+def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, known):
     """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
     (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
     with the ends (:func:`_with_ends`).  A tendon with series elasticity (``compliance`` c_i =
@@ -951,8 +951,10 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
     each step capped (``_MAX_STEP_N``, ``_MAX_STEP_FRACTION``) and halved while it does not lower
     the squared miss.
     A tendon whose displacement would need a push (d_i > target_i at tau_i = 0: its path shortened
-    more than it was pulled in) is slack: tension 0, ``slack[i]`` True.  Returns (converged,
-    iterations)."""
+    more than it was pulled in) is slack: tension 0, ``slack[i]`` True.  ``dlen`` (N_t, N_t) holds
+    the path lengths' Jacobian, in and out: with ``known[0]`` the one left by the design before in a
+    sequence (its first step then a chord step: the commands of neighbouring rows are close), and
+    ``known[0]`` is set once one is computed here.  Returns (converged, iterations)."""
     length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, compliance
     edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
     k0 = edges.shape[0] - 1
@@ -962,7 +964,7 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
     order = np.arange(2 * k0 + 1)
     xs = np.zeros((2 * k0 + 1, 6))
     sens = np.empty((2 * k0 + 1, 6, n_t))
-    lengths, dlen = np.empty(n_t), np.empty((n_t, n_t))
+    lengths = np.empty(n_t)
     l0 = np.empty(n_t)
     for i in range(n_t):
         l0[i] = undeformed_length(length, offset[i], pitch[i], end[i])
@@ -1004,12 +1006,14 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack):
                 tau[i] = max(tau_before[i] + alpha * full_step[i], 0.0)
             continue
         last_merit, alpha = merit, 1.0
-        if it == 0 or worst > (_SECANT_RATE if secant else _CHORD_RATE) * last_worst:  # the Jacobian anew
-            # (else the last one: a chord step, with friction updated by the secant)
+        if (it == 0 and not known[0]) or worst > (_SECANT_RATE if secant else _CHORD_RATE) * last_worst:
+            # the Jacobian anew (else the last one, or the row before's: a chord step, with friction
+            # updated by the secant after each kept step)
             if not _sensitivities(sig, act, xs, rod, sens, gains):
                 return False, it + 1
             _path_lengths(sig, act, xs, rod, sens, lengths, dlen)
-        elif secant:
+            known[0] = True
+        elif secant and it > 0:
             _secant_update(dlen, comp, target, tau, tau_before, misses, miss_before)
         last_worst = worst
         idx = np.empty(n_free, dtype=np.int64)
@@ -1068,13 +1072,17 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
     targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED.  With
     ``sequence`` the designs are one robot's commands in order: each driven tendon's Newton starts
-    from the tension found for the design before (a warm start)."""
+    from the tension found for the design before (a warm start), and with the Jacobian it left."""
+    n_t = target.shape[1]
+    dlen, known = np.empty((n_t, n_t)), np.zeros(1, dtype=np.bool_)
     for b in range(rods.length.shape[0]):
+        known[0] = known[0] and sequence and b > 0 and status[b - 1] == OK
         if sequence and b > 0 and status[b - 1] == OK:
-            for i in range(target.shape[1]):
+            for i in range(n_t):
                 if target[b, i] == target[b, i]:
                     rods.tension[b, i] = rods.tension[b - 1, i]
-        ok, it = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols, slack[b])
+        ok, it = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols, slack[b],
+                               dlen, known)
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
 
