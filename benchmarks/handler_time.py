@@ -24,18 +24,29 @@ def _metric(text: str, key: str) -> float:
     return float(re.search(re.escape(key) + r" ([0-9.e+-]+)", text).group(1))
 
 
+def _wait_ready(client: httpx.Client, timeout: float) -> None:
+    """Until ``/readyz`` says 200 (a starting server answers 503 and has no model metrics yet)."""
+    deadline = time.monotonic() + timeout
+    while client.get("/readyz").status_code != 200:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"{client.base_url} was not ready within {timeout:g} s (GET /readyz)")
+        time.sleep(1.0)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--url", default="http://127.0.0.1:8000")
     parser.add_argument("--requests", type=int, default=300)
+    parser.add_argument("--ready-timeout", type=float, default=180.0, help="seconds to wait for /readyz 200")
     args = parser.parse_args()
-    print("| model | client p50 (ms) | client p99 (ms) | server handler mean (ms) |\n|---|---:|---:|---:|")
     with httpx.Client(base_url=args.url) as client:
+        _wait_ready(client, args.ready_timeout)
+        print("| model | client p50 (ms) | client p99 (ms) | server handler mean (ms) |\n|---|---:|---:|---:|")
         for model in sorted(client.get("/models").json()["models"]):
             body = orjson.dumps({"model": model, "designs": [DESIGN]})
             headers = {"content-type": "application/json"}
             for _ in range(30):
-                client.post("/predict", content=body, headers=headers)
+                client.post("/predict", content=body, headers=headers).raise_for_status()
             before = client.get("/metrics").text
             times = []
             for _ in range(args.requests):
