@@ -21,17 +21,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import platform
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
+from against import ROOT, run_in, worktree  # benchmarks/ is the script's folder
 
-ROOT = Path(__file__).resolve().parents[1]
 #: The rows every tree measures (``--against`` compares them); the kernel row is this tree's only.
 SHARED_ROWS = ("DataPlane.infer (the whole answer)", "decode (validation)", "solve_request", "tdcr.solve")
 
@@ -100,14 +96,6 @@ async def _measure(requests: int) -> dict[str, float]:
         plane.close()
 
 
-def _in_tree(root: Path, requests: int) -> dict[str, float]:
-    code = (f"import sys; sys.path.insert(0, {str(root)!r}); sys.path.insert(1, {str(ROOT / 'benchmarks')!r}); "
-            f"import asyncio, json, one_design_path as b; print(json.dumps(asyncio.run(b._measure({requests}))))")
-    env = {**os.environ, "PYTHONPATH": str(root)}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root, env=env)
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--requests", type=int, default=1000)
@@ -118,11 +106,8 @@ def main() -> None:
     if args.against is None:
         ours, theirs = asyncio.run(_measure(args.requests)), None
     else:
-        tree = Path(f"/tmp/tdcr-against-{args.against}")
-        if not tree.exists():
-            subprocess.run(["git", "worktree", "add", "--detach", str(tree), args.against], cwd=ROOT, check=True,
-                           capture_output=True)
-        rounds = [(_in_tree(tree, args.requests), _in_tree(ROOT, args.requests)) for _ in range(3)]
+        tree, call = worktree(args.against), f"asyncio.run(b._measure({args.requests}))"
+        rounds = [(run_in(tree, "one_design_path", call), run_in(ROOT, "one_design_path", call)) for _ in range(3)]
         theirs = {k: min(r[0][k] for r in rounds) for k in SHARED_ROWS}
         ours = {k: min(r[1][k] for r in rounds) for k in rounds[0][1]}
     head = f" | {args.against} (ms) | ratio" if theirs else ""

@@ -92,23 +92,14 @@ def rates(n: int, seed: int, repeats: int) -> dict[str, float]:
 def targets(n: int, seed: int, repeats: int, against: str | None) -> None:
     """The :data:`TARGETS` table; with ``against`` (a git revision) that tree's rates too, measured
     in alternating rounds in processes of their own (ratios within one run: the VM's speed drifts)."""
-    import subprocess
-    import sys
-
-    def measure(root: Path) -> dict[str, float]:
-        code = (f"import sys; sys.path.insert(0, {str(root)!r}); sys.path.insert(1, {str(ROOT / 'benchmarks')!r}); "
-                f"import json, solver_throughput as b; print(json.dumps(b.rates({n}, {seed}, {repeats})))")
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root)
-        return json.loads(out.stdout.strip().splitlines()[-1])
+    from against import run_in, worktree  # benchmarks/ is the script's folder
 
     if against is None:
         ours, theirs = rates(n, seed, repeats), None
     else:
-        tree = Path(f"/tmp/tdcr-against-{against}")
-        if not tree.exists():
-            subprocess.run(["git", "worktree", "add", "--detach", str(tree), against], cwd=ROOT, check=True,
-                           capture_output=True)
-        runs = [(measure(tree), measure(ROOT)) for _ in range(3)]  # alternating rounds
+        tree, call = worktree(against), f"b.rates({n}, {seed}, {repeats})"
+        runs = [(run_in(tree, "solver_throughput", call), run_in(ROOT, "solver_throughput", call))
+                for _ in range(3)]  # alternating rounds
         theirs = {k: max(r[0][k] for r in runs) for k in TARGETS}
         ours = {k: max(r[1][k] for r in runs) for k in TARGETS}
     head = f" | {against} | ratio" if against else ""
