@@ -1076,8 +1076,9 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
     n_t = target.shape[1]
     dlen, known = np.empty((n_t, n_t)), np.zeros(1, dtype=np.bool_)
     for b in range(rods.length.shape[0]):
-        known[0] = known[0] and sequence and b > 0 and status[b - 1] == OK
-        if sequence and b > 0 and status[b - 1] == OK:
+        warm = sequence and b > 0 and status[b - 1] == OK
+        known[0] = known[0] and warm
+        if warm:
             for i in range(n_t):
                 if target[b, i] == target[b, i]:
                     rods.tension[b, i] = rods.tension[b - 1, i]
