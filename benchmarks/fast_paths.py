@@ -9,8 +9,8 @@ HTTP and gRPC, and what an error bound costs, in one interleaved run on one mach
    solver and the default operator), with tolerances, pinned to operators, ``/exact``; then OIP v2
    ``ModelInfer`` over gRPC (raw FP64 contents) on ``auto`` and on the pinned ``deeponet``, on this
    server (a few designs answered on the event loop) and on a second one started with
-   ``TDCR_INLINE=false`` (every request handed to a worker thread), and gRPC's no-op ``ServerLive``,
-   the transport's own floor on this machine.  Each HTTP row counts the answers by ``source``.
+   ``TDCR_INLINE=false`` (every request handed to a worker thread), and the no-op calls gRPC's
+   ``ServerLive`` and HTTP's ``GET /healthz``, the transports' own floors on this machine.  Each HTTP row counts the answers by ``source``.
 2. In process: each operator's ``Surrogate.predict`` plain and with its bound (``bound=True``), at 1
    and 1,000 designs, interleaved (medians, and the median of the per-pair ratios; the difference
    carries the graphs' run-to-run spread), the bound's own work on an answer already computed
@@ -46,6 +46,8 @@ HTTP_ROWS = {"/predict (router)": ("/predict", {}),
              "/predict deeponet_pose_loaded (pinned, bounded)": ("/predict", {"model": "deeponet_pose_loaded"}),
              "/exact": ("/exact", {})}
 GRPC_ROWS = ("auto", "deeponet")
+#: HTTP's floor with this client: a request that does no work.
+HTTP_NO_OP = "HTTP GET /healthz (no-op)"
 #: The gRPC rows' servers: this one (inline) and one with ``TDCR_INLINE=false``.
 GRPC_SERVERS = ("", " (worker thread: TDCR_INLINE=false)")
 OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose", "deeponet_pose_loaded", "fno_pose_loaded")
@@ -65,7 +67,7 @@ def served(requests: int) -> None:
     feats = sample_designs(requests + 20, seed=8).features()
     grpc_rows = ["gRPC ServerLive (no-op)"] + [f"gRPC ModelInfer {m}{where}" for where in GRPC_SERVERS
                                                for m in GRPC_ROWS]
-    rows = list(HTTP_ROWS) + grpc_rows
+    rows = list(HTTP_ROWS) + [HTTP_NO_OP] + grpc_rows
     times: dict[str, list[float]] = {label: [] for label in rows}
     sources: dict[str, dict[str, int]] = {label: {} for label in HTTP_ROWS}
     with ServerProcess(ROOT / "models") as server, ServerProcess(ROOT / "models", inline=False) as threaded, \
@@ -86,6 +88,10 @@ def served(requests: int) -> None:
                     times[label].append(1e3 * elapsed)
                     source = r.json()["results"][0].get("source", "exact")
                     sources[label][source] = sources[label].get(source, 0) + 1
+            started = time.perf_counter()
+            client.get("/healthz").raise_for_status()
+            if k >= 20:
+                times[HTTP_NO_OP].append(1e3 * (time.perf_counter() - started))
             started = time.perf_counter()
             stubs[""].ServerLive(pb.ServerLiveRequest())
             if k >= 20:
