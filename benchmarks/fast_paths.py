@@ -10,7 +10,8 @@ HTTP and gRPC, and what an error bound costs, in one interleaved run on one mach
    ``ModelInfer`` over gRPC (raw FP64 contents) on ``auto`` and on the pinned ``deeponet``, on this
    server (a few designs answered on the event loop) and on a second one started with
    ``TDCR_INLINE=false`` (every request handed to a worker thread), and the no-op calls gRPC's
-   ``ServerLive`` and HTTP's ``GET /healthz``, the transports' own floors on this machine.  Each HTTP row counts the answers by ``source``.
+   ``ServerLive`` and HTTP's ``GET /healthz``, the transports' own floors on this machine.  Each HTTP
+   row counts the answers by ``source``.
 2. In process: each operator's ``Surrogate.predict`` plain and with its bound (``bound=True``), at 1
    and 1,000 designs, interleaved (medians, and the median of the per-pair ratios; the difference
    carries the graphs' run-to-run spread), the bound's own work on an answer already computed
