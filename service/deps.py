@@ -10,7 +10,9 @@ from fastapi import Depends, Request
 from service.state import ServiceState
 
 
-def get_state(request: Request) -> ServiceState:
+async def get_state(request: Request) -> ServiceState:
+    """Async, so FastAPI calls it on the event loop: a sync dependency is handed to a worker thread
+    on every request (a round trip that cost about as much as ``GET /healthz`` itself)."""
     return request.app.state.service
 
 

@@ -10,5 +10,5 @@ router = APIRouter(tags=["design space"])
 
 
 @router.get("/design-space", summary="Table I ranges, admissible bounds (SI units) and the feature order")
-def describe() -> dict:
+async def describe() -> dict:
     return design_space.describe()

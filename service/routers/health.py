@@ -12,14 +12,14 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz", summary="Liveness")
-def healthz() -> dict:
+async def healthz() -> dict:
     return {"status": "alive"}
 
 
 @router.get("/readyz", summary="Readiness: every model loaded, checksum verified and warmed up; the solver may "
                               "still be starting (listed under `starting`: /exact says 503 meanwhile)",
             responses={503: {"description": "not ready"}})
-def readyz(state: State):
+async def readyz(state: State):
     ready = state.plane.server_ready()
     body = {"ready": ready, "models": state.surrogates, "default_model": state.default_model,
             "problems": state.problems + state.plane.problems(), "starting": state.plane.starting_models()}

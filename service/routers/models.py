@@ -12,7 +12,7 @@ router = APIRouter(tags=["models"])
 
 
 @router.get("/models", summary="The model manifest")
-def models(state: State) -> dict:
+async def models(state: State) -> dict:
     return {"default_model": state.default_model, "default_loaded_model": state.default_loaded_model,
             "default_operator": state.default_operator, "default_loaded_operator": state.default_loaded_operator,
             "loaded": state.surrogates,

@@ -33,19 +33,19 @@ def _routes(path: str, **kwargs):
 
 
 @router.get("/health/live", summary="OIP liveness")
-def live() -> dict:
+async def live() -> dict:
     return {"live": True}
 
 
 @router.get("/health/ready", summary="OIP readiness (every model loaded and the solver pool up)",
             responses={503: {"description": "not ready"}})
-def ready(state: State):
+async def ready(state: State):
     ok = state.plane.server_ready()
     return JSONResponse({"ready": ok}, status_code=200 if ok else 503)
 
 
 @router.get("", summary="OIP server metadata")
-def server_metadata(state: State) -> dict:
+async def server_metadata(state: State) -> dict:
     return state.plane.server_metadata()
 
 
@@ -53,7 +53,7 @@ NOT_FOUND = {404: {"model": OipErrorBody, "description": "unknown model or versi
 
 
 @_routes("", methods=["GET"], summary="OIP model metadata", responses=NOT_FOUND)
-def model_metadata(state: State, model: str, version: str | None = None):
+async def model_metadata(state: State, model: str, version: str | None = None):
     try:
         return state.plane.model_metadata(model, version)
     except InferenceError as exc:
@@ -62,7 +62,7 @@ def model_metadata(state: State, model: str, version: str | None = None):
 
 @_routes("/ready", methods=["GET"], summary="OIP model readiness",
          responses=NOT_FOUND | {503: {"description": "the solver pool is down (model exact)"}})
-def model_ready(state: State, model: str, version: str | None = None):
+async def model_ready(state: State, model: str, version: str | None = None):
     try:
         ok = state.plane.model_ready(model, version)
     except InferenceError as exc:
