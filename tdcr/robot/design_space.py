@@ -9,6 +9,7 @@ Feature order (shared by the dataset, the networks and the ONNX models), for N_t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -91,11 +92,20 @@ def feature_bounds(n_tendons: int = N_TENDONS) -> tuple[np.ndarray, np.ndarray]:
     return np.array([TABLE_I[g].low for g in groups]), np.array([TABLE_I[g].high for g in groups])
 
 
+@cache
 def admissible_bounds(n_tendons: int = N_TENDONS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Admissible ``(low, high, exclusive_low)`` per feature column, each ``(3 + 3 N_t,)``."""
+    """Admissible ``(low, high, exclusive_low)`` per feature column, each ``(3 + 3 N_t,)``, read-only
+    (built once per tendon count: every request's check reads them)."""
     groups = FeatureLayout(n_tendons).parameters
-    return (np.array([TABLE_I[g].admissible[0] for g in groups]), np.array([TABLE_I[g].admissible[1] for g in groups]),
-            np.array([TABLE_I[g].exclusive_min for g in groups]))
+    return _read_only(np.array([TABLE_I[g].admissible[0] for g in groups]),
+                      np.array([TABLE_I[g].admissible[1] for g in groups]),
+                      np.array([TABLE_I[g].exclusive_min for g in groups]))
+
+
+def _read_only(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
 
 
 def sample_designs(n: int, *, seed: int, n_tendons: int = N_TENDONS) -> DesignBatch:

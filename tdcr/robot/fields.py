@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cache
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -28,9 +29,13 @@ MAX_LENGTH = 5.0
 MOTIONS: dict[str, float] = {"pull": 1.0, "release": -1.0}
 
 
+@cache
 def default_angles(n_tendons: int) -> np.ndarray:
-    """The body-frame angles at s = 0 of evenly spaced tendons, 2 pi i / N_t, rad, ``(N_t,)``."""
-    return 2.0 * np.pi * np.arange(n_tendons) / n_tendons
+    """The body-frame angles at s = 0 of evenly spaced tendons, 2 pi i / N_t, rad, ``(N_t,)``,
+    read-only (built once per tendon count)."""
+    angles = 2.0 * np.pi * np.arange(n_tendons) / n_tendons
+    angles.flags.writeable = False
+    return angles
 
 
 class Default(NamedTuple):
