@@ -73,20 +73,24 @@ class ServerProcess:
     """
 
     def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, grpc: bool = True,
-                 wait_for_solver: bool = True, **settings):
+                 wait_for_solver: bool = True, root: Path = ROOT, **settings):
         """``grpc``: also serve gRPC, on a free port (``grpc_target``); ``wait_for_solver``: also wait
-        for the solver (``exact`` ready: on a machine's first start it compiles after /readyz)."""
+        for the solver (``exact`` ready: on a machine's first start it compiles after /readyz);
+        ``root``: the source tree whose ``tdcr`` and ``service`` it runs (another revision's worktree
+        for a benchmark's ``--against``; its solver processes import the same tree)."""
         self.port, self.grpc_port = free_ports(2) if grpc else (free_port(), 0)
         self.url = f"http://127.0.0.1:{self.port}"
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
         env = {**os.environ, "TDCR_MODELS_DIR": str(models_dir),
                **{f"TDCR_{k.upper()}": str(v) for k, v in settings.items()}}
+        if root != ROOT:
+            env["PYTHONPATH"] = str(root)
         self.log_path = Path(tempfile.mkstemp(prefix="tdcr-server-", suffix=".log")[1])
         with self.log_path.open("wb") as log:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "tdcr.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
                  "--grpc-port", str(self.grpc_port), "--log-level", "warning"],
-                cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+                cwd=root, env=env, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + ready_timeout_s
         while time.monotonic() < deadline and self.proc.poll() is None:
             try:
