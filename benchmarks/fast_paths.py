@@ -11,7 +11,9 @@ HTTP and gRPC, and what an error bound costs, in one interleaved run on one mach
    server (a few designs answered on the event loop) and on a second one started with
    ``TDCR_INLINE=false`` (every request handed to a worker thread), and the no-op calls gRPC's
    ``ServerLive`` and HTTP's ``GET /healthz``, the transports' own floors on this machine.  Each HTTP
-   row counts the answers by ``source``.
+   row counts the answers by ``source``.  The HTTP rows use httpx; ``/predict`` (router), ``/exact``
+   and ``/healthz`` are also sent with the standard library's ``http.client`` (``LEAN_ROWS``), whose
+   own cost per request is far smaller, so those rows show the server's latency.
 2. In process: each operator's ``Surrogate.predict`` plain and with its bound (``bound=True``), at 1
    and 1,000 designs, interleaved (medians, and the median of the per-pair ratios; the difference
    carries the graphs' run-to-run spread), the bound's own work on an answer already computed
@@ -22,13 +24,16 @@ HTTP and gRPC, and what an error bound costs, in one interleaved run on one mach
 from __future__ import annotations
 
 import argparse
+import http.client
 import os
 import platform
+import socket
 import time
 
 import grpc
 import httpx
 import numpy as np
+import orjson
 from exact_latency import design_json  # benchmarks/ is the script's folder
 
 from service.process import ROOT, ServerProcess
@@ -49,8 +54,14 @@ HTTP_ROWS = {"/predict (router)": ("/predict", {}),
 GRPC_ROWS = ("auto", "deeponet")
 #: HTTP's floor with this client: a request that does no work.
 HTTP_NO_OP = "HTTP GET /healthz (no-op)"
+#: The same exchanges with the standard library's ``http.client`` (one keep-alive connection,
+#: ``TCP_NODELAY``): httpx's own cost per request is about 0.7 ms on this VM, more than the server's
+#: for a no-op.  The body is encoded before the clock starts; the answer is read, not parsed.
+LEAN_ROWS = {"/predict (router), http.client": ("POST", "/predict"), "/exact, http.client": ("POST", "/exact"),
+             "HTTP GET /healthz (no-op), http.client": ("GET", "/healthz")}
 #: The gRPC rows' servers: this one (inline) and one with ``TDCR_INLINE=false``.
 GRPC_SERVERS = ("", " (worker thread: TDCR_INLINE=false)")
+JSON = {"content-type": "application/json"}
 OPERATORS = ("deeponet", "deeponet_pose", "fno", "fno_pose", "deeponet_pose_loaded", "fno_pose_loaded")
 
 
@@ -68,7 +79,7 @@ def served(requests: int) -> None:
     feats = sample_designs(requests + 20, seed=8).features()
     grpc_rows = ["gRPC ServerLive (no-op)"] + [f"gRPC ModelInfer {m}{where}" for where in GRPC_SERVERS
                                                for m in GRPC_ROWS]
-    rows = list(HTTP_ROWS) + [HTTP_NO_OP] + grpc_rows
+    rows = list(HTTP_ROWS) + [HTTP_NO_OP] + list(LEAN_ROWS) + grpc_rows
     times: dict[str, list[float]] = {label: [] for label in rows}
     sources: dict[str, dict[str, int]] = {label: {} for label in HTTP_ROWS}
     with ServerProcess(ROOT / "models") as server, ServerProcess(ROOT / "models", inline=False) as threaded, \
@@ -78,6 +89,9 @@ def served(requests: int) -> None:
         stubs = dict(zip(GRPC_SERVERS, (pb_grpc.GRPCInferenceServiceStub(channel),
                                         pb_grpc.GRPCInferenceServiceStub(threaded_channel)), strict=True))
         auto = client.get("/v2/models/auto").json()["parameters"]
+        lean = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
+        lean.connect()
+        lean.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         for k, f in enumerate(feats):
             for label, (route, extra) in HTTP_ROWS.items():
                 body = {"designs": [design_json(f, False)], "points": 42} | extra
@@ -93,6 +107,17 @@ def served(requests: int) -> None:
             client.get("/healthz").raise_for_status()
             if k >= 20:
                 times[HTTP_NO_OP].append(1e3 * (time.perf_counter() - started))
+            body = orjson.dumps({"designs": [design_json(f, False)], "points": 42})
+            for label, (method, route) in LEAN_ROWS.items():
+                started = time.perf_counter()
+                lean.request(method, route, body=body if method == "POST" else None, headers=JSON)
+                answer = lean.getresponse()
+                answer.read()
+                elapsed = time.perf_counter() - started
+                if answer.status != 200:
+                    raise RuntimeError(f"{route}: HTTP {answer.status}")
+                if k >= 20:
+                    times[label].append(1e3 * elapsed)
             started = time.perf_counter()
             stubs[""].ServerLive(pb.ServerLiveRequest())
             if k >= 20:
@@ -113,6 +138,8 @@ def served(requests: int) -> None:
         print(f"| {label} | {len(times[label])} | {p50:.2f} | {p90:.2f} | {p99:.2f} | {by} |")
     ratio = np.median(np.array(times["/predict (router)"]) / np.array(times["/exact"]))
     print(f"\n/predict (router) / /exact, same body, median of per-round ratios: {ratio:.2f}")
+    ratio = np.median(np.array(times["/predict (router), http.client"]) / np.array(times["/exact, http.client"]))
+    print(f"the same with http.client: {ratio:.2f}")
     for model in GRPC_ROWS:
         threaded = np.array(times[f"gRPC ModelInfer {model}{GRPC_SERVERS[1]}"])
         inline = np.array(times[f"gRPC ModelInfer {model}"]) / threaded
