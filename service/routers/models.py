@@ -12,7 +12,9 @@ router = APIRouter(tags=["models"])
 
 
 @router.get("/models", summary="The model manifest")
-async def models(state: State) -> dict:
+def models(state: State) -> dict:
+    # sync on purpose: FastAPI then encodes the manifest (tens of kB) on a worker thread, off the
+    # event loop that answers one-design requests (a docstring here would be the OpenAPI description)
     return {"default_model": state.default_model, "default_loaded_model": state.default_loaded_model,
             "default_operator": state.default_operator, "default_loaded_operator": state.default_loaded_operator,
             "loaded": state.surrogates,
