@@ -270,6 +270,20 @@ def test_hypothesis_never_a_server_error(server, body):
         assert detail and all(item["loc"] and item["msg"] for item in detail), detail  # each names a field
 
 
+def test_the_answering_routes_and_their_dependency_run_on_the_event_loop():
+    """FastAPI hands a sync dependency or endpoint to a worker thread on every request (a round trip
+    that cost as much as ``GET /healthz`` itself): the state dependency, the routes that answer
+    designs and the probes are coroutines (docs/results.md, issue #34)."""
+    import inspect
+
+    from service.deps import get_state
+    from service.routers import exact, health, inverse, predict, v2
+
+    for fn in (get_state, predict.predict, exact.exact, inverse.inverse, v2.infer, health.healthz, health.readyz,
+               v2.live, v2.ready):
+        assert inspect.iscoroutinefunction(fn), f"{fn.__module__}.{fn.__name__} is sync: a worker thread per call"
+
+
 def test_openapi_document_is_committed_and_current(root):
     from service.app import create_app
 
