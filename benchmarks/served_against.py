@@ -7,8 +7,10 @@ Both servers (``tdcr serve`` on the shipped models, the revision's from its work
 ``benchmarks/against.py``) run side by side; a synchronous client sends each round's one Table I
 design (seeded, 42 points) to every row on both, the trees' order alternating by round, so the VM's
 drift hits both trees alike.  Rows: ``GET /healthz`` and gRPC ``ServerLive`` (each transport's
-floor), ``/predict`` and ``/exact`` with the same JSON body, and OIP v2 ``ModelInfer`` on ``auto``
-over gRPC.  The first table gives each tree's p50 and the median of the per-round ratios.
+floor), ``/predict`` and ``/exact`` with the same JSON body, ``/predict`` with the binary request of
+:meth:`tdcr.clients.Client.predict` (``.npy`` in, ``.npz`` out; its answer read, not decoded), and
+OIP v2 ``ModelInfer`` on ``auto`` over gRPC.  The first table gives each tree's p50 and the
+median of the per-round ratios.
 
 The second table is this tree's alone: each row once interleaved as above and once back to back
 (``--requests`` of it in a run, nothing else between them).  After other work the server's and the
@@ -19,6 +21,7 @@ sees the back-to-back figure.
 from __future__ import annotations
 
 import argparse
+import io
 import os
 import platform
 import time
@@ -32,12 +35,14 @@ from against import ROOT, worktree  # benchmarks/ is the script's folder
 from exact_latency import design_json
 
 from service.process import ServerProcess
+from tdcr.clients.client import NPY, NPZ
 from tdcr.clients.loadtest import grpc_request
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
 from tdcr.robot.design_space import sample_designs
 
-ROWS = ("GET /healthz (no-op)", "gRPC ServerLive (no-op)", "/predict (router)", "/exact", "gRPC ModelInfer auto")
+ROWS = ("GET /healthz (no-op)", "gRPC ServerLive (no-op)", "/predict (router)", "/predict (router), .npy in, .npz out",
+        "/exact", "gRPC ModelInfer auto")
 #: Rounds before the timed ones (connections, caches and the solver processes warm).
 WARM_UP = 30
 JSON = {"content-type": "application/json"}
@@ -45,17 +50,24 @@ JSON = {"content-type": "application/json"}
 
 def _calls(server: ServerProcess) -> tuple[Callable, ...]:
     """One callable per row of :data:`ROWS`, on ``server``, taking the round's (JSON body, gRPC
-    request); each raises on an error answer."""
+    request, binary request); each raises on an error answer."""
     client = httpx.Client(base_url=server.url)
     stub = pb_grpc.GRPCInferenceServiceStub(grpc.insecure_channel(server.grpc_target))
 
     def post(path: str):
-        return lambda body, _: client.post(path, content=body, headers=JSON).raise_for_status()
+        return lambda body, *_: client.post(path, content=body, headers=JSON).raise_for_status()
 
     return (lambda *_: client.get("/healthz").raise_for_status(),
             lambda *_: stub.ServerLive(pb.ServerLiveRequest()),
-            post("/predict"), post("/exact"),
-            lambda _, message: stub.ModelInfer(message))
+            post("/predict"), lambda *item: client.post("/predict", **item[2]).raise_for_status(), post("/exact"),
+            lambda _, message, __: stub.ModelInfer(message))
+
+
+def _binary_request(features: np.ndarray) -> dict:
+    """What :meth:`tdcr.clients.Client.predict` sends for designs ``(B, 15)`` and 42 points."""
+    body = io.BytesIO()
+    np.save(body, features, allow_pickle=False)
+    return {"content": body.getvalue(), "params": {"points": 42}, "headers": {"content-type": NPY, "accept": NPZ}}
 
 
 def _timed(call: Callable, *args) -> float:
@@ -70,7 +82,8 @@ def main() -> None:
     parser.add_argument("--requests", type=int, default=300)
     args = parser.parse_args()
     features = sample_designs(args.requests + WARM_UP, seed=5).features()
-    work = [(orjson.dumps({"designs": [design_json(f, False)], "points": 42}), grpc_request("auto", f[None, :], None))
+    work = [(orjson.dumps({"designs": [design_json(f, False)], "points": 42}), grpc_request("auto", f[None, :], None),
+             _binary_request(f[None, :]))
             for f in features]
     trees = {"this tree": ROOT, args.against: worktree(args.against)}
     servers = {name: ServerProcess(root / "models", root=root) for name, root in trees.items()}

@@ -2,8 +2,9 @@
 
 A thin codec: on one worker thread the body is validated (it names the model), the data plane runs
 it on that surrogate (or the default) and :class:`service.codecs.PredictCodec` encodes the answer.
-A small JSON body that finds the service idle is validated on the event loop instead, and the data
-plane then answers it there too when its model may (:meth:`service.dataplane.DataPlane.infer`).
+A small body (JSON or ``.npy``: a few designs) that finds the service idle is validated on the event
+loop instead, and the data plane then answers it there too when its model may
+(:meth:`service.dataplane.DataPlane.infer`).
 """
 
 from __future__ import annotations
@@ -18,21 +19,26 @@ from service.errors import from_inference, from_invalid, require_json
 from service.metrics import HTTP
 from service.model import InferenceError, InferenceRequest, InferenceResponse
 from tdcr.api.schemas import ErrorResponse, PredictResponse
-from tdcr.api.validation import InvalidRequest, Limits
+from tdcr.api.validation import InvalidRequest, Limits, ShapeRequest
 from tdcr.surrogates.engine import NPY, NPZ, QUERY_FIELDS, prepare_json, prepare_npy
 
 router = APIRouter(tags=["predict"])
-#: A JSON body of at most this many bytes (a few designs) is validated on the event loop when the
-#: service is idle: a hand-off to a worker thread costs more than that.
+#: A body of at most this many bytes (a few designs, JSON or ``.npy``) is validated on the event
+#: loop when the service is idle: a hand-off to a worker thread costs more than that.
 INLINE_BODY_BYTES = 4096
+
+
+def _prepare(body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits) -> ShapeRequest:
+    """The one validation path of either body (it names the model)."""
+    return prepare_npy(body, params, limits=limits) if binary else prepare_json(body, limits=limits)
 
 
 def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits,
             npz: bool) -> InferenceResponse:
-    """On one worker thread: validate the body (it names the model), then the data plane runs it."""
+    """On one worker thread: validate the body, then the data plane runs it."""
     query = QUERY_FIELDS if binary else ()
     try:
-        shapes = prepare_npy(body, params, limits=limits) if binary else prepare_json(body, limits=limits)
+        shapes = _prepare(body, binary, params, limits)
         answer = plane.infer_blocking(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)), kind="surrogate",
                                       loads=shapes.n_loaded > 0, protocol=HTTP, endpoint="/predict")
     except InvalidRequest as exc:
@@ -76,15 +82,16 @@ async def predict(request: Request, state: State) -> Response:
     params = {k: request.query_params.getlist(k) for k in request.query_params}
     npz = NPZ in request.headers.get("accept", "")
     plane = state.plane
-    if not binary and len(body) <= INLINE_BODY_BYTES and plane.idle:
+    if len(body) <= INLINE_BODY_BYTES and plane.idle:
+        query = QUERY_FIELDS if binary else ()
         try:
-            shapes = prepare_json(body, limits=state.settings.predict_limits())
+            shapes = _prepare(body, binary, params, state.settings.predict_limits())
             answer = await plane.infer(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)), kind="surrogate",
                                        loads=shapes.n_loaded > 0, protocol=HTTP, endpoint="/predict")
         except InvalidRequest as exc:
-            raise from_invalid(exc) from None
+            raise from_invalid(exc, query=query) from None
         except InferenceError as exc:
-            raise from_inference(exc) from None
+            raise from_inference(exc, query=query) from None
     else:
         answer = await run_in_threadpool(_answer, plane, body, binary, params, state.settings.predict_limits(), npz)
     if npz:
