@@ -51,7 +51,7 @@ JSON = {"content-type": "application/json"}
 def _calls(server: ServerProcess) -> tuple[Callable, ...]:
     """One callable per row of :data:`ROWS`, on ``server``, taking the round's (JSON body, gRPC
     request, binary request); each raises on an error answer."""
-    client = httpx.Client(base_url=server.url)
+    client = httpx.Client(base_url=server.url, timeout=60)
     stub = pb_grpc.GRPCInferenceServiceStub(grpc.insecure_channel(server.grpc_target))
 
     def post(path: str):
