@@ -9,6 +9,8 @@ loop instead, and the data plane then answers it there too when its model may
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 from fastapi import APIRouter, Request, Response
 from starlette.concurrency import run_in_threadpool
 
@@ -33,19 +35,30 @@ def _prepare(body: bytes, binary: bool, params: dict[str, list[str]], limits: Li
     return prepare_npy(body, params, limits=limits) if binary else prepare_json(body, limits=limits)
 
 
-def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits,
-            npz: bool) -> InferenceResponse:
-    """On one worker thread: validate the body, then the data plane runs it."""
+def _inference(shapes: ShapeRequest, npz: bool) -> dict:
+    """The data plane's arguments for validated ``shapes`` (:meth:`DataPlane.infer`)."""
+    return {"name": shapes.model, "request": InferenceRequest(shapes, PredictCodec(npz=npz)), "kind": "surrogate",
+            "loads": shapes.n_loaded > 0, "protocol": HTTP, "endpoint": "/predict"}
+
+
+@contextmanager
+def _http_errors(binary: bool):
+    """Validation's and the data plane's errors as HTTP errors (a ``.npy`` body's options are in
+    the query)."""
     query = QUERY_FIELDS if binary else ()
     try:
-        shapes = _prepare(body, binary, params, limits)
-        answer = plane.infer_blocking(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)), kind="surrogate",
-                                      loads=shapes.n_loaded > 0, protocol=HTTP, endpoint="/predict")
+        yield
     except InvalidRequest as exc:
         raise from_invalid(exc, query=query) from None
     except InferenceError as exc:
         raise from_inference(exc, query=query) from None
-    return answer
+
+
+def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[str]], limits: Limits,
+            npz: bool) -> InferenceResponse:
+    """On one worker thread: validate the body, then the data plane runs it."""
+    with _http_errors(binary):
+        return plane.infer_blocking(**_inference(_prepare(body, binary, params, limits), npz))
 
 
 @router.post(
@@ -83,15 +96,9 @@ async def predict(request: Request, state: State) -> Response:
     npz = NPZ in request.headers.get("accept", "")
     plane = state.plane
     if len(body) <= INLINE_BODY_BYTES and plane.idle:
-        query = QUERY_FIELDS if binary else ()
-        try:
-            shapes = _prepare(body, binary, params, state.settings.predict_limits())
-            answer = await plane.infer(shapes.model, InferenceRequest(shapes, PredictCodec(npz=npz)), kind="surrogate",
-                                       loads=shapes.n_loaded > 0, protocol=HTTP, endpoint="/predict")
-        except InvalidRequest as exc:
-            raise from_invalid(exc, query=query) from None
-        except InferenceError as exc:
-            raise from_inference(exc, query=query) from None
+        with _http_errors(binary):
+            answer = await plane.infer(**_inference(_prepare(body, binary, params, state.settings.predict_limits()),
+                                                    npz))
     else:
         answer = await run_in_threadpool(_answer, plane, body, binary, params, state.settings.predict_limits(), npz)
     if npz:
