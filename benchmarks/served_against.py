@@ -21,7 +21,6 @@ sees the back-to-back figure.
 from __future__ import annotations
 
 import argparse
-import io
 import os
 import platform
 import time
@@ -35,7 +34,7 @@ from against import ROOT, worktree  # benchmarks/ is the script's folder
 from exact_latency import design_json
 
 from service.process import ServerProcess
-from tdcr.clients.client import NPY, NPZ
+from tdcr.clients.client import _request as binary_request  # what Client.predict sends
 from tdcr.clients.loadtest import grpc_request
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
@@ -63,13 +62,6 @@ def _calls(server: ServerProcess) -> tuple[Callable, ...]:
             lambda _, message, __: stub.ModelInfer(message))
 
 
-def _binary_request(features: np.ndarray) -> dict:
-    """What :meth:`tdcr.clients.Client.predict` sends for designs ``(B, 15)`` and 42 points."""
-    body = io.BytesIO()
-    np.save(body, features, allow_pickle=False)
-    return {"content": body.getvalue(), "params": {"points": 42}, "headers": {"content-type": NPY, "accept": NPZ}}
-
-
 def _timed(call: Callable, *args) -> float:
     started = time.perf_counter()
     call(*args)
@@ -83,7 +75,7 @@ def main() -> None:
     args = parser.parse_args()
     features = sample_designs(args.requests + WARM_UP, seed=5).features()
     work = [(orjson.dumps({"designs": [design_json(f, False)], "points": 42}), grpc_request("auto", f[None, :], None),
-             _binary_request(f[None, :]))
+             binary_request(f[None, :], model=None, points=42, s=None, arclength=None, outputs=None))
             for f in features]
     trees = {"this tree": ROOT, args.against: worktree(args.against)}
     servers = {name: ServerProcess(root / "models", root=root) for name, root in trees.items()}
