@@ -2,6 +2,7 @@
 
     python benchmarks/real_robot.py                      # the shared FTDCR v4 recording
     python benchmarks/real_robot.py --robot R.json --train T.csv --validate V.csv
+    python benchmarks/real_robot.py --fit GROUPS         # other parameter groups (tdcr fit's --fit)
 
 Rows: the validation file's RMSE (aligned: the mean error over the file removed; plain), the fit's
 time, and the replay's speed (rows/s on every core, each of 5 runs; the train file, with the fitted
@@ -26,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import BUDGET, errors, fit  # noqa: E402
+from tdcr.search.fit import BUDGET, DEFAULT_GROUPS, errors, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 TARGETS = {"val aligned RMSE, mm": ("<=", 6.5), "val plain RMSE, mm": ("<=", 8.0), "fit, s": ("<=", 300.0),
@@ -51,13 +52,14 @@ def main() -> None:
     parser.add_argument("--validate", default=str(SHARED / "val.csv"))
     parser.add_argument("--budget", type=float, default=BUDGET, help="the fit's search budget, s")
     parser.add_argument("--out", default=None, help="write the fitted robot file here")
+    parser.add_argument("--fit", default=",".join(DEFAULT_GROUPS), help="the groups fitted (tdcr fit's --fit)")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
     train = read_recording(args.train, robot)
     val = read_recording(args.validate, robot)
     start = time.perf_counter()
-    result = fit(robot, train, validate=val, budget=args.budget)
+    result = fit(robot, train, validate=val, budget=args.budget, groups=tuple(args.fit.split(",")))
     fit_seconds = time.perf_counter() - start
     if args.out:
         result.robot.save(args.out)

@@ -83,12 +83,12 @@ def _cmd_replay(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from tdcr.search.fit import GROUPS, fit, plot
+    from tdcr.search.fit import check_groups, fit, plot
 
     groups = tuple(g.strip() for g in args.fit.split(",") if g.strip())
-    unknown = [g for g in groups if g not in GROUPS]
-    if unknown:
-        raise UsageError(f"--fit: unknown {', '.join(unknown)}; they are {', '.join(GROUPS)}")
+    problem = check_groups(groups)
+    if problem:
+        raise UsageError(f"--fit: {problem}")
     robot, train = _robot_and_recording(args.robot, args.train, measured=True)
     validate = None if args.validate is None else _robot_and_recording(args.robot, args.validate, measured=True)[1]
     if not train.has_measurement.any():

@@ -11,6 +11,8 @@ trust-region reflective with bounds, forward-difference Jacobian):
   1 / k_i = c0 + end_i / EA: the drive compliance c0 (m/N) and the tendons' axial stiffness EA (N);
 * ``stiffness``: instead, a series stiffness per segment's tendons, N/m;
 * ``friction``: each segment's Capstan coefficient;
+* ``offset``: each segment's tendon offset, m; or ``tendon_offset``: each tendon's (holes drilled off
+  their nominal radius);
 * ``angle``: a rotation of each segment's tendon angles, rad (rough routing angles);
 * ``marker``, ``base_position``, ``base_rotation``: the measurement's registration, and
   ``time_constant``: the lag with which the measured tip follows the equilibria (eq. LAG, s); none
@@ -40,18 +42,21 @@ from tdcr.physics.replay import REPLAY_OPTIONS, Replay, replay
 from tdcr.robot.real import Measurement, Recording, Robot
 
 #: The parameter groups :func:`fit` can identify, in order.
-GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "offset", "angle", "marker", "base_position",
-          "base_rotation", "time_constant")
+GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "offset", "tendon_offset", "angle", "marker",
+          "base_position", "base_rotation", "time_constant")
 #: Those :func:`fit` identifies unless told otherwise (the routing angles of a calibrated robot file are kept).
 DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "offset", "marker", "base_position", "base_rotation",
                   "time_constant")
+#: Groups that set the same values: at most one of each.
+EXCLUSIVE = (("elasticity", "stiffness"), ("offset", "tendon_offset"))
 #: Those of the measurement (changing them needs no new solve).
 REGISTRATION = ("marker", "base_position", "base_rotation", "time_constant")
 #: Each group's unit of the search (one unit of the optimiser's variable).
-_SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction": 0.1, "offset": 0.05, "angle": 0.1,
+_SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction": 0.1, "offset": 0.05,
+          "tendon_offset": 0.05, "angle": 0.1,
           "marker": 1e-3, "base_position": 1e-3, "base_rotation": 0.01, "time_constant": 0.1}
 #: Searched as logarithms (positive, relative steps).
-_LOG = ("E", "elasticity", "stiffness", "friction", "offset", "time_constant")
+_LOG = ("E", "elasticity", "stiffness", "friction", "offset", "tendon_offset", "time_constant")
 #: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons,
 #: no lag: at 0 s the lag's gradient vanishes).
 _LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10, "time_constant": 0.2}
@@ -60,6 +65,7 @@ _LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10, "time_constant": 0.
 _BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffness": (math.log(50.0), math.log(1e7)),
            "drive_compliance": (math.log(1e-9), math.log(0.1)), "tendon_EA": (math.log(1.0), math.log(1e9)),
            "friction": (math.log(1e-3), math.log(1.0)), "offset": (math.log(1e-4), math.log(0.1)),
+           "tendon_offset": (math.log(1e-4), math.log(0.1)),
            "angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
            "base_position": (-0.25, 0.25), "base_rotation": (-4.0, 4.0),
            "time_constant": (math.log(1e-3), math.log(5.0))}
@@ -143,7 +149,8 @@ class _Layout:
 def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
     n_seg = len(segments(robot))
     counts = {"E": 1, "zero": robot.n_tendons, "elasticity": 2, "stiffness": n_seg, "friction": n_seg, "offset": n_seg,
-              "angle": n_seg, "marker": 3, "base_position": 3, "base_rotation": 3, "time_constant": 1}
+              "tendon_offset": robot.n_tendons, "angle": n_seg, "marker": 3, "base_position": 3, "base_rotation": 3,
+              "time_constant": 1}
     names, gs, index = [], [], []
     for g in GROUPS:
         if g in groups:
@@ -166,6 +173,8 @@ def _values(robot: Robot, layout: _Layout) -> np.ndarray:
         elif g == "elasticity":  # half the mean compliance in the drive, half in the tendons' lengths
             half = 0.5 * float(np.mean(d.compliance[0])) or 1e-4
             out.append(math.log(half if i == 0 else float(np.mean(d.ends[0])) / half))
+        elif g == "tendon_offset":
+            out.append(math.log(d.offset[0, i]))
         elif g in ("stiffness", "friction", "offset"):
             v = d.resolved(g)[0, segs[i]].mean()
             out.append(math.log(v if np.isfinite(v) and v > 0 else _LOG_START[g]))
@@ -197,6 +206,8 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
             elastic[i] = math.exp(v)
         elif g in ("stiffness", "friction", "offset"):
             fields[g][0, segs[i]] = math.exp(v)
+        elif g == "tendon_offset":
+            fields["offset"][0, i] = math.exp(v)
         elif g == "angle":
             fields["angle"][0, segs[i]] = base_angles[0, segs[i]] + v
         elif g == "time_constant":
@@ -237,8 +248,19 @@ class FitResult:
 #: The parameters of a group that are not alike: their own names (and units).
 _NAMES = {"elasticity": ("drive_compliance", "tendon_EA")}
 _NAME_UNITS = {"drive_compliance": "m/N", "tendon_EA": "N"}
-_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "offset": "m", "angle": "rad", "marker": "m",
-          "base_position": "m", "base_rotation": "rad", "time_constant": "s"}
+_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "offset": "m", "tendon_offset": "m",
+          "angle": "rad", "marker": "m", "base_position": "m", "base_rotation": "rad", "time_constant": "s"}
+
+
+def check_groups(groups: Sequence[str]) -> str | None:
+    """Why :func:`fit` cannot identify ``groups`` (an unknown one, or two of :data:`EXCLUSIVE`), or None."""
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        return f"unknown {', '.join(unknown)}; they are {', '.join(GROUPS)}"
+    for pair in EXCLUSIVE:
+        if set(pair) <= set(groups):
+            return f"{pair[0]} and {pair[1]} set the same values: give one of them"
+    return None
 
 
 def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, groups: Sequence[str] = DEFAULT_GROUPS,
@@ -267,9 +289,9 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     from scipy.optimize import least_squares
     from tqdm import tqdm
 
-    unknown = [g for g in groups if g not in GROUPS]
-    if unknown:
-        raise ValueError(f"groups: unknown {unknown}; they are {list(GROUPS)}")
+    problem = check_groups(groups)
+    if problem:
+        raise ValueError(f"groups: {problem}")
     start = time.perf_counter()
     layout = _layout(robot, groups)
     scale = np.array([_SCALE[g] for g in layout.groups])

@@ -314,3 +314,47 @@ def test_a_parameter_the_data_do_not_move_is_reported_as_not_identified():
     assert found["time_constant"].stderr == np.inf and np.isfinite(found["marker[0]"].stderr)
     reported = {p["name"]: p for p in result.report()["parameters"]}
     assert reported["time_constant"]["stderr"] is None and reported["marker[0]"]["stderr"] > 0
+
+
+def test_fit_recovers_each_tendons_offset():
+    """Holes drilled off their nominal radius: a recording made by the solver with every tendon at
+    its own offset (4.1-4.9 mm), fitted from the nominal 4.5 mm with ``tendon_offset``, gives each
+    taut tendon's offset again and replays it to ~0 error."""
+    from dataclasses import replace
+
+    from tdcr.robot.real import Recording
+    from tdcr.search.fit import fit
+
+    start = load_robot(EXAMPLE)
+    offsets = 0.0045 + 0.0004 * np.sin(np.arange(9) * 2.0)  # m
+    truth = replace(start, design=start.design.replace(offset=offsets[None]))
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", truth)
+    made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands,
+                     measured=replay(truth, rec.commands).points, rows=rec.rows, header=rec.header)
+    result = fit(start, made, groups=("tendon_offset",), max_iterations=10, budget=120)
+    assert result.initial.rmse > 0.5 and result.train.rmse < 0.01  # mm
+    found = np.array([p.value for p in result.parameters if p.name.startswith("tendon_offset")])
+    taut = replay(truth, rec.commands).tension.max(axis=0) > 0.0  # a tendon slack throughout shows no offset
+    assert taut.sum() >= 7
+    np.testing.assert_allclose(found[taut], offsets[taut], rtol=0, atol=2e-6)
+
+
+def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
+    sample = ROOT / "tests" / "data" / "ftdcr_v4_sample.csv"
+    out, png = tmp_path / "fitted.json", tmp_path / "fit.png"
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(sample), "--validate", str(sample),
+                          "--fit", "marker,time_constant", "--max-iterations", "2", "--out", str(out), "--plot",
+                          str(png), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    fitted = load_robot(out)
+    report = fitted.extra["fitted"]
+    assert [p["name"] for p in report["parameters"]] == ["marker[0]", "marker[1]", "marker[2]", "time_constant"]
+    assert report["train"]["rmse_mm"] <= report["initial_train"]["rmse_mm"]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for groups, words in [("offset,tendon_offset", "offset and tendon_offset set the same values"),
+                          ("elasticity,stiffness", "elasticity and stiffness set the same values"),
+                          ("E,bending", "--fit: unknown bending")]:
+        run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(sample), "--fit", groups,
+                              "--out", str(tmp_path / "no.json")], capture_output=True, text=True, timeout=300)
+        assert run.returncode == 2 and words in run.stderr and "Traceback" not in run.stderr, run.stderr
+        assert not (tmp_path / "no.json").exists()
