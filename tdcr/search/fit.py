@@ -13,7 +13,8 @@ trust-region reflective with bounds, forward-difference Jacobian):
 * ``friction``: each segment's Capstan coefficient;
 * ``offset``: each segment's tendon offset, m; or ``tendon_offset``: each tendon's (holes drilled off
   their nominal radius);
-* ``angle``: a rotation of each segment's tendon angles, rad (rough routing angles);
+* ``angle``: a rotation of each segment's tendon angles, rad (rough routing angles); or
+  ``tendon_angle``: a turn of each tendon's angle, rad;
 * ``marker``, ``base_position``, ``base_rotation``: the measurement's registration, and
   ``time_constant``: the lag with which the measured tip follows the equilibria (eq. LAG, s); none
   needs a new solve.
@@ -42,18 +43,19 @@ from tdcr.physics.replay import REPLAY_OPTIONS, Replay, replay
 from tdcr.robot.real import Measurement, Recording, Robot
 
 #: The parameter groups :func:`fit` can identify, in order.
-GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "offset", "tendon_offset", "angle", "marker",
-          "base_position", "base_rotation", "time_constant")
-#: Those :func:`fit` identifies unless told otherwise (the routing angles of a calibrated robot file are kept).
-DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "offset", "marker", "base_position", "base_rotation",
-                  "time_constant")
+GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "offset", "tendon_offset", "angle",
+          "tendon_angle", "marker", "base_position", "base_rotation", "time_constant")
+#: Those :func:`fit` identifies unless told otherwise (each tendon's angle turned from the robot file's: on
+#: the shared recording's single-tendon sweeps the bend's direction was 1-8 degrees off, docs/real_robot.md).
+DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "offset", "tendon_angle", "marker", "base_position",
+                  "base_rotation", "time_constant")
 #: Groups that set the same values: at most one of each.
-EXCLUSIVE = (("elasticity", "stiffness"), ("offset", "tendon_offset"))
+EXCLUSIVE = (("elasticity", "stiffness"), ("offset", "tendon_offset"), ("angle", "tendon_angle"))
 #: Those of the measurement (changing them needs no new solve).
 REGISTRATION = ("marker", "base_position", "base_rotation", "time_constant")
 #: Each group's unit of the search (one unit of the optimiser's variable).
 _SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction": 0.1, "offset": 0.05,
-          "tendon_offset": 0.05, "angle": 0.1,
+          "tendon_offset": 0.05, "angle": 0.1, "tendon_angle": 0.1,
           "marker": 1e-3, "base_position": 1e-3, "base_rotation": 0.01, "time_constant": 0.1}
 #: Searched as logarithms (positive, relative steps).
 _LOG = ("E", "elasticity", "stiffness", "friction", "offset", "tendon_offset", "time_constant")
@@ -66,7 +68,7 @@ _BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffne
            "drive_compliance": (math.log(1e-9), math.log(0.1)), "tendon_EA": (math.log(1.0), math.log(1e9)),
            "friction": (math.log(1e-3), math.log(1.0)), "offset": (math.log(1e-4), math.log(0.1)),
            "tendon_offset": (math.log(1e-4), math.log(0.1)),
-           "angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
+           "angle": (-0.5, 0.5), "tendon_angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
            "base_position": (-0.25, 0.25), "base_rotation": (-4.0, 4.0),
            "time_constant": (math.log(1e-3), math.log(5.0))}
 #: The least-squares iterations (each a Jacobian) and the search's budget, s: on the shared recording 15
@@ -148,9 +150,10 @@ class _Layout:
 
 def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
     n_seg = len(segments(robot))
-    counts = {"E": 1, "zero": robot.n_tendons, "elasticity": 2, "stiffness": n_seg, "friction": n_seg, "offset": n_seg,
-              "tendon_offset": robot.n_tendons, "angle": n_seg, "marker": 3, "base_position": 3, "base_rotation": 3,
-              "time_constant": 1}
+    n_t = robot.n_tendons
+    counts = {"E": 1, "zero": n_t, "elasticity": 2, "stiffness": n_seg, "friction": n_seg, "offset": n_seg,
+              "tendon_offset": n_t, "angle": n_seg, "tendon_angle": n_t, "marker": 3, "base_position": 3,
+              "base_rotation": 3, "time_constant": 1}
     names, gs, index = [], [], []
     for g in GROUPS:
         if g in groups:
@@ -178,7 +181,7 @@ def _values(robot: Robot, layout: _Layout) -> np.ndarray:
         elif g in ("stiffness", "friction", "offset"):
             v = d.resolved(g)[0, segs[i]].mean()
             out.append(math.log(v if np.isfinite(v) and v > 0 else _LOG_START[g]))
-        elif g == "angle":
+        elif g in ("angle", "tendon_angle"):
             out.append(0.0)
         elif g == "time_constant":
             out.append(math.log(m.time_constant if m.time_constant > 0 else _LOG_START[g]))
@@ -187,9 +190,43 @@ def _values(robot: Robot, layout: _Layout) -> np.ndarray:
     return np.array(out)
 
 
+def _without_common_turn(layout: _Layout, values: np.ndarray) -> np.ndarray:
+    """``values`` (search space) with the mean of the ``angle`` or ``tendon_angle`` turns removed
+    when ``base_rotation`` is fitted too: a common turn of every tendon is (but for the marker's few
+    mm) a turn of the base about its axis, so the pair would leave a ridge and the turns' standard
+    errors would hold it; the base rotation carries the common part."""
+    if "base_rotation" not in layout.groups:
+        return values
+    out = values.copy()
+    for g in ("angle", "tendon_angle"):
+        turns = np.array([k == g for k in layout.groups])
+        if turns.any():
+            out[turns] -= out[turns].mean()
+    return out
+
+
+def _free_directions(layout: _Layout) -> np.ndarray:
+    """An orthonormal basis ``(p, q)`` of the search directions that move the robot: all of them, less
+    the common turn that :func:`_without_common_turn` removes (the covariance lives in their span)."""
+    basis = np.eye(len(layout.groups))
+    if "base_rotation" not in layout.groups:
+        return basis
+    keep = np.ones(len(layout.groups), dtype=bool)
+    for g in ("angle", "tendon_angle"):
+        turns = np.nonzero([k == g for k in layout.groups])[0]
+        if len(turns) > 1:
+            centred = np.eye(len(turns)) - 1.0 / len(turns)  # its range: the turns with zero mean
+            basis[np.ix_(turns, turns)] = np.linalg.svd(centred)[0]
+            keep[turns[-1]] = False  # the column along the common turn (singular value 0, last)
+        elif len(turns) == 1:
+            keep[turns] = False
+    return basis[:, keep]
+
+
 def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.ndarray) -> Robot:
     """The robot with the layout's parameters at ``values`` (search space)."""
     d, segs = robot.design, segments(robot)
+    values = _without_common_turn(layout, values)
     fields = {"zero": d.resolved("zero").copy(), "stiffness": d.resolved("stiffness").copy(),
               "friction": d.resolved("friction").copy(), "offset": d.offset.copy(), "angle": base_angles.copy()}
     E = d.E.copy()
@@ -210,6 +247,8 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
             fields["offset"][0, i] = math.exp(v)
         elif g == "angle":
             fields["angle"][0, segs[i]] = base_angles[0, segs[i]] + v
+        elif g == "tendon_angle":
+            fields["angle"][0, i] = base_angles[0, i] + v
         elif g == "time_constant":
             reg[g] = math.exp(v)
         else:
@@ -249,7 +288,8 @@ class FitResult:
 _NAMES = {"elasticity": ("drive_compliance", "tendon_EA")}
 _NAME_UNITS = {"drive_compliance": "m/N", "tendon_EA": "N"}
 _UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "offset": "m", "tendon_offset": "m",
-          "angle": "rad", "marker": "m", "base_position": "m", "base_rotation": "rad", "time_constant": "s"}
+          "angle": "rad", "tendon_angle": "rad", "marker": "m", "base_position": "m", "base_rotation": "rad",
+          "time_constant": "s"}
 
 
 def check_groups(groups: Sequence[str]) -> str | None:
@@ -353,12 +393,13 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     z = best["z"]
     jac = _jacobian(lambda v: residual(v, track=False), z)
     bar.close()
-    x = x0 + z * scale
+    x = _without_common_turn(layout, x0 + z * scale)  # the values applied, as reported
     fitted = _apply(robot, layout, x, base_angles)
     m, p = jac.shape
     r_best = residual(z, track=False)
     s2 = float(r_best @ r_best) / max(m - p, 1)  # mm^2
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    free = _free_directions(layout)
+    cov = s2 * free @ np.linalg.pinv((jac @ free).T @ (jac @ free)) @ free.T
     stderr = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
     # a parameter the residuals do not move (e.g. a lag far below the sampling interval) is not
     # identified: its variance is unbounded, not the 0 the pseudo-inverse gives its null direction

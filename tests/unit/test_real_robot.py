@@ -316,27 +316,65 @@ def test_a_parameter_the_data_do_not_move_is_reported_as_not_identified():
     assert reported["time_constant"]["stderr"] is None and reported["marker[0]"]["stderr"] > 0
 
 
-def test_fit_recovers_each_tendons_offset():
-    """Holes drilled off their nominal radius: a recording made by the solver with every tendon at
-    its own offset (4.1-4.9 mm), fitted from the nominal 4.5 mm with ``tendon_offset``, gives each
-    taut tendon's offset again and replays it to ~0 error."""
+def _sweeps(truth):
+    """A recording of single-tendon sweeps made by the solver: each tendon pulled in by 1-4 mm in
+    turn while the others are released to -5 mm, measured as ``truth`` replays it."""
+    from tdcr.robot.real import Recording
+
+    n = truth.n_tendons
+    commands = np.full((4 * n, n), -0.005)  # m
+    for k in range(n):
+        commands[4 * k:4 * k + 4, k] = np.arange(1, 5) * 1e-3
+    header = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", truth).header
+    return Recording(time=0.5 * np.arange(4 * n), labels=np.repeat([f"tendon{k}_pull" for k in range(n)], 4),
+                     commands=commands, measured=replay(truth, commands).points, rows=np.arange(1, 4 * n + 1),
+                     header=header)
+
+
+@pytest.mark.parametrize("group", ["tendon_offset", "tendon_angle"])
+def test_fit_recovers_each_tendons_offset_and_angle(group):
+    """Holes drilled off their nominal radius, or turned off their nominal angle: a recording made
+    by the solver with every tendon's offset (4.1-4.9 mm) or angle (+-0.1 rad) its own, fitted from
+    the robot file's values with ``tendon_offset`` or ``tendon_angle``, gives each taut tendon's
+    value again and replays it to ~0 error."""
     from dataclasses import replace
 
-    from tdcr.robot.real import Recording
     from tdcr.search.fit import fit
 
     start = load_robot(EXAMPLE)
-    offsets = 0.0045 + 0.0004 * np.sin(np.arange(9) * 2.0)  # m
-    truth = replace(start, design=start.design.replace(offset=offsets[None]))
-    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", truth)
-    made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands,
-                     measured=replay(truth, rec.commands).points, rows=rec.rows, header=rec.header)
-    result = fit(start, made, groups=("tendon_offset",), max_iterations=10, budget=120)
+    wave = np.sin(np.arange(9) * 2.0)
+    field, values, atol = (("offset", 0.0045 + 0.0004 * wave, 2e-6) if group == "tendon_offset"
+                           else ("angle", start.design.angles[0] + 0.1 * wave, 2e-4))  # m, rad
+    truth = replace(start, design=start.design.replace(**{field: values[None]}))
+    made = _sweeps(truth)
+    result = fit(start, made, groups=(group,), max_iterations=10, budget=120)
     assert result.initial.rmse > 0.5 and result.train.rmse < 0.01  # mm
-    found = np.array([p.value for p in result.parameters if p.name.startswith("tendon_offset")])
-    taut = replay(truth, rec.commands).tension.max(axis=0) > 0.0  # a tendon slack throughout shows no offset
-    assert taut.sum() >= 7
-    np.testing.assert_allclose(found[taut], offsets[taut], rtol=0, atol=2e-6)
+    found = getattr(result.robot.design, "angles" if field == "angle" else field)[0]
+    assert [p.name for p in result.parameters] == [f"{group}[{i}]" for i in range(9)]
+    np.testing.assert_allclose(found, values, rtol=0, atol=atol)
+
+
+def test_the_tendons_common_turn_is_the_bases_and_their_differences_are_identified():
+    """A turn of every tendon together is, but for the marker, a turn of the base about its axis:
+    fitted with ``base_rotation``, the reported tendon turns have zero mean, the base rotation holds
+    the common part, and each turn's standard error is that of the differences (small), not of the
+    ridge the pair would leave."""
+    from dataclasses import replace
+
+    from tdcr.search.fit import fit
+
+    start = load_robot(EXAMPLE)
+    wave = 0.1 * np.sin(np.arange(9) * 2.0)
+    wave -= wave.mean()  # rad
+    truth = replace(start, design=start.design.replace(angle=(start.design.angles[0] + wave)[None]),
+                    measurement=replace(start.measurement, base_rotation=np.array([0.0, 0.0, 0.05])))
+    result = fit(start, _sweeps(truth), groups=("tendon_angle", "base_rotation"), max_iterations=10, budget=120)
+    assert result.train.rmse < 0.01  # mm
+    turns = [p for p in result.parameters if p.name.startswith("tendon_angle")]
+    assert abs(sum(p.value for p in turns)) < 1e-12
+    np.testing.assert_allclose([p.value for p in turns], wave, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(result.robot.measurement.base_rotation, [0.0, 0.0, 0.05], rtol=0, atol=1e-3)
+    assert all(0.0 < p.stderr < 1e-3 for p in turns)
 
 
 def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
@@ -352,6 +390,7 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
     assert report["train"]["rmse_mm"] <= report["initial_train"]["rmse_mm"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for groups, words in [("offset,tendon_offset", "offset and tendon_offset set the same values"),
+                          ("angle,tendon_angle", "angle and tendon_angle set the same values"),
                           ("elasticity,stiffness", "elasticity and stiffness set the same values"),
                           ("E,bending", "--fit: unknown bending")]:
         run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(sample), "--fit", groups,
