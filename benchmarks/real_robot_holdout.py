@@ -1,0 +1,67 @@
+"""A fit choice judged on train alone: fit on half of a recording's patterns, score the other half.
+
+    python benchmarks/real_robot_holdout.py                         # tendon_angle, the shared FTDCR v4 train.csv
+    python benchmarks/real_robot_holdout.py --group tendon_offset --robot R.json --train T.csv
+
+The patterns (labels, a ``_hold`` row with its pattern) are dealt alternately into two folds; each
+fold is fitted with the default groups with and without ``--group`` (with it added when it is not a
+default) and scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).
+No validation file is read, so a choice made on these figures has not seen it.  The folds are
+split by time, so the command history (each tendon's motion) restarts at each fold's patterns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tdcr.robot.real import Recording, load_robot, read_recording  # noqa: E402
+from tdcr.search.fit import DEFAULT_GROUPS, fit  # noqa: E402
+
+SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
+
+
+def _rows(recording: Recording, keep: np.ndarray) -> Recording:
+    """The recording's rows where ``keep`` (T,) is true."""
+    return Recording(time=recording.time[keep], labels=recording.labels[keep], commands=recording.commands[keep],
+                     measured=recording.measured[keep], rows=recording.rows[keep], header=recording.header)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
+    parser.add_argument("--train", default=str(SHARED / "train.csv"))
+    parser.add_argument("--group", default="tendon_angle", help="the group judged")
+    args = parser.parse_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
+    robot = load_robot(args.robot)
+    recording = read_recording(args.train, robot)
+    patterns = np.array([re.sub(r"_hold$", "", str(label)) for label in recording.labels])
+    fold_of = {p: k % 2 for k, p in enumerate(dict.fromkeys(patterns))}
+    fold = np.array([fold_of[p] for p in patterns])
+    without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
+    with_group = without + (args.group,)
+    print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
+          "| held-out plain, mm | fit, s |\n|---|---|---|---|---|---|---|")
+    for k in (0, 1):
+        fitted, held_out = _rows(recording, fold == k), _rows(recording, fold != k)
+        for name, groups in ((f"without {args.group}", without), (f"with {args.group}", with_group)):
+            start = time.perf_counter()
+            result = fit(robot, fitted, validate=held_out, groups=groups)
+            print(f"| {k} | {name} | {len(fitted.time)} / {len(held_out.time)} | {result.train.rmse:.2f} | "
+                  f"{result.validate.aligned:.2f} | {result.validate.rmse:.2f} | {time.perf_counter() - start:.0f} |",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()
