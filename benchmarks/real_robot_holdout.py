@@ -2,12 +2,16 @@
 
     python benchmarks/real_robot_holdout.py                         # tendon_angle, the shared FTDCR v4 train.csv
     python benchmarks/real_robot_holdout.py --group tendon_offset --robot R.json --train T.csv
+    python benchmarks/real_robot_holdout.py --split halves
 
-The patterns (labels, a ``_hold`` row with its pattern) are dealt alternately into two folds; each
-fold is fitted with the default groups with and without ``--group`` (with it added when it is not a
-default) and scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).
-No validation file is read, so a choice made on these figures has not seen it.  The folds are
-split by time, so the command history (each tendon's motion) restarts at each fold's patterns.
+Two folds: ``--split patterns`` deals the patterns (labels, a ``_hold`` row with its pattern)
+alternately into them, so a pattern is either fitted or scored (but a single-tendon sweep then
+informs only one fold); ``--split halves`` puts each pattern's first half of rows in one and its
+second half in the other (every pattern in both, neighbouring rows apart).  Each fold is fitted
+with the default groups with and without ``--group`` (with it added when it is not a default) and
+scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).  No
+validation file is read, so a choice made on these figures has not seen it.  The folds are split
+in time, so the command history (each tendon's motion) restarts where a fold resumes.
 """
 
 from __future__ import annotations
@@ -42,13 +46,21 @@ def main() -> None:
     parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
     parser.add_argument("--train", default=str(SHARED / "train.csv"))
     parser.add_argument("--group", default="tendon_angle", help="the group judged")
+    parser.add_argument("--split", choices=("patterns", "halves"), default="patterns", help="how the folds are made")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
     recording = read_recording(args.train, robot)
     patterns = np.array([re.sub(r"_hold$", "", str(label)) for label in recording.labels])
-    fold_of = {p: k % 2 for k, p in enumerate(dict.fromkeys(patterns))}
-    fold = np.array([fold_of[p] for p in patterns])
+    if args.split == "patterns":
+        fold_of = {p: k % 2 for k, p in enumerate(dict.fromkeys(patterns))}
+        fold = np.array([fold_of[p] for p in patterns])
+    else:
+        fold = np.zeros(len(patterns), dtype=int)
+        for p in dict.fromkeys(patterns):
+            rows = np.nonzero(patterns == p)[0]
+            fold[rows[len(rows) // 2:]] = 1
+    print(f"split: {args.split}")
     without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
     with_group = without + (args.group,)
     print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
