@@ -24,7 +24,9 @@ trust-region reflective with bounds, forward-difference Jacobian):
   cannot turn the base by half a turn.
 
 A segment is the tendons that end together.  Every parameter is reported with its standard error
-from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p)).  Errors are the RMS of the
+from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p)), taken in the span of the
+directions that move the robot: with ``base_rotation`` fitted, a common turn of every tendon is the
+base's, so the turns are reported with zero mean.  Errors are the RMS of the
 3-D point error over the rows with a measurement, mm: "plain", and "aligned" after removing the
 mean error over the file (the metric of the public opencr-mujoco calibration).
 """
@@ -395,10 +397,10 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     bar.close()
     x = _without_common_turn(layout, x0 + z * scale)  # the values applied, as reported
     fitted = _apply(robot, layout, x, base_angles)
-    m, p = jac.shape
-    r_best = residual(z, track=False)
-    s2 = float(r_best @ r_best) / max(m - p, 1)  # mm^2
     free = _free_directions(layout)
+    m, q = jac.shape[0], free.shape[1]
+    r_best = residual(z, track=False)
+    s2 = float(r_best @ r_best) / max(m - q, 1)  # mm^2
     cov = s2 * free @ np.linalg.pinv((jac @ free).T @ (jac @ free)) @ free.T
     stderr = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
     # a parameter the residuals do not move (e.g. a lag far below the sampling interval) is not
