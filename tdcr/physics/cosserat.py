@@ -403,6 +403,14 @@ def _solve_tendon_only(designs: DesignBatch, fractions_out: np.ndarray, opts: So
     return _solve_compiled(designs, fractions_out, edges0, opts, threads, jacobian=jacobian, warm=warm)
 
 
+def _kernel_array(a) -> np.ndarray:
+    """``a`` as the compiled kernels take their arrays: float64, C-contiguous and writable.  numba
+    compiles a kernel anew for every array type, and a read-only array is another type: designs
+    read from a ``.npy`` body (a read-only buffer) would otherwise compile the whole solver again
+    where it runs, minutes on a cold cache."""
+    return np.require(a, dtype=np.float64, requirements=("C", "W"))
+
+
 def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fractions_out: np.ndarray,
                    opts: SolverOptions, *, loaded: bool, shortcut: bool = False, jacobian: bool = False,
                    warm: _WarmStart | None = None):
@@ -411,7 +419,7 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
     with ``warm`` level 0's node strains, read back as Newton's starts while ``warm.valid``)."""
     from tdcr.physics._compiled import kernel
 
-    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    f64 = _kernel_array
     b, n, n_t = designs.n_designs, fractions_out.shape[0], designs.n_tendons
     rods = kernel.Rods(kse=f64(mat.kse), kbt=f64(mat.kbt), radius=f64(designs.r), length=f64(designs.L),
                        offset=f64(designs.offset), pitch=f64(designs.pitch), tension=f64(designs.tension),
@@ -518,9 +526,9 @@ def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, load
     edges0 = _base_edges(fractions_out, opts.max_step_loads)
     kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=True,
                                                    shortcut=shortcut)
-    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     _run_kernel(kernel.solve_loaded_batch, threads, designs.n_designs, rods,
-                kernel.Loads(f_g=f64(f_g), f_tip=f64(f_tip), m_tip=f64(m_tip)), grid, tols, out)
+                kernel.Loads(f_g=_kernel_array(f_g), f_tip=_kernel_array(f_tip), m_tip=_kernel_array(m_tip)), grid,
+                tols, out)
     status = out.status.astype(np.int8)
     status[(status == Status.CONVERGED) & several_equilibria(out.shoot_jac)] = Status.MULTIPLE_EQUILIBRIA
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
@@ -599,9 +607,9 @@ def tendon_collapsed(designs: DesignBatch, fractions: np.ndarray, strains: np.nd
         return np.zeros(0, dtype=bool)
     from tdcr.physics._compiled import kernel
 
-    least = kernel.least_stretch(designs.L, designs.offset, designs.pitch, np.ascontiguousarray(designs.angles),
-                                 np.ascontiguousarray(designs.end_fractions), np.asarray(fractions, np.float64),
-                                 np.ascontiguousarray(strains))
+    least = kernel.least_stretch(*(_kernel_array(a) for a in (designs.L, designs.offset, designs.pitch,
+                                                               designs.angles, designs.end_fractions, fractions,
+                                                               strains)))
     return ~(least >= COLLAPSED_STRETCH)
 
 

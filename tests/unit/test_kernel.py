@@ -235,3 +235,31 @@ def test_the_secant_update_of_the_tension_newton_matches_its_last_step():
     unchanged = dlen.copy()
     kernel._secant_update(unchanged, comp, target, tau_before, tau_before, misses, miss_before)  # no step
     np.testing.assert_array_equal(unchanged, dlen)
+
+
+def test_read_only_inputs_reach_the_kernels_compiled_for_writable_ones():
+    """A ``.npy`` body is a read-only buffer, and numba types a read-only array apart: designs and
+    loads read from one must reach the same compiled kernels as any others, not compile the solver
+    again where they are solved (minutes on a cold cache, on the service's event loop: found by a
+    fresh clone's ``scripts/run.sh``).  Tendon loads, displacement actuation and external loads."""
+    from tdcr.physics._compiled import kernel
+    from tdcr.robot.designs import DesignBatch, ExternalLoads
+
+    def read_only(a):
+        a = np.array(a, dtype=np.float64)
+        a.setflags(write=False)
+        return a
+
+    def solves(writable: bool):
+        conv = (lambda a: np.array(a, dtype=np.float64)) if writable else read_only
+        designs = DesignBatch.from_features(conv(sample_designs(2, seed=1).features()))
+        fractions = conv(np.linspace(0.0, 1.0, 5))
+        solve(designs, fractions)
+        solve(designs.replace(displacement=conv(np.full((2, 4), 1e-4))), fractions)
+        solve(designs, fractions, loads=ExternalLoads(tip_force=conv([[0.0, 0.01, 0.0]] * 2)))
+
+    dispatchers = {name: f for name, f in vars(kernel).items() if hasattr(f, "signatures")}
+    solves(writable=True)
+    compiled = {name: len(f.signatures) for name, f in dispatchers.items()}
+    solves(writable=False)
+    assert {name: len(f.signatures) for name, f in dispatchers.items()} == compiled
