@@ -547,12 +547,12 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     mat = material(designs)
     kernel, rods, grid, tols, _ = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
     start = np.where(designs.displacement_driven, 0.0, designs.tension)
-    rods = rods._replace(tension=np.ascontiguousarray(start, dtype=np.float64).copy())
+    rods = rods._replace(tension=_kernel_array(start))  # a new array: the kernel writes the tensions in it
     b, n_t = designs.n_designs, designs.n_tendons
     slack, found = np.zeros((b, n_t), dtype=np.bool_), np.empty(b, dtype=np.int64)
     iterations = np.empty(b, dtype=np.int64)
     wanted = np.where(designs.displacement_driven, designs.displacement - designs.resolved("zero"), np.nan)
-    target = np.ascontiguousarray(wanted)
+    target = _kernel_array(wanted)
     for correction in range(2):
         # the tensions on the base grid; then, once, again for the target moved by what the solve's
         # finer grid (step control) still misses (the grids' lengths differ by O(h^4))
@@ -563,7 +563,7 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
         miss = np.where(slack, 0.0, wanted - sol.displacement - designs.compliance * rods.tension)
         if correction or not (np.nan_to_num(np.abs(miss)) > opts.displacement_tol).any():
             break
-        target = np.ascontiguousarray(target + np.nan_to_num(miss))
+        target = _kernel_array(target + np.nan_to_num(miss))
     status = sol.status.copy()
     status[(status == Status.CONVERGED) & (found != 0)] = Status.DISPLACEMENT_NOT_MET
     return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
