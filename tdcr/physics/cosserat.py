@@ -408,6 +408,8 @@ def _kernel_array(a) -> np.ndarray:
     compiles a kernel anew for every array type, and a read-only array is another type: designs
     read from a ``.npy`` body (a read-only buffer) would otherwise compile the whole solver again
     where it runs, minutes on a cold cache."""
+    if type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a  # already so: np.require's own checks cost as much as a small design's setup
     return np.require(a, dtype=np.float64, requirements=("C", "W"))
 
 
@@ -530,7 +532,7 @@ def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, load
                 kernel.Loads(f_g=_kernel_array(f_g), f_tip=_kernel_array(f_tip), m_tip=_kernel_array(m_tip)), grid,
                 tols, out)
     status = out.status.astype(np.int8)
-    status[(status == Status.CONVERGED) & several_equilibria(out.shoot_jac)] = Status.MULTIPLE_EQUILIBRIA
+    status[(status == Status.CONVERGED.value) & several_equilibria(out.shoot_jac)] = Status.MULTIPLE_EQUILIBRIA.value
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
 
 
@@ -565,7 +567,7 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
             break
         target = _kernel_array(target + np.nan_to_num(miss))
     status = sol.status.copy()
-    status[(status == Status.CONVERGED) & (found != 0)] = Status.DISPLACEMENT_NOT_MET
+    status[(status == Status.CONVERGED.value) & (found != 0)] = Status.DISPLACEMENT_NOT_MET.value
     return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
 
 
@@ -579,16 +581,16 @@ def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
     status = out.status.astype(np.int8)
     if not opts.linearized:  # the linearized model reports its residual but is not an equilibrium
         scale = np.maximum(designs.tension.sum(axis=1), 1.0)
-        status[(status == Status.CONVERGED) & ~(out.residual <= opts.residual_tol * scale)] = \
-            Status.RESIDUAL_TOO_LARGE
+        status[(status == Status.CONVERGED.value) & ~(out.residual <= opts.residual_tol * scale)] = \
+            Status.RESIDUAL_TOO_LARGE.value
     # Newton stopped (or divided by |g_i| = 0) beside a collapsed tendon
-    failed = np.nonzero((status == Status.NEWTON_FAILED) | (status == Status.NOT_FINITE)
+    failed = np.nonzero((status == Status.NEWTON_FAILED.value) | (status == Status.NOT_FINITE.value)
                         & np.isfinite(out.tendons).all(axis=(1, 2, 3)))[0]
     if failed.size:
         status[failed[tendon_collapsed(designs.take(failed), fractions_out, out.strains[failed])]] = \
-            Status.TENDON_COLLAPSED
+            Status.TENDON_COLLAPSED.value
     if warm is not None:  # a failed solve is no place to start from
-        warm.nodes, warm.valid = out.nodes, bool((status == Status.CONVERGED).all())
+        warm.nodes, warm.valid = out.nodes, bool((status == Status.CONVERGED.value).all())
     return _from_kernel(designs, mat, fractions_out, edges0, out, status)
 
 

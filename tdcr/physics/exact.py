@@ -104,7 +104,7 @@ class SolvedGroup:
                 finite &= np.isfinite(v.reshape(len(v), -1)).all(axis=1)
         if not finite.all():
             arrays = {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in arrays.items()}
-        status = np.where(finite, sol.status, Status.NOT_FINITE).astype(np.int32)
+        status = np.where(finite, sol.status, Status.NOT_FINITE.value).astype(np.int32)
         return cls(rows=rows, **arrays, converged=sol.converged & finite,
                    residual=np.where(finite, sol.residual, NOT_FINITE_RESIDUAL), status=status,
                    error_estimate=np.where(np.isfinite(sol.error_estimate), sol.error_estimate, np.nan),

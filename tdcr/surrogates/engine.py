@@ -200,7 +200,7 @@ def exact_prediction(request: ShapeRequest, answer: ExactAnswer) -> Prediction:
                 for ok, k in zip(g.converged.tolist(), g.status.tolist(), strict=True)]
     return Prediction(model=EXACT_MODEL, fractions=request.fractions, arclength=g.arclength,
                       arrays={k: arrays[k] for k in request.outputs}, warnings=warnings,
-                      finite=g.status != Status.NOT_FINITE, tip_jacobian=g.tip_jacobian,
+                      finite=g.status != Status.NOT_FINITE.value, tip_jacobian=g.tip_jacobian,
                       error_bound=np.where(g.converged, EXACT_TOLERANCE, np.inf),
                       source=np.full(len(g.converged), EXACT, dtype=np.int32))
 
