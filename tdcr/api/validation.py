@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Literal
 
 import numpy as np
@@ -177,6 +177,13 @@ def _check_model(model: str | None) -> list[Problem]:
     return []
 
 
+@lru_cache(maxsize=64)
+def _even_fractions(n: int) -> np.ndarray:
+    """``n`` evenly spaced fractions of L from 0 to 1, ``(n,)`` (kept: a service asks for the same few
+    counts again and again, and np.linspace costs more than a small request's other checks)."""
+    return np.linspace(0.0, 1.0, n)
+
+
 def _fractions(points: int | None, s: Sequence[float] | np.ndarray | None, limits: Limits, *,
                arclength: Sequence[float] | np.ndarray | None = None,
                lengths: np.ndarray | None = None) -> tuple[np.ndarray | None, list[Problem]]:
@@ -203,7 +210,7 @@ def _fractions(points: int | None, s: Sequence[float] | np.ndarray | None, limit
         if not 2 <= n <= limits.max_points:
             return None, [Problem(("points",), f"must be an integer from 2 to {limits.max_points}, got {n}",
                                   "points")]
-        return np.linspace(0.0, 1.0, n), []
+        return _even_fractions(n).copy(), []  # a copy: the request owns its fractions
     if not 1 <= len(s) <= limits.max_points:
         return None, [Problem(("s",), f"must hold 1 to {limits.max_points} fractions, got {len(s)}", "points")]
     return check_fractions(s)

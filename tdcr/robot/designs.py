@@ -214,6 +214,8 @@ class DesignBatch:
         """Per design, where it first leaves the surrogates' layout (every optional field at its
         default): ``("tendons", i, name)`` for the first tendon ``i`` with a field ``name`` set,
         else ``(name,)`` for a design field, or ``None`` (the surrogates' layout)."""
+        if all(getattr(self, f.name) is None for f in OPTIONAL):  # none given (features alone): every default
+            return [None] * self.n_designs
         tendon = [f.name for f in OPTIONAL if f.per == "tendon"]
         design = [f.name for f in OPTIONAL if f.per == "design"]
         per_tendon = [self.departs(n) for n in tendon]  # each (B, N_t)
