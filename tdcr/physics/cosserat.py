@@ -127,8 +127,9 @@ class RodSolution:
         backbone: backbone positions p(s), m, ``(B, n, 3)``.
         rotation: frames R(s), body axes as columns, ``(B, n, 3, 3)``.
         tendons: tendon positions p + R rho_i, m, ``(B, n, N_t, 3)``.
-        force: internal force n(s) of the rod, base frame, N, ``(B, n, 3)``.
-        moment: internal moment m(s) of the rod, base frame, N m, ``(B, n, 3)``.
+        force: internal force n(s) of the rod, base frame, N, ``(B, n, 3)`` (computed from
+            ``strains`` on first access: :func:`internal_wrench`).
+        moment: internal moment m(s) of the rod, base frame, N m, ``(B, n, 3)`` (the same).
         converged: per-design success flag, ``(B,)``.
         residual: per-design wrench-balance residual, N (moments divided by L), ``(B,)``.
         iterations: per-design Newton (tendon-only) or shooting iterations, ``(B,)``.
@@ -153,14 +154,13 @@ class RodSolution:
         tension_profile: every tendon's tension at the arclengths, N, ``(B, n, N_t)``: ``tension``
             where it acts without friction, tension exp(-/+ mu theta(s)) with friction (eq. CAP),
             0 beyond its end.
+        section: the section stiffnesses the solve used (:func:`material`).
     """
 
     s: np.ndarray
     backbone: np.ndarray
     rotation: np.ndarray
     tendons: np.ndarray
-    force: np.ndarray
-    moment: np.ndarray
     converged: np.ndarray
     residual: np.ndarray
     iterations: np.ndarray
@@ -173,6 +173,20 @@ class RodSolution:
     slack: np.ndarray | None = None
     strains: np.ndarray | None = None
     tension_profile: np.ndarray | None = None
+    section: _Material | None = dataclasses.field(default=None, repr=False)
+
+    @functools.cached_property
+    def _wrench(self) -> tuple[np.ndarray, np.ndarray]:
+        # on first access only: a service's answers never read it (15 us of a one-design solve)
+        return internal_wrench(self.rotation, self.strains, self.section)
+
+    @property
+    def force(self) -> np.ndarray:
+        return self._wrench[0]
+
+    @property
+    def moment(self) -> np.ndarray:
+        return self._wrench[1]
 
 
 __all__ = ["POISSON_RATIO", "STATUS", "TERMINATIONS", "RodSolution", "SolverOptions", "Status", "TipSolver",
@@ -203,8 +217,10 @@ def material(designs: DesignBatch) -> _Material:
     ratio nu (default :data:`POISSON_RATIO`), by :func:`section_stiffness`, for every path (the
     kernels receive these)."""
     ga, ea, ei, gj = section_stiffness(designs.E, designs.r, designs.poissons)
-    return _Material(kse=np.stack([ga, ga, ea], axis=-1), kbt=np.stack([ei, ei, gj], axis=-1),
-                     area=ea / designs.E)  # A of the material law
+    kse, kbt = np.empty((designs.n_designs, 3)), np.empty((designs.n_designs, 3))  # (np.stack costs more)
+    kse[:, 0], kse[:, 1], kse[:, 2] = ga, ga, ea
+    kbt[:, 0], kbt[:, 1], kbt[:, 2] = ei, ei, gj
+    return _Material(kse=kse, kbt=kbt, area=ea / designs.E)  # A of the material law
 
 
 def internal_wrench(rotation: np.ndarray, strains: np.ndarray, mat: _Material) -> tuple[np.ndarray, np.ndarray]:
@@ -435,11 +451,7 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
         shape = (b, 2 * edges.shape[0] - 1, 6)
         warm_start = warm.valid and warm.nodes is not None and warm.nodes.shape == shape
         nodes = warm.nodes if warm_start else np.zeros(shape)
-    tols = kernel.Tolerances(newton_tol=float(opts.newton_tol), max_newton=int(opts.max_newton),
-                             step_tol=float(opts.step_tol), max_level=int(opts.max_level),
-                             shooting_tol=float(opts.shooting_tol), max_shooting=int(opts.max_shooting),
-                             shortcut=bool(shortcut), linearized=bool(opts.linearized), warm=bool(warm_start),
-                             displacement_tol=0.1 * float(opts.displacement_tol))
+    tols = _tolerances(opts, shortcut=bool(shortcut), warm=bool(warm_start))
     per_design = lambda dtype=np.float64: np.empty(b, dtype=dtype)  # noqa: E731
     out = kernel.Shapes(backbone=np.empty((b, n, 3)), rotation=np.empty((b, n, 3, 3)), strains=np.empty((b, n, 6)),
                         tendons=np.empty((b, n, n_t, 3)), status=per_design(np.int64), residual=per_design(),
@@ -448,6 +460,18 @@ def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fra
                         displacement=np.empty((b, n_t)), jacobian=np.empty((b, n if jacobian else 0, 6, n_t)),
                         nodes=nodes, profile=np.empty((b, n, n_t)))
     return kernel, rods, grid, tols, out
+
+
+@functools.lru_cache(maxsize=32)
+def _tolerances(opts: SolverOptions, *, shortcut: bool, warm: bool):
+    """The kernels' :class:`~tdcr.physics._kernel.Tolerances` of ``opts`` (kept: options repeat)."""
+    from tdcr.physics._compiled import kernel
+
+    return kernel.Tolerances(newton_tol=float(opts.newton_tol), max_newton=int(opts.max_newton),
+                             step_tol=float(opts.step_tol), max_level=int(opts.max_level),
+                             shooting_tol=float(opts.shooting_tol), max_shooting=int(opts.max_shooting),
+                             shortcut=shortcut, linearized=bool(opts.linearized), warm=warm,
+                             displacement_tol=0.1 * float(opts.displacement_tol))
 
 
 #: Chunks per thread of a batch run side by side (designs differ in cost: smaller chunks balance).
@@ -508,10 +532,9 @@ def several_equilibria(shoot_jac: np.ndarray) -> np.ndarray:
 def _from_kernel(designs: DesignBatch, mat: _Material, fractions_out: np.ndarray, edges0: np.ndarray,
                  out, status: np.ndarray) -> RodSolution:
     """A :class:`RodSolution` of the kernels' outputs ``out`` with the final ``status``."""
-    force, moment = internal_wrench(out.rotation, out.strains, mat)
     return RodSolution(
         s=designs.L[:, None] * fractions_out[None, :], backbone=out.backbone, rotation=out.rotation,
-        tendons=out.tendons, force=force, moment=moment, converged=status == 0, residual=out.residual,
+        tendons=out.tendons, section=mat, converged=status == 0, residual=out.residual,
         iterations=out.iterations, status=status, error_estimate=out.estimate,
         steps=(len(edges0) - 1) * 2**out.level, tension=designs.tension.copy(), displacement=out.displacement,
         strains=out.strains, jacobian=out.jacobian if out.jacobian.shape[1] else None, tension_profile=out.profile,
