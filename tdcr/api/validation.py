@@ -126,6 +126,8 @@ class ShapeRequest:
         under Rucker & Webster's rule."""
         count = 0
         for g in self.groups:
+            if g.loads is None and self.termination != "rucker_webster":
+                continue  # (the checks below cost as much as a small request's solve)
             shooting = np.zeros(len(g.rows), dtype=bool) if g.loads is None else _loaded(g.loads)
             if self.termination == "rucker_webster":
                 shooting |= g.designs.segmented
@@ -135,7 +137,8 @@ class ShapeRequest:
     @cached_property
     def n_displacement(self) -> int:
         """Designs with a displacement-driven tendon (the solver first finds their tensions)."""
-        return sum(int(g.designs.displacement_driven.any(axis=1).sum()) for g in self.groups)
+        return sum(int(g.designs.displacement_driven.any(axis=1).sum()) for g in self.groups
+                   if g.designs.displacement is not None)
 
     @property
     def pose(self) -> bool:

@@ -426,7 +426,7 @@ def _kernel_array(a) -> np.ndarray:
     where it runs, minutes on a cold cache."""
     if type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
         return a  # already so: np.require's own checks cost as much as a small design's setup
-    return np.require(a, dtype=np.float64, requirements=("C", "W"))
+    return np.array(a, dtype=np.float64, order="C")  # a copy, writable
 
 
 def _kernel_inputs(designs: DesignBatch, mat: _Material, edges0: np.ndarray, fractions_out: np.ndarray,
