@@ -34,7 +34,7 @@ from against import ROOT, worktree  # benchmarks/ is the script's folder
 from exact_latency import design_json
 
 from service.process import ServerProcess
-from tdcr.clients.client import _request as binary_request  # what Client.predict sends
+from tdcr.clients import predict_request  # what Client.predict sends
 from tdcr.clients.loadtest import grpc_request
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
@@ -75,7 +75,7 @@ def main() -> None:
     args = parser.parse_args()
     features = sample_designs(args.requests + WARM_UP, seed=5).features()
     work = [(orjson.dumps({"designs": [design_json(f, False)], "points": 42}), grpc_request("auto", f[None, :], None),
-             binary_request(f[None, :], model=None, points=42, s=None, arclength=None, outputs=None))
+             predict_request(f[None, :], points=42))
             for f in features]
     trees = {"this tree": ROOT, args.against: worktree(args.against)}
     servers = {name: ServerProcess(root / "models", root=root) for name, root in trees.items()}

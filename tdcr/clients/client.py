@@ -32,12 +32,14 @@ class TDCRError(RuntimeError):
         self.status, self.message = status, message
 
 
-def _request(features: np.ndarray, *, model: str | None, points: int | None, s, arclength, outputs,
-             loads=None, tolerance: float | None = None) -> dict:
-    """The ``/predict`` call of a binary request, after the one validation path's checks (nothing
-    is sent for a bad one; the same words as the service's 422: :class:`tdcr.api.checks.InvalidRequest`,
-    a ``ValueError``).  With ``loads`` (:class:`tdcr.ExternalLoads`) the body is ``(B, 25)``:
-    each design followed by its loads matrix row."""
+def predict_request(features: np.ndarray, *, model: str | None = None, points: int | None = None, s=None,
+                    arclength=None, outputs=None, loads=None, tolerance: float | None = None) -> dict:
+    """The ``/predict`` call that :meth:`Client.predict` sends (httpx's ``content``, ``params`` and
+    ``headers``: ``.npy`` in, ``.npz`` asked for), for a tool that sends it its own way; after the
+    one validation path's checks (nothing is sent for a bad one; the same words as the service's
+    422: :class:`tdcr.api.checks.InvalidRequest`, a ``ValueError``).  With ``loads``
+    (:class:`tdcr.ExternalLoads`) the body is ``(B, 25)``: each design followed by its loads matrix
+    row."""
     from tdcr.api.checks import (
         check_fractions,
         check_loads,
@@ -122,8 +124,8 @@ class Client:
         base frame), for a loaded operator (the default one when ``model`` is None).  Bad designs
         raise ``ValueError`` before anything is sent.
         """
-        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads,
-                        tolerance=tolerance)
+        call = predict_request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs,
+                               loads=loads, tolerance=tolerance)
         return _decode(self._http.post("/predict", **call))
 
     def predict_json(self, request: dict) -> dict:
@@ -153,8 +155,8 @@ class AsyncClient:
                       points: int | None = DEFAULT_POINTS, s=None, arclength=None, outputs=None,
                       tolerance: float | None = None) -> dict:
         """As :meth:`Client.predict`."""
-        call = _request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs, loads=loads,
-                        tolerance=tolerance)
+        call = predict_request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs,
+                               loads=loads, tolerance=tolerance)
         return _decode(await self._http.post("/predict", **call))
 
     async def predict_json(self, request: dict) -> dict:
