@@ -360,6 +360,8 @@ def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | 
     per = {"design": [d.__dict__ for d in designs], "tendon": [t.__dict__ for d in designs for t in d.tendons]}
     for f in FIELDS:
         values = [row.get(f.name) for row in per[f.per]]  # flat: designs, or designs x tendons in order
+        if not f.feature and all(v is None for v in values):
+            continue  # None: no design gives it (found without the arrays below: most requests give few)
         if f.choices:  # a field in words (the schema admits only its words)
             values = [f.choices[v] if isinstance(v, str) else v for v in values]
         shape = (len(designs),) if f.per == "design" else (len(designs), n_t)
@@ -367,8 +369,6 @@ def _group_from_json(designs: list, rows: np.ndarray, problems: list[Problem] | 
         absent = np.isnan(given)
         if absent.any():  # which are None (a NaN given stays, for the checks to refuse)
             absent = np.array([v is None for v in values], dtype=bool).reshape(shape)
-            if not f.feature and absent.all():
-                continue  # None: no design gives it
             fields[f.name] = np.where(absent, 0.0 if f.feature else f.fill(lengths, n_t), given)
         else:
             fields[f.name] = given
