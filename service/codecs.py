@@ -61,7 +61,8 @@ class ExactCodec:
         return Decoded(validate_json(payload, target="solver", limits=spec.limits))
 
     def encode(self, decoded: Decoded, answer: ExactAnswer) -> bytes:
-        return orjson.dumps({"format_version": RESPONSE_FORMAT_VERSION, "results": answer.results()})
+        return orjson.dumps({"format_version": RESPONSE_FORMAT_VERSION, "results": answer.results(lists=False)},
+                            option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 @dataclass(frozen=True)

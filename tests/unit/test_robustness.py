@@ -89,6 +89,22 @@ def test_the_solver_answers_numbers_or_flags_the_design(unit):
     _assert_numbers(solve_request(validate_json({"designs": designs, "points": 5}, target="solver")).results(), designs)
 
 
+@settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
+@given(unit=units)
+def test_exact_json_from_numpy_rows_is_the_json_of_the_lists(unit):
+    """/exact writes its answer from numpy rows (``results(lists=False)``): the same bytes as the
+    nested lists, for any admissible designs (flagged ones included), with the Jacobian, and with
+    displacement actuation (its ``slack``)."""
+    designs = ds.DesignBatch.from_features(_admissible(unit)).to_dicts()
+    pulled = [{**d, "tendons": [{k: v for k, v in t.items() if k != "tension"} | {"displacement": 1e-4 * i}
+                                for i, t in enumerate(d["tendons"])]} for d in designs]
+    for body in ({"designs": designs, "points": 5}, {"designs": designs, "s": [0.3, 1.0], "jacobian": True},
+                 {"designs": pulled, "points": 3}):
+        answer = solve_request(validate_json(body, target="solver"))
+        lists = orjson.dumps(answer.results())
+        assert orjson.dumps(answer.results(lists=False), option=orjson.OPT_SERIALIZE_NUMPY) == lists
+
+
 def test_the_solver_flags_only_designs_it_has_a_reason_to_flag():
     """The property test above would pass if every design were flagged: here the flags must have
     their physical reason.  Of 400 seeded admissible designs, every one that bends gently (linearised
