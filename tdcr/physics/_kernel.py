@@ -1072,18 +1072,28 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
     targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED.  With
     ``sequence`` the designs are one robot's commands in order: each driven tendon's Newton starts
-    from the tension found for the design before (a warm start), and with the Jacobian it left."""
+    from the tension found for the design before (a warm start), and with the Jacobian it left; a
+    warm start that fails (a large step of the commands, e.g. a release from 8 mm to 0, can lead
+    Newton away) is followed by one more try from the design's own start, as alone."""
     n_t = target.shape[1]
     dlen, known = np.empty((n_t, n_t)), np.zeros(1, dtype=np.bool_)
+    cold = np.empty(n_t)
     for b in range(rods.length.shape[0]):
         warm = sequence and b > 0 and status[b - 1] == OK
         known[0] = known[0] and warm
-        if warm:
-            for i in range(n_t):
-                if target[b, i] == target[b, i]:
-                    rods.tension[b, i] = rods.tension[b - 1, i]
+        for i in range(n_t):
+            cold[i] = rods.tension[b, i]
+            if warm and target[b, i] == target[b, i]:
+                rods.tension[b, i] = rods.tension[b - 1, i]
         ok, it = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols, slack[b],
                                dlen, known)
+        if warm and not ok:
+            for i in range(n_t):
+                rods.tension[b, i] = cold[i]
+            known[0] = False
+            ok, more = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols,
+                                     slack[b], dlen, known)
+            it += more
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
 
