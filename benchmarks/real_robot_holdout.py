@@ -3,13 +3,16 @@
     python benchmarks/real_robot_holdout.py                         # tendon_angle, the shared FTDCR v4 train.csv
     python benchmarks/real_robot_holdout.py --group tendon_offset --robot R.json --train T.csv
     python benchmarks/real_robot_holdout.py --split halves
+    python benchmarks/real_robot_holdout.py --prior tendon_angle=0.5   # a prior judged instead of a group
 
 Two folds: ``--split patterns`` deals the patterns (labels, a ``_hold`` row with its pattern)
 alternately into them, so a pattern is either fitted or scored (but a single-tendon sweep then
 informs only one fold); ``--split halves`` puts each pattern's first half of rows in one and its
 second half in the other (every pattern in both, neighbouring rows apart).  Each fold is fitted
 with the default groups with and without ``--group`` (with it added when it is not a default) and
-scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).  No
+scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).  With
+``--prior GROUP=WIDTH[,...]`` the two fits are the default groups without and with that prior
+(:func:`tdcr.search.fit.fit`'s ``prior``, widths in search units).  No
 validation file is read, so a choice made on these figures has not seen it.  The folds are split
 in time, so the command history (each tendon's motion) restarts where a fold resumes.
 """
@@ -47,6 +50,7 @@ def main() -> None:
     parser.add_argument("--train", default=str(SHARED / "train.csv"))
     parser.add_argument("--group", default="tendon_angle", help="the group judged")
     parser.add_argument("--split", choices=("patterns", "halves"), default="patterns", help="how the folds are made")
+    parser.add_argument("--prior", default=None, help="judge a prior instead: GROUP=WIDTH[,GROUP=WIDTH...]")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
@@ -61,15 +65,19 @@ def main() -> None:
             rows = np.nonzero(patterns == p)[0]
             fold[rows[len(rows) // 2:]] = 1
     print(f"split: {args.split}")
-    without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
-    with_group = without + (args.group,)
+    if args.prior:
+        prior = {g: float(w) for g, w in (item.split("=") for item in args.prior.split(","))}
+        choices = (("no prior", DEFAULT_GROUPS, None), (f"prior {args.prior}", DEFAULT_GROUPS, prior))
+    else:
+        without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
+        choices = ((f"without {args.group}", without, None), (f"with {args.group}", without + (args.group,), None))
     print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
           "| held-out plain, mm | fit, s |\n|---|---|---|---|---|---|---|")
     for k in (0, 1):
         fitted, held_out = _rows(recording, fold == k), _rows(recording, fold != k)
-        for name, groups in ((f"without {args.group}", without), (f"with {args.group}", with_group)):
+        for name, groups, prior in choices:
             start = time.perf_counter()
-            result = fit(robot, fitted, validate=held_out, groups=groups)
+            result = fit(robot, fitted, validate=held_out, groups=groups, prior=prior)
             print(f"| {k} | {name} | {len(fitted.time)} / {len(held_out.time)} | {result.train.rmse:.2f} | "
                   f"{result.validate.aligned:.2f} | {result.validate.rmse:.2f} | {time.perf_counter() - start:.0f} |",
                   flush=True)
