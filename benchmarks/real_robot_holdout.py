@@ -11,8 +11,9 @@ informs only one fold); ``--split halves`` puts each pattern's first half of row
 second half in the other (every pattern in both, neighbouring rows apart).  Each fold is fitted
 with the default groups with and without ``--group`` (with it added when it is not a default) and
 scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).  With
-``--prior GROUP=WIDTH[,...]`` the two fits are the default groups without and with that prior
-(:func:`tdcr.search.fit.fit`'s ``prior``, widths in search units).  No
+``--prior GROUP=WIDTH[,...]`` the two fits are the default groups without any prior and with that
+one (:func:`tdcr.search.fit.fit`'s ``prior``, widths in search units); else both take the default
+prior.  No
 validation file is read, so a choice made on these figures has not seen it.  The folds are split
 in time, so the command history (each tendon's motion) restarts where a fold resumes.
 """
@@ -33,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tdcr.robot.real import Recording, load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import DEFAULT_GROUPS, fit  # noqa: E402
+from tdcr.search.fit import DEFAULT_GROUPS, PRIOR, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 
@@ -70,7 +71,7 @@ def main() -> None:
         choices = (("no prior", DEFAULT_GROUPS, None), (f"prior {args.prior}", DEFAULT_GROUPS, prior))
     else:
         without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
-        choices = ((f"without {args.group}", without, None), (f"with {args.group}", without + (args.group,), None))
+        choices = ((f"without {args.group}", without, PRIOR), (f"with {args.group}", without + (args.group,), PRIOR))
     print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
           "| held-out plain, mm | fit, s |\n|---|---|---|---|---|---|---|")
     for k in (0, 1):
