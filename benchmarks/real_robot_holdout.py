@@ -45,13 +45,22 @@ def _rows(recording: Recording, keep: np.ndarray) -> Recording:
                      measured=recording.measured[keep], rows=recording.rows[keep], header=recording.header)
 
 
+def _prior(text: str) -> dict[str, float]:
+    """``--prior``'s ``GROUP=WIDTH[,GROUP=WIDTH...]`` (argparse exits 2 with the reason)."""
+    try:
+        return {g.strip(): float(w) for g, w in (item.split("=") for item in text.split(","))}
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected GROUP=WIDTH[,GROUP=WIDTH...], got {text!r}") from None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
     parser.add_argument("--train", default=str(SHARED / "train.csv"))
     parser.add_argument("--group", default="tendon_angle", help="the group judged")
     parser.add_argument("--split", choices=("patterns", "halves"), default="patterns", help="how the folds are made")
-    parser.add_argument("--prior", default=None, help="judge a prior instead: GROUP=WIDTH[,GROUP=WIDTH...]")
+    parser.add_argument("--prior", type=_prior, default=None,
+                        help="judge a prior instead: GROUP=WIDTH[,GROUP=WIDTH...]")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
@@ -67,8 +76,8 @@ def main() -> None:
             fold[rows[len(rows) // 2:]] = 1
     print(f"split: {args.split}")
     if args.prior:
-        prior = {g: float(w) for g, w in (item.split("=") for item in args.prior.split(","))}
-        choices = (("no prior", DEFAULT_GROUPS, None), (f"prior {args.prior}", DEFAULT_GROUPS, prior))
+        named = ",".join(f"{g}={w:g}" for g, w in args.prior.items())
+        choices = (("no prior", DEFAULT_GROUPS, None), (f"prior {named}", DEFAULT_GROUPS, args.prior))
     else:
         without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
         choices = ((f"without {args.group}", without, PRIOR), (f"with {args.group}", without + (args.group,), PRIOR))

@@ -269,7 +269,9 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
 class FitResult:
     """The answer of :func:`fit`: the fitted ``robot``, its ``parameters`` with standard errors, the
     ``train`` and (if given) ``validate`` :class:`Errors`, the replays ``train_replay`` and
-    ``validate_replay``, the ``initial`` train errors, ``seconds`` and ``solves`` (replays run)."""
+    ``validate_replay``, the ``initial`` train errors, ``seconds``, ``solves`` (replays run) and
+    ``prior``, the prior's width of each fitted group that had one (search units: the standard
+    errors of those groups carry it)."""
 
     robot: Robot
     parameters: list[Parameter]
@@ -280,6 +282,7 @@ class FitResult:
     initial: Errors
     seconds: float
     solves: int
+    prior: dict[str, float] = field(default_factory=dict)
 
     def report(self) -> dict:
         """The fit as JSON (the robot file's ``fitted``)."""
@@ -287,7 +290,8 @@ class FitResult:
                                 "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit}
                                for p in self.parameters],
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
-                "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves}
+                "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves,
+                "prior": self.prior}
 
 
 #: The parameters of a group that are not alike: their own names (and units).
@@ -426,7 +430,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     seconds = time.perf_counter() - start
     out = FitResult(robot=fitted, parameters=params, train=errors(train_replay, train),
                     validate=None if validate is None else errors(val_replay, validate), train_replay=train_replay,
-                    validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0])
+                    validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0],
+                    prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)})
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
 
 

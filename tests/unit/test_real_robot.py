@@ -411,6 +411,7 @@ def test_a_prior_on_one_group_holds_that_group_and_frees_the_others():
     held = fit(start, made, groups=("tendon_angle", "marker"), prior={"tendon_angle": 1e-3}, max_iterations=6,
                budget=120)
     np.testing.assert_allclose(held.robot.design.angles[0], start.design.angles[0], rtol=0, atol=2e-3)
+    assert held.robot.extra["fitted"]["prior"] == {"tendon_angle": 1e-3}  # the report says what held them
     assert abs(held.robot.measurement.marker[2] - start.measurement.marker[2]) > 1e-3  # moved toward 4 mm more
     for prior, words in (({"tendon_angel": 1.0}, "unknown tendon_angel"), ({"marker": 0.0}, "must be > 0")):
         with pytest.raises(ValueError, match=words):
@@ -427,6 +428,7 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
     fitted = load_robot(out)
     report = fitted.extra["fitted"]
     assert [p["name"] for p in report["parameters"]] == ["marker[0]", "marker[1]", "marker[2]", "time_constant"]
+    assert report["prior"] == {}  # the default prior is on the turns, which these groups do not fit
     assert report["train"]["rmse_mm"] <= report["initial_train"]["rmse_mm"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for groups, words in [("offset,tendon_offset", "offset and tendon_offset set the same values"),
