@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tdcr.robot.real import Recording, load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import DEFAULT_GROUPS, PRIOR, fit  # noqa: E402
+from tdcr.search.fit import DEFAULT_GROUPS, PRIOR, fit, format_prior, parse_prior  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 
@@ -48,9 +48,12 @@ def _rows(recording: Recording, keep: np.ndarray) -> Recording:
 def _prior(text: str) -> dict[str, float]:
     """``--prior``'s ``GROUP=WIDTH[,GROUP=WIDTH...]`` (argparse exits 2 with the reason)."""
     try:
-        return {g.strip(): float(w) for g, w in (item.split("=") for item in text.split(","))}
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected GROUP=WIDTH[,GROUP=WIDTH...], got {text!r}") from None
+        prior = parse_prior(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if prior is None:
+        raise argparse.ArgumentTypeError("judge a prior: GROUP=WIDTH[,GROUP=WIDTH...], not none")
+    return prior
 
 
 def main() -> None:
@@ -76,7 +79,7 @@ def main() -> None:
             fold[rows[len(rows) // 2:]] = 1
     print(f"split: {args.split}")
     if args.prior:
-        named = ",".join(f"{g}={w:g}" for g, w in args.prior.items())
+        named = format_prior(args.prior)
         choices = (("no prior", DEFAULT_GROUPS, None), (f"prior {named}", DEFAULT_GROUPS, args.prior))
     else:
         without = tuple(g for g in DEFAULT_GROUPS if g != args.group)

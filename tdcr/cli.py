@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -83,18 +84,25 @@ def _cmd_replay(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from tdcr.search.fit import check_groups, fit, plot
+    from tdcr.search.fit import check_groups, fit, parse_prior, plot
 
     groups = tuple(g.strip() for g in args.fit.split(",") if g.strip())
     problem = check_groups(groups)
     if problem:
         raise UsageError(f"--fit: {problem}")
+    try:
+        prior = parse_prior(args.prior)
+    except ValueError as exc:
+        raise UsageError(f"--prior: {exc}") from None
+    if not (math.isfinite(args.f_scale) and args.f_scale > 0):
+        raise UsageError(f"--f-scale: must be a number of mm > 0, got {args.f_scale}")
     robot, train = _robot_and_recording(args.robot, args.train, measured=True)
     validate = None if args.validate is None else _robot_and_recording(args.robot, args.validate, measured=True)[1]
     if not train.has_measurement.any():
         raise UsageError(f"{args.train}: no row has a measurement ({', '.join(robot.measurement.columns)})")
     result = fit(robot, train, validate=validate, groups=groups, max_iterations=args.max_iterations,
-                 budget=args.budget, progress=not args.quiet, workers=args.workers)
+                 budget=args.budget, progress=not args.quiet, workers=args.workers, loss=args.loss,
+                 f_scale=args.f_scale, prior=prior)
     result.robot.save(args.out)
     if args.plot:
         plot(result, train, validate, args.plot)
@@ -541,8 +549,13 @@ class FORMATTER(argparse.ArgumentDefaultsHelpFormatter):
 def build_parser() -> argparse.ArgumentParser:
     from tdcr.search.fit import BUDGET as FIT_BUDGET
     from tdcr.search.fit import DEFAULT_GROUPS as FIT_DEFAULT_GROUPS
+    from tdcr.search.fit import F_SCALE as FIT_F_SCALE
     from tdcr.search.fit import GROUPS as FIT_GROUPS
+    from tdcr.search.fit import LOSS as FIT_LOSS
+    from tdcr.search.fit import LOSSES as FIT_LOSSES
     from tdcr.search.fit import MAX_ITERATIONS as FIT_MAX_ITERATIONS
+    from tdcr.search.fit import PRIOR as FIT_PRIOR
+    from tdcr.search.fit import format_prior
     from tdcr.surrogates.bounds import CALIBRATION_DESIGNS, CALIBRATION_SEED
     from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
@@ -576,6 +589,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"comma-separated parameter groups, of {', '.join(FIT_GROUPS)} (tdcr/search/fit.py)")
     p.add_argument("--max-iterations", type=int, default=FIT_MAX_ITERATIONS, help="least-squares iterations at most")
     p.add_argument("--budget", type=float, default=FIT_BUDGET, help="seconds of search at most (then the best point)")
+    p.add_argument("--prior", default=format_prior(FIT_PRIOR),
+                   help="Gaussian prior around the robot file's values: GROUP=WIDTH[,GROUP=WIDTH...] in the "
+                        "search's units (0.1 rad of a turn, 1 mm of a zero, 10 %% of E ...), or none")
+    p.add_argument("--loss", choices=FIT_LOSSES, default=FIT_LOSS, help="loss on the point errors")
+    p.add_argument("--f-scale", type=float, default=FIT_F_SCALE,
+                   help="the loss's scale, mm: where soft_l1 turns linear; the prior's widths are against it")
     p.add_argument("--workers", type=int, default=0, help="kernel threads (default 0: one per core)")
     p.add_argument("--quiet", action="store_true", help="no progress bar; the report on one line")
     p.set_defaults(func=_cmd_fit)

@@ -86,6 +86,8 @@ DIFF_STEP = 1e-2
 #: sweep) moves as freely as before, one it barely constrains stays near the file's angle
 #: (held-out halves of train, ``benchmarks/real_robot_holdout.py --prior``).
 LOSS, F_SCALE, PRIOR = "linear", 5.0, MappingProxyType({"tendon_angle": 0.2})
+#: The losses :func:`fit` offers (``least_squares``'s names).
+LOSSES = ("linear", "soft_l1")
 #: A row whose answer is not finite scores this error per coordinate, m.
 FAILED_ERROR = 0.05
 
@@ -271,7 +273,7 @@ class FitResult:
     ``train`` and (if given) ``validate`` :class:`Errors`, the replays ``train_replay`` and
     ``validate_replay``, the ``initial`` train errors, ``seconds``, ``solves`` (replays run) and
     ``prior``, the prior's width of each fitted group that had one (search units: the standard
-    errors of those groups carry it)."""
+    errors of those groups carry it), and the search's ``groups``, ``loss`` and ``f_scale`` (mm)."""
 
     robot: Robot
     parameters: list[Parameter]
@@ -283,6 +285,9 @@ class FitResult:
     seconds: float
     solves: int
     prior: dict[str, float] = field(default_factory=dict)
+    groups: tuple[str, ...] = ()
+    loss: str = LOSS
+    f_scale: float = F_SCALE
 
     def report(self) -> dict:
         """The fit as JSON (the robot file's ``fitted``)."""
@@ -291,7 +296,7 @@ class FitResult:
                                for p in self.parameters],
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves,
-                "prior": self.prior}
+                "prior": self.prior, "groups": list(self.groups), "loss": self.loss, "f_scale_mm": self.f_scale}
 
 
 #: The parameters of a group that are not alike: their own names (and units).
@@ -311,6 +316,30 @@ def check_groups(groups: Sequence[str]) -> str | None:
         if set(pair) <= set(groups):
             return f"{pair[0]} and {pair[1]} set the same values: give one of them"
     return None
+
+
+def parse_prior(text: str) -> dict[str, float] | None:
+    """A prior as the CLI gives it: ``GROUP=WIDTH[,GROUP=WIDTH...]`` (widths in search units, as
+    :func:`fit` takes them), or ``none``.  ``ValueError`` saying why for anything else: a malformed
+    item, an unknown group or a width that is not > 0."""
+    if text.strip().lower() == "none":
+        return None
+    prior = {}
+    for item in text.split(","):
+        group, sep, width = item.partition("=")
+        try:
+            prior[group.strip()] = float(width)
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise ValueError(f"expected GROUP=WIDTH[,GROUP=WIDTH...] or none, got {item.strip()!r}")
+    _prior_widths(prior, ())  # the names and widths
+    return prior
+
+
+def format_prior(prior: Mapping[str, float] | None) -> str:
+    """``prior`` as :func:`parse_prior` reads it."""
+    return "none" if prior is None else ",".join(f"{g}={w:g}" for g, w in prior.items())
 
 
 def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, groups: Sequence[str] = DEFAULT_GROUPS,
@@ -344,6 +373,10 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     problem = check_groups(groups)
     if problem:
         raise ValueError(f"groups: {problem}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss: one of {', '.join(LOSSES)}, got {loss!r}")
+    if not (math.isfinite(f_scale) and f_scale > 0):
+        raise ValueError(f"f_scale: must be a number of mm > 0, got {f_scale!r}")
     start = time.perf_counter()
     layout = _layout(robot, groups)
     scale = np.array([_SCALE[g] for g in layout.groups])
@@ -431,7 +464,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     out = FitResult(robot=fitted, parameters=params, train=errors(train_replay, train),
                     validate=None if validate is None else errors(val_replay, validate), train_replay=train_replay,
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0],
-                    prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)})
+                    prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)},
+                    groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale)
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
 
 
@@ -472,7 +506,7 @@ def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
         return float(r @ r)
     if loss == "soft_l1":
         return float((2.0 * f_scale**2 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)).sum())
-    raise ValueError(f"loss: 'linear' or 'soft_l1', got {loss!r}")
+    raise ValueError(f"loss: one of {', '.join(LOSSES)}, got {loss!r}")
 
 
 class _OutOfTime(Exception):

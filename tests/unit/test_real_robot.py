@@ -416,6 +416,23 @@ def test_a_prior_on_one_group_holds_that_group_and_frees_the_others():
     for prior, words in (({"tendon_angel": 1.0}, "unknown tendon_angel"), ({"marker": 0.0}, "must be > 0")):
         with pytest.raises(ValueError, match=words):
             fit(start, made, groups=("marker",), prior=prior)
+    for options, words in (({"loss": "cauchy"}, "loss: one of linear, soft_l1"),
+                           ({"f_scale": 0.0}, "f_scale: must be a number of mm > 0")):
+        with pytest.raises(ValueError, match=words):
+            fit(start, made, groups=("marker",), **options)
+
+
+def test_a_prior_is_read_as_it_is_written():
+    """The CLI's ``--prior`` text: ``GROUP=WIDTH[,...]`` or ``none``, and the default written back."""
+    from tdcr.search.fit import PRIOR, format_prior, parse_prior
+
+    assert parse_prior(format_prior(PRIOR)) == dict(PRIOR)
+    assert parse_prior(" tendon_angle = 0.2 , marker=1e-1") == {"tendon_angle": 0.2, "marker": 0.1}
+    assert parse_prior("none") is None and format_prior(None) == "none"
+    for text, words in (("tendon_angle", "expected GROUP=WIDTH"), ("tendon_angle=wide", "expected GROUP=WIDTH"),
+                        ("turns=0.2", "unknown turns"), ("marker=-1", "must be > 0"), ("marker=nan", "must be > 0")):
+        with pytest.raises(ValueError, match=words):
+            parse_prior(text)
 
 
 def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
@@ -423,19 +440,26 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
     out, png = tmp_path / "fitted.json", tmp_path / "fit.png"
     run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(sample), "--validate", str(sample),
                           "--fit", "marker,time_constant", "--max-iterations", "2", "--out", str(out), "--plot",
-                          str(png), "--quiet"], capture_output=True, text=True, timeout=300)
+                          str(png), "--quiet", "--prior", "marker=0.5"], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     fitted = load_robot(out)
     report = fitted.extra["fitted"]
     assert [p["name"] for p in report["parameters"]] == ["marker[0]", "marker[1]", "marker[2]", "time_constant"]
-    assert report["prior"] == {}  # the default prior is on the turns, which these groups do not fit
+    # the report says how it was searched: the groups, the loss and the prior given
+    assert report["groups"] == ["marker", "time_constant"] and report["loss"] == "linear"
+    assert report["prior"] == {"marker": 0.5}
     assert report["train"]["rmse_mm"] <= report["initial_train"]["rmse_mm"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    for groups, words in [("offset,tendon_offset", "offset and tendon_offset set the same values"),
-                          ("angle,tendon_angle", "angle and tendon_angle set the same values"),
-                          ("elasticity,stiffness", "elasticity and stiffness set the same values"),
-                          ("E,bending", "--fit: unknown bending")]:
-        run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(sample), "--fit", groups,
+    for options, words in [(["--fit", "offset,tendon_offset"], "offset and tendon_offset set the same values"),
+                            (["--fit", "angle,tendon_angle"], "angle and tendon_angle set the same values"),
+                            (["--fit", "elasticity,stiffness"], "elasticity and stiffness set the same values"),
+                            (["--fit", "E,bending"], "--fit: unknown bending"),
+                            (["--prior", "tendon_angel=0.2"], "--prior: prior: unknown tendon_angel"),
+                            (["--prior", "marker=0"], "--prior: prior: a width must be > 0"),
+                            (["--prior", "marker"], "expected GROUP=WIDTH"),
+                            (["--f-scale", "0"], "--f-scale: must be a number of mm > 0"),
+                            (["--loss", "cauchy"], "invalid choice: 'cauchy'")]:
+        run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(sample), *options,
                               "--out", str(tmp_path / "no.json")], capture_output=True, text=True, timeout=300)
         assert run.returncode == 2 and words in run.stderr and "Traceback" not in run.stderr, run.stderr
         assert not (tmp_path / "no.json").exists()
