@@ -33,16 +33,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tdcr.robot.real import Recording, load_robot, read_recording  # noqa: E402
+from tdcr.robot.real import load_robot, read_recording  # noqa: E402
 from tdcr.search.fit import DEFAULT_GROUPS, PRIOR, fit, format_prior, parse_prior  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
-
-
-def _rows(recording: Recording, keep: np.ndarray) -> Recording:
-    """The recording's rows where ``keep`` (T,) is true."""
-    return Recording(time=recording.time[keep], labels=recording.labels[keep], commands=recording.commands[keep],
-                     measured=recording.measured[keep], rows=recording.rows[keep], header=recording.header)
 
 
 def _prior(text: str) -> dict[str, float]:
@@ -87,7 +81,7 @@ def main() -> None:
     print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
           "| held-out plain, mm | fit, s |\n|---|---|---|---|---|---|---|")
     for k in (0, 1):
-        fitted, held_out = _rows(recording, fold == k), _rows(recording, fold != k)
+        fitted, held_out = recording.take(fold == k), recording.take(fold != k)
         for name, groups, prior in choices:
             start = time.perf_counter()
             result = fit(robot, fitted, validate=held_out, groups=groups, prior=prior)

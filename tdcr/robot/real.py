@@ -294,6 +294,12 @@ class Recording:
         """Rows without a motion-capture value (replayed, not scored)."""
         return int((~self.has_measurement).sum())
 
+    def take(self, keep: np.ndarray) -> Recording:
+        """The rows where ``keep`` ``(T,)`` (bool) is true, in their order (a fold of a recording)."""
+        keep = np.asarray(keep, dtype=bool)
+        return Recording(time=self.time[keep], labels=self.labels[keep], commands=self.commands[keep],
+                         measured=self.measured[keep], rows=self.rows[keep], header=self.header)
+
 
 def _number(text: str) -> float:
     try:

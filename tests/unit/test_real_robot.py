@@ -161,6 +161,17 @@ HEADER = "timestamp,pattern_label," + ",".join(f"servo_{s}_mm" for s in (4, 3, 9
     ",tip_x,tip_y,tip_z\n"
 
 
+def test_a_recording_takes_its_rows_in_order_and_keeps_their_csv_numbers():
+    robot = load_robot(EXAMPLE)
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
+    keep = np.arange(len(rec.time)) % 3 == 1
+    fold = rec.take(keep)
+    assert fold.rows.tolist() == (np.nonzero(keep)[0] + 1).tolist() and fold.header == rec.header
+    for name in ("time", "labels", "commands", "measured"):
+        np.testing.assert_array_equal(getattr(fold, name), getattr(rec, name)[keep])
+    assert len(rec.take(np.zeros(len(rec.time), dtype=bool)).time) == 0
+
+
 def test_bad_recordings_name_the_column_and_row(tmp_path):
     robot = load_robot(EXAMPLE)
     row = lambda t, x="0": f"{t},p,{x},0,0,0,0,0,0,0,0,1,2,180\n"  # noqa: E731
