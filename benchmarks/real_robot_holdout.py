@@ -13,8 +13,7 @@ with the default groups with and without ``--group`` (with it added when it is n
 scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).  With
 ``--prior GROUP=WIDTH[,...]`` the two fits are the default groups without any prior and with that
 one (:func:`tdcr.search.fit.fit`'s ``prior``, widths in search units); else both take the default
-prior.  No
-validation file is read, so a choice made on these figures has not seen it.  The folds are split
+prior.  No validation file is read, so a choice made on these figures has not seen it.  The folds are split
 in time, so the command history (each tendon's motion) restarts where a fold resumes.
 """
 

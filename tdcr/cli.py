@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -84,7 +83,7 @@ def _cmd_replay(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from tdcr.search.fit import check_groups, fit, parse_prior, plot
+    from tdcr.search.fit import check_f_scale, check_groups, fit, parse_prior, plot
 
     groups = tuple(g.strip() for g in args.fit.split(",") if g.strip())
     problem = check_groups(groups)
@@ -94,8 +93,9 @@ def _cmd_fit(args) -> int:
         prior = parse_prior(args.prior)
     except ValueError as exc:
         raise UsageError(f"--prior: {exc}") from None
-    if not (math.isfinite(args.f_scale) and args.f_scale > 0):
-        raise UsageError(f"--f-scale: must be a number of mm > 0, got {args.f_scale}")
+    problem = check_f_scale(args.f_scale)
+    if problem:
+        raise UsageError(f"--f-scale: {problem}")
     robot, train = _robot_and_recording(args.robot, args.train, measured=True)
     validate = None if args.validate is None else _robot_and_recording(args.robot, args.validate, measured=True)[1]
     if not train.has_measurement.any():

@@ -318,6 +318,23 @@ def check_groups(groups: Sequence[str]) -> str | None:
     return None
 
 
+def check_prior(prior: float | Mapping[str, float] | None) -> str | None:
+    """Why :func:`fit` cannot take ``prior`` (a name that is no group, a width that is not > 0), or None."""
+    if prior is None:
+        return None
+    named = prior if isinstance(prior, Mapping) else {"every group": prior}
+    unknown = sorted(set(named) - set(GROUPS)) if isinstance(prior, Mapping) else []
+    if unknown:
+        return f"unknown {', '.join(unknown)}; the groups are {', '.join(GROUPS)}"
+    bad = {g: w for g, w in named.items() if not float(w) > 0.0}
+    return f"a width must be > 0, got {bad}" if bad else None
+
+
+def check_f_scale(f_scale: float) -> str | None:
+    """Why :func:`fit` cannot take the loss's scale ``f_scale`` (mm), or None."""
+    return None if math.isfinite(f_scale) and f_scale > 0 else f"must be a number of mm > 0, got {f_scale!r}"
+
+
 def parse_prior(text: str) -> dict[str, float] | None:
     """A prior as the CLI gives it: ``GROUP=WIDTH[,GROUP=WIDTH...]`` (widths in search units, as
     :func:`fit` takes them), or ``none``.  ``ValueError`` saying why for anything else: a malformed
@@ -333,7 +350,9 @@ def parse_prior(text: str) -> dict[str, float] | None:
             sep = ""
         if not sep:
             raise ValueError(f"expected GROUP=WIDTH[,GROUP=WIDTH...] or none, got {item.strip()!r}")
-    _prior_widths(prior, ())  # the names and widths
+    problem = check_prior(prior)
+    if problem:
+        raise ValueError(problem)
     return prior
 
 
@@ -375,8 +394,9 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         raise ValueError(f"groups: {problem}")
     if loss not in LOSSES:
         raise ValueError(f"loss: one of {', '.join(LOSSES)}, got {loss!r}")
-    if not (math.isfinite(f_scale) and f_scale > 0):
-        raise ValueError(f"f_scale: must be a number of mm > 0, got {f_scale!r}")
+    for name, problem in (("prior", check_prior(prior)), ("f_scale", check_f_scale(f_scale))):
+        if problem:
+            raise ValueError(f"{name}: {problem}")
     start = time.perf_counter()
     layout = _layout(robot, groups)
     scale = np.array([_SCALE[g] for g in layout.groups])
@@ -471,17 +491,11 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
 
 def _prior_widths(prior: float | Mapping[str, float] | None, groups: Sequence[str]) -> np.ndarray:
     """Each parameter's prior width ``(p,)`` in search units (inf: none) of :func:`fit`'s ``prior``
-    for the parameters' ``groups`` (a group of the mapping that is not fitted has no parameter);
-    ``ValueError`` for a width that is not positive or a name that is no group."""
+    (checked, :func:`check_prior`) for the parameters' ``groups`` (a group of the mapping that is
+    not fitted has no parameter)."""
     if prior is None:
         return np.full(len(groups), np.inf)
     named = prior if isinstance(prior, Mapping) else dict.fromkeys(groups, prior)
-    unknown = sorted(set(named) - set(GROUPS))
-    if unknown:
-        raise ValueError(f"prior: unknown {', '.join(unknown)}; the groups are {', '.join(GROUPS)}")
-    bad = {g: w for g, w in named.items() if not float(w) > 0.0}
-    if bad:
-        raise ValueError(f"prior: a width must be > 0, got {bad}")
     return np.array([float(named.get(g, np.inf)) for g in groups])
 
 
@@ -504,9 +518,7 @@ def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
     """The cost ``least_squares`` minimises (times 2): sum rho(r^2) of the residuals ``r``."""
     if loss == "linear":
         return float(r @ r)
-    if loss == "soft_l1":
-        return float((2.0 * f_scale**2 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)).sum())
-    raise ValueError(f"loss: one of {', '.join(LOSSES)}, got {loss!r}")
+    return float((2.0 * f_scale**2 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)).sum())  # soft_l1 (LOSSES)
 
 
 class _OutOfTime(Exception):
