@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import signal
+import subprocess
+import threading
 from pathlib import Path
 
 import pytest
@@ -39,6 +43,95 @@ def pytest_collection_modifyitems(config, items):
         if group not in GROUPS:
             raise pytest.UsageError(f"{item.nodeid}: tests live in tests/{{{','.join(GROUPS)}}}/")
         item.add_marker(getattr(pytest.mark, group))
+
+
+#: The one test that builds and runs the Docker image (its minutes overlap the rest of the suite).
+DOCKER_TEST = "tests/service/test_docker.py::test_the_image_runs_for_real"
+
+
+class DockerCheck:
+    """scripts/docker-base.sh, then scripts/docker-test.sh, each to its end, in a thread of this
+    session: the image's build and containers take minutes, mostly on a core that the suite (one
+    process, one thread at a time) leaves idle, so they run beside the other tests from the end of
+    collection.  :meth:`results` waits for both; ``None`` for a step that did not run (the base
+    failed, or the session ended first)."""
+
+    STEPS = ("scripts/docker-base.sh", "scripts/docker-test.sh")
+
+    def __init__(self, root: Path, timeout: float = 900.0):
+        self.root, self.timeout = root, timeout
+        self.done: list[subprocess.CompletedProcess | None] = [None, None]
+        self._process: subprocess.Popen | None = None
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run, name="docker-check", daemon=True)
+
+    @staticmethod
+    def possible() -> str | None:
+        """Why no Docker engine can be had here (None: it can be tried)."""
+        if os.geteuid() != 0 or not shutil.which("apt-get") and not shutil.which("dockerd"):
+            return "needs root (or a running engine) to install and start Docker"
+        return None
+
+    def start(self) -> DockerCheck:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        for i, step in enumerate(self.STEPS):
+            if self._stopped:
+                return
+            self._process = subprocess.Popen(["bash", step], cwd=self.root, stdout=subprocess.PIPE,
+                                             stderr=subprocess.PIPE, text=True, start_new_session=True)
+            try:
+                out, err = self._process.communicate(timeout=self.timeout)
+            except subprocess.TimeoutExpired:
+                self.stop()
+                out, err = self._process.communicate()
+                err += f"\n{step} ran past {self.timeout:.0f} s"
+            self.done[i] = subprocess.CompletedProcess(self._process.args, self._process.returncode, out, err)
+            if self._process.returncode != 0:
+                return
+
+    def results(self) -> list[subprocess.CompletedProcess | None]:
+        self._thread.join()
+        return self.done
+
+    def stop(self) -> None:
+        """End the running step and its children (the session ends)."""
+        self._stopped = True
+        if self._process is not None and self._process.poll() is None:
+            os.killpg(self._process.pid, signal.SIGTERM)
+
+
+#: Where the session keeps its DockerCheck.
+DOCKER_KEY = pytest.StashKey[DockerCheck]()
+
+
+def pytest_collection_finish(session):
+    """Start the Docker image's check beside the suite when its test is to run (see DockerCheck)."""
+    if session.config.option.collectonly or DockerCheck.possible() is not None:
+        return
+    if any(item.nodeid == DOCKER_TEST for item in session.items):
+        session.config.stash[DOCKER_KEY] = DockerCheck(ROOT).start()
+
+
+def pytest_sessionfinish(session):
+    check = session.config.stash.get(DOCKER_KEY, None)
+    if check is not None:
+        check.stop()
+
+
+@pytest.fixture(scope="session")
+def docker_check(request) -> DockerCheck:
+    """The session's :class:`DockerCheck` (started at collection; here if the test was not collected
+    with the rest); skips with the reason where no Docker engine can be had."""
+    reason = DockerCheck.possible()
+    if reason is not None:
+        pytest.skip(reason)
+    stash = request.config.stash
+    if DOCKER_KEY not in stash:
+        stash[DOCKER_KEY] = DockerCheck(ROOT).start()
+    return stash[DOCKER_KEY]
 
 
 @pytest.fixture(scope="session")

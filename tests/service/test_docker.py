@@ -5,10 +5,7 @@ container and on 2 compose replicas) where a Docker engine can be had."""
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
-import subprocess
 
 import jsonschema
 import pytest
@@ -60,14 +57,12 @@ def test_serving_install_does_not_pull_torch(root):
 
 
 @pytest.mark.slow
-def test_the_image_runs_for_real(root):
-    """scripts/docker-test.sh end to end.  Skips (with the reason) only where no Docker engine can
-    be had: not root, or the engine or the base image cannot be set up; past that, it must pass."""
-    if os.geteuid() != 0 or not shutil.which("apt-get") and not shutil.which("dockerd"):
-        pytest.skip("needs root (or a running engine) to install and start Docker")
-    base = subprocess.run(["bash", "scripts/docker-base.sh"], cwd=root, capture_output=True, text=True, timeout=900)
-    if base.returncode != 0:
-        pytest.skip(f"no Docker engine or base image here: {base.stderr.strip()[-500:]}")
-    done = subprocess.run(["bash", "scripts/docker-test.sh"], cwd=root, capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, (done.stdout + done.stderr)[-4000:]
+def test_the_image_runs_for_real(docker_check):
+    """scripts/docker-test.sh end to end (run beside the suite from its collection: tests/conftest.py's
+    DockerCheck).  Skips (with the reason) only where no Docker engine can be had: not root, or the
+    engine or the base image cannot be set up; past that, it must pass."""
+    base, done = docker_check.results()
+    if base is None or base.returncode != 0:
+        pytest.skip(f"no Docker engine or base image here: {'' if base is None else base.stderr.strip()[-500:]}")
+    assert done is not None and done.returncode == 0, (done.stdout + done.stderr)[-4000:]
     assert done.stdout.count("ok: ") == 3 and "all container checks passed" in done.stdout
