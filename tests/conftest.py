@@ -37,12 +37,14 @@ GROUPS = ("unit", "service", "peers")
 
 
 def pytest_collection_modifyitems(config, items):
-    """Mark every test with its folder's group; a test outside the groups' folders is an error."""
+    """Mark every test with its folder's group; a test outside the groups' folders is an error.  The
+    Docker image's test goes last: its check runs beside the suite from collection (DockerCheck)."""
     for item in items:
         group = Path(str(item.fspath)).parent.name
         if group not in GROUPS:
             raise pytest.UsageError(f"{item.nodeid}: tests live in tests/{{{','.join(GROUPS)}}}/")
         item.add_marker(getattr(pytest.mark, group))
+    items.sort(key=lambda item: item.nodeid == DOCKER_TEST)  # stable: the others keep their order
 
 
 #: The one test that builds and runs the Docker image (its minutes overlap the rest of the suite).
