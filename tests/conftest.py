@@ -37,18 +37,20 @@ GROUPS = ("unit", "service", "peers")
 
 
 def pytest_collection_modifyitems(config, items):
-    """Mark every test with its folder's group; a test outside the groups' folders is an error.  The
-    Docker image's test goes last: its check runs beside the suite from collection (DockerCheck)."""
+    """Mark every test with its folder's group; a test outside the groups' folders is an error.  A
+    test of the built Docker image goes last: its check runs beside the suite from collection
+    (DockerCheck)."""
     for item in items:
         group = Path(str(item.fspath)).parent.name
         if group not in GROUPS:
             raise pytest.UsageError(f"{item.nodeid}: tests live in tests/{{{','.join(GROUPS)}}}/")
         item.add_marker(getattr(pytest.mark, group))
-    items.sort(key=lambda item: item.nodeid == DOCKER_TEST)  # stable: the others keep their order
+    items.sort(key=_uses_the_image)  # stable: the others keep their order
 
 
-#: The one test that builds and runs the Docker image (its minutes overlap the rest of the suite).
-DOCKER_TEST = "tests/service/test_docker.py::test_the_image_runs_for_real"
+def _uses_the_image(item) -> bool:
+    """Whether a test waits for the Docker image's check (it takes the ``docker_check`` fixture)."""
+    return "docker_check" in getattr(item, "fixturenames", ())
 
 
 class DockerCheck:
@@ -110,10 +112,10 @@ DOCKER_KEY = pytest.StashKey[DockerCheck]()
 
 
 def pytest_collection_finish(session):
-    """Start the Docker image's check beside the suite when its test is to run (see DockerCheck)."""
+    """Start the Docker image's check beside the suite when a test of it is to run (see DockerCheck)."""
     if session.config.option.collectonly or DockerCheck.possible() is not None:
         return
-    if any(item.nodeid == DOCKER_TEST for item in session.items):
+    if any(_uses_the_image(item) for item in session.items):
         session.config.stash[DOCKER_KEY] = DockerCheck(ROOT).start()
 
 
