@@ -196,11 +196,10 @@ _JACOBIAN_WITHOUT_LOADS = {
 _NO_DISPLACEMENT = {"items": {"properties": {"tendons": {"items": {"properties": {"displacement": {"type": "null"}}}}}}}
 _JACOBIAN_CONSISTENT = {"if": {"properties": {"jacobian": {"const": True}}, "required": ["jacobian"]},
                         "then": {"properties": {"termination": {"const": "exact"}, "designs": _NO_DISPLACEMENT}}}
-#: JSON schema: displacement actuation covers tendon loads with consistent termination.
-_DISPLACEMENT_UNLOADED = {"if": {"properties": {"designs": {"contains": {"properties": {"tendons": {"contains": {
+#: JSON schema: displacement actuation covers consistent termination (loads or none).
+_DISPLACEMENT_CONSISTENT = {"if": {"properties": {"designs": {"contains": {"properties": {"tendons": {"contains": {
     "properties": {"displacement": {"type": "number"}}, "required": ["displacement"]}}}}}}},
-    "then": {"properties": {"termination": {"const": "exact"}, "designs": {"items": {"properties": {
-        "gravity": {"type": "null"}, "tip_force": {"type": "null"}, "tip_moment": {"type": "null"}}}}}}}
+    "then": {"properties": {"termination": {"const": "exact"}}}}
 
 _TERMINATION = Field("exact", description=(
     "how a tendon that ends before the tip loads the rod: exact (default) -- the consistent equilibrium, the "
@@ -213,7 +212,7 @@ class SolveRequest(_Arclengths):
     """A batch of designs and the arclengths wanted: ``points`` equispaced, or explicit ``s``."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra=_POINTS_OR_S | _JACOBIAN_WITHOUT_LOADS | {
-        "allOf": [_JACOBIAN_CONSISTENT, _DISPLACEMENT_UNLOADED]})
+        "allOf": [_JACOBIAN_CONSISTENT, _DISPLACEMENT_CONSISTENT]})
     designs: list[Design] = Field(min_length=1)
     jacobian: bool = _JACOBIAN
     termination: Literal[TERMINATIONS] = _TERMINATION  # type: ignore[valid-type]

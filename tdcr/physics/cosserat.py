@@ -358,9 +358,10 @@ def solve(
     if (designs.capstan != 0.0).any() and (loaded or shortcut or jacobian or opts.linearized):
         raise ValueError("friction covers tendon loads with consistent termination (no Jacobian, not linearized)")
     if designs.displacement_driven.any():
-        if loaded or shortcut or jacobian or opts.linearized:
-            raise ValueError("displacement actuation covers tendon loads with consistent termination (no Jacobian, "
-                             "not linearized)")
+        if shortcut or jacobian or opts.linearized:
+            raise ValueError("displacement actuation covers consistent termination (no Jacobian, not linearized)")
+        if loaded:
+            return _solve_displacement_loaded(designs, fractions_out, loads, opts, workers)
         return _solve_displacement(designs, fractions_out, opts, workers, sequence=sequence)
     if (loaded or shortcut) and opts.linearized:
         raise ValueError("the linearized model covers tendon loads only, with consistent termination")
@@ -591,6 +592,97 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
         target = _kernel_array(target + np.nan_to_num(miss))
     status = sol.status.copy()
     status[(status == Status.CONVERGED.value) & (found != 0)] = Status.DISPLACEMENT_NOT_MET.value
+    return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
+
+
+#: Displacement actuation under loads: Newton iterations at most, and step halvings per iteration.
+LOADED_DISPLACEMENT_NEWTON, LOADED_DISPLACEMENT_HALVINGS = 30, 6
+#: ... the forward difference of the path lengths to a tension: this times max(1 N, the tension), N.
+LOADED_DISPLACEMENT_DIFF = 1e-6
+
+
+def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
+                               opts: SolverOptions, threads: int) -> RodSolution:
+    """Displacement actuation in gravity and under tip loads: the tensions ``tau`` (B, N_t) at which
+    every displacement-driven tendon i meets min(s_i tau_i, c_i tau_i + d_i(tau) - w_i) = 0 (eq. SE
+    with its slack branch: w_i its pull-in minus its drive's ``zero``, c_i its compliance 1 /
+    stiffness, d_i(tau) the shortening of its path under the tensions and the loads, s_i > 0 a scale
+    in m/N), then the loaded solve at those tensions.  Semismooth Newton on the loaded kernel,
+    started from the unloaded solve's tensions; the path lengths' Jacobian by forward differences
+    (one loaded solve per driven tendon and iteration, every design in one batch), each step capped
+    like the unloaded kernel's (1 N + 50 % of the tension) and halved until the worst miss shrinks.
+    Without friction (the loaded kernel has none)."""
+    driven = designs.displacement_driven
+    wanted = np.where(driven, designs.displacement - designs.resolved("zero"), 0.0)  # w (B, N_t), m
+    compliance = designs.compliance
+    b, n_t = designs.n_designs, designs.n_tendons
+    start = _solve_displacement(designs, fractions_out, opts, threads).tension
+    tension = np.maximum(np.nan_to_num(np.where(driven, start, designs.tension)), 0.0)
+    scale = np.ones((b, n_t))  # s: the path's own stiffness dd_i/dtau_i, from each Jacobian
+
+    def miss_at(tau: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """r = c tau + d(tau) - w (len(rows), N_t), m, of designs ``rows`` at tensions ``tau`` (NaN
+        where the loaded solve failed)."""
+        sol = _solve_loaded_compiled(designs.take(rows).replace(tension=tau, displacement=None), fractions_out,
+                                     loads.take(rows), opts, threads)
+        miss = compliance[rows] * tau + sol.displacement - wanted[rows]
+        return np.where((sol.status == Status.CONVERGED.value)[:, None], miss, np.nan)
+
+    def phi(tau: np.ndarray, miss: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """min(s tau, r) on the driven tendons, 0 elsewhere (len(rows), N_t), m."""
+        return np.where(driven[rows], np.minimum(tau * scale[rows], miss), 0.0)
+
+    def worst(values: np.ndarray) -> np.ndarray:
+        return np.where(np.isfinite(values).all(axis=1), np.abs(values).max(axis=1, initial=0.0), np.inf)
+
+    rows = np.arange(b)
+    miss = miss_at(tension, rows)
+    found = np.zeros(b, dtype=bool)
+    for iteration in range(LOADED_DISPLACEMENT_NEWTON + 1):
+        done = worst(phi(tension[rows], miss, rows)) <= opts.displacement_tol
+        found[rows[done]] = True
+        rows, miss = rows[~done], miss[~done]
+        if iteration == LOADED_DISPLACEMENT_NEWTON:
+            break
+        if not rows.size or not np.isfinite(miss).all():  # a failed solve is left to the status
+            rows, miss = rows[np.isfinite(miss).all(axis=1)], miss[np.isfinite(miss).all(axis=1)]
+            if not rows.size:
+                break
+        tau = tension[rows]
+        jac = np.zeros((rows.size, n_t, n_t))  # dr/dtau, m/N
+        for j in np.nonzero(driven[rows].any(axis=0))[0]:
+            h = LOADED_DISPLACEMENT_DIFF * np.maximum(1.0, tau[:, j])
+            bumped = tau.copy()
+            bumped[:, j] += h
+            jac[:, :, j] = (miss_at(bumped, rows) - miss) / h[:, None]
+        scale[rows] = np.maximum(np.abs(np.nan_to_num(np.diagonal(jac, axis1=1, axis2=2))), 1e-9)
+        residual = phi(tau, miss, rows)
+        on_tension = driven[rows] & (tau * scale[rows] <= miss)  # min() takes s tau: the slack branch
+        newton = np.where(on_tension[:, :, None], np.eye(n_t) * scale[rows][:, :, None], jac)
+        newton = np.where(driven[rows][:, :, None] & np.isfinite(newton), newton, np.eye(n_t))
+        with np.errstate(all="ignore"):
+            step = -np.linalg.solve(newton, residual[:, :, None])[:, :, 0]
+        cap = 1.0 + 0.5 * tau
+        step = np.where(driven[rows], np.clip(np.nan_to_num(step), -cap, cap), 0.0)
+        before = worst(residual)
+        pending = np.arange(rows.size)
+        for halving in range(LOADED_DISPLACEMENT_HALVINGS + 1):
+            trial = np.maximum(tau[pending] + step[pending] / 2.0**halving, 0.0)
+            trial_miss = miss_at(trial, rows[pending])
+            better = worst(phi(trial, trial_miss, rows[pending])) < before[pending]
+            if halving == LOADED_DISPLACEMENT_HALVINGS:
+                better = np.isfinite(trial_miss).all(axis=1)  # the last halving is kept where it solved
+            keep = pending[better]
+            tau[keep], miss[keep] = trial[better], trial_miss[better]
+            pending = pending[~better]
+            if not pending.size:
+                break
+        tension[rows] = tau
+    sol = _solve_loaded_compiled(designs.replace(tension=tension, displacement=None), fractions_out, loads, opts,
+                                 threads)
+    status = sol.status.copy()
+    status[(status == Status.CONVERGED.value) & ~found] = Status.DISPLACEMENT_NOT_MET.value
+    slack = driven & (tension == 0.0) & (compliance * tension + sol.displacement - wanted > opts.displacement_tol)
     return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
 
 

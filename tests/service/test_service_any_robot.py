@@ -72,9 +72,24 @@ def test_exact_refuses_bad_layouts_by_name(server, change, field, words):
     assert field in answer.text and words in answer.text
 
 
-def test_displacement_with_loads_and_a_bad_termination_are_refused(server):
-    design = robots().take([1]).to_dicts()[0] | {"tip_force": [0.01, 0.0, 0.0]}
-    answer = httpx.post(server.url + "/exact", json={"points": 5, "designs": [design]})
+def test_displacement_in_gravity_is_answered_and_a_bad_termination_refused(server):
+    """A displacement-driven tendon under gravity and a tip force: /exact answers what the Python API
+    does (the loaded displacement solve); the shortcut termination or an unknown one is refused."""
+    from tdcr.robot.designs import ExternalLoads
+
+    loads = {"gravity": [9.81, 0.0, 0.0], "density": 8000.0, "tip_force": [0.01, 0.0, 0.0]}
+    design = robots().take([1]).to_dicts()[0] | loads
+    answer = httpx.post(server.url + "/exact", json={"s": S.tolist(), "designs": [design]}, timeout=60)
+    assert answer.status_code == 200, answer.text
+    (result,) = answer.json()["results"]
+    local = solve(robots().take([1]), S, loads=ExternalLoads(gravity=np.array([loads["gravity"]]),
+                                                             density=np.array([8000.0]),
+                                                             tip_force=np.array([loads["tip_force"]])))
+    assert result["status"] == "converged" and local.converged.all()
+    assert result["displacement"][4] == pytest.approx(1e-3, abs=1e-10) and result["tension"][4] > 0.0
+    np.testing.assert_allclose(result["tension"], local.tension[0], rtol=1e-12, atol=1e-12)
+    assert float(relative_l2(np.array(result["tendons"])[None], local.tendons)[0]) < 1e-12
+    answer = httpx.post(server.url + "/exact", json={"points": 5, "designs": [design], "termination": "rucker_webster"})
     assert answer.status_code == 422 and "designs[0].tendons[4].displacement" in answer.text
     answer = httpx.post(server.url + "/exact", json={"points": 5, "designs": robots().take([0]).to_dicts(),
                                                      "termination": "tip"})

@@ -160,6 +160,64 @@ def test_a_displacement_that_would_need_a_push_leaves_the_tendon_slack():
     assert (sol.displacement[:, 0] > -1e-3).all()  # it shortened on its own less than it was let out
 
 
+#: Gravity across the rod and a small tip force: the shape moves by centimetres.
+def _in_gravity(n: int) -> ExternalLoads:
+    return ExternalLoads(gravity=np.tile([9.81, 0.0, 0.0], (n, 1)), density=np.full(n, 8000.0),
+                         tip_force=np.tile([0.0, 0.02, 0.0], (n, 1)))
+
+
+def test_displacement_in_gravity_round_trips_the_tensions():
+    """tension -> displacement -> tension in gravity and under a tip force (the loaded kernel both
+    ways): the tensions come back as in the unloaded round trip, the displacements to 1e-10 m."""
+    rng = np.random.default_rng(11)
+    d = two_segments(4, pitch=4.0).replace(tension=rng.uniform(0.2, 2.0, (4, 6)))
+    loads = _in_gravity(4)
+    forward = solve(d, FRACTIONS, loads=loads)
+    unloaded = solve(d, FRACTIONS)
+    assert forward.converged.all()
+    assert np.abs(forward.backbone[:, -1] - unloaded.backbone[:, -1]).max() > 5e-3  # the loads matter
+    back = solve(d.replace(displacement=forward.displacement, tension=np.zeros((4, 6))), FRACTIONS, loads=loads)
+    assert back.converged.all() and not back.slack.any()
+    np.testing.assert_allclose(back.tension, d.tension, atol=2e-5)
+    np.testing.assert_allclose(back.displacement, forward.displacement, atol=1e-10)
+    assert relative_l2(back.tendons, forward.tendons).max() < 1e-6
+
+
+def test_a_series_spring_in_gravity_pulls_with_k_times_the_pull_in_it_takes_up():
+    """eq. SE under loads: tau = k max(0, u - zero - d) to 1e-9 N, d the loaded path's shortening;
+    a tendon let out further than its path shortens hangs slack."""
+    d = DesignBatch(E=[30e9] * 2, r=[8e-4] * 2, L=[0.2] * 2, offset=[[0.008] * 4] * 2, pitch=[[0.0] * 4] * 2,
+                    tension=[[0.0, 0.0, 0.0, 0.5]] * 2, displacement=[[4e-3, 1e-3, -2e-2, np.nan]] * 2,
+                    stiffness=[[800.0, 2000.0, 1500.0, 1000.0], [300.0, 5000.0, 1500.0, 1000.0]],
+                    zero=[[1e-4, -2e-4, 0.0, 0.0]] * 2)
+    sol = solve(d, FRACTIONS, loads=_in_gravity(2))
+    assert sol.converged.all()
+    pull_in = d.displacement[:, :3] - d.zero[:, :3]
+    np.testing.assert_allclose(sol.tension[:, :3], d.stiffness[:, :3] * np.maximum(0.0, pull_in
+                                                                                   - sol.displacement[:, :3]),
+                               rtol=0.0, atol=1e-9)
+    assert (sol.tension[:, :2] > 0.1).all() and (sol.tension[:, 2] == 0.0).all() and sol.slack[:, 2].all()
+    np.testing.assert_array_equal(sol.tension[:, 3], 0.5)  # tension-driven: as given
+
+
+def test_vanishing_loads_give_the_unloaded_displacement_answer():
+    """A tip force of 1e-12 N: the loaded displacement solve returns the unloaded one's tensions."""
+    rng = np.random.default_rng(5)
+    d = two_segments(3).replace(displacement=rng.uniform(1e-4, 1e-3, (3, 6)), tension=np.zeros((3, 6)))
+    plain = solve(d, FRACTIONS)
+    tiny = solve(d, FRACTIONS, loads=ExternalLoads(tip_force=np.tile([1e-12, 0.0, 0.0], (3, 1))))
+    assert plain.converged.all() and tiny.converged.all()
+    np.testing.assert_allclose(tiny.tension, plain.tension, atol=1e-7)
+    np.testing.assert_allclose(tiny.backbone, plain.backbone, atol=1e-8)
+
+
+def test_friction_under_loads_is_still_refused_by_name():
+    d = DesignBatch(E=[30e9], r=[8e-4], L=[0.2], offset=[[0.008] * 4], pitch=[[0.0] * 4],
+                    tension=[[1.0, 0.0, 0.0, 0.0]], friction=[[0.1] * 4])
+    with pytest.raises(ValueError, match="friction covers tendon loads"):
+        solve(d, FRACTIONS, loads=_in_gravity(1))
+
+
 def test_high_tension_converges_or_is_flagged():
     from tdcr.robot.design_space import sample_designs
 
