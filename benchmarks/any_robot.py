@@ -7,6 +7,9 @@ the two termination rules, and the public examples -- measured in one run on one
   warm-up): Table I designs with 4 tendons; two segments of 3 tendons (ends L/2 and L); the same
   under ``termination="rucker_webster"`` (it shoots); displacement actuation (the tensions found
   for displacements, then solved).
+* Displacement actuation in gravity and under a tip force (``--loaded`` designs, random loads of
+  the operators' training ranges): the displacements of a loaded tension solve given back, the
+  tensions recovered (max error), the displacements met, and designs/s.
 * tau = 20 N on one tendon of Table I designs: how many converge, and how many are flagged.
 * The step control's own estimate on two-segment helical designs.
 * The termination rules against each other: relative l2 of the tendon positions between
@@ -60,6 +63,36 @@ def throughput(n: int) -> None:
     print("| designs | designs/s | target |\n|---|---:|---|")
     for name, value, target in rows:
         print(f"| {name} | {value:,.0f} | {target} |")
+
+
+def loaded_displacement(n: int) -> None:
+    """Displacement actuation in gravity and under a tip force (the loaded displacement solve): the
+    displacements of a loaded tension solve given back, its tensions recovered, and the rate."""
+    rng = np.random.default_rng(2706)
+    print(f"\n### Displacement actuation in gravity and under a tip force ({n} designs, 42 points, "
+          f"{os.cpu_count()} cores)\n")
+    print("| designs | loaded solves converged | displacements given back: converged | max tension error, N "
+          "| max displacement miss, m | designs/s |\n|---|---:|---:|---:|---:|---:|")
+    for name, designs in (("one segment, 4 tendons (Table I)", design_space.sample_designs(n, seed=2707)),
+                          ("two segments, 3 + 3 tendons",
+                           design_space.sample_segmented_designs(n, seed=2708, segments=2, tendons_per_segment=3))):
+        loads = ExternalLoads(gravity=rng.normal(0.0, 1.0, (n, 3)) * 9.81 / np.sqrt(3.0),
+                              density=rng.uniform(6450.0, 8000.0, n),
+                              tip_force=rng.uniform(-0.02, 0.02, (n, 3)))
+        forward = solve(designs, S42, loads=loads, workers=0)
+        ok = forward.converged
+        driven = designs.take(ok).replace(displacement=forward.displacement[ok],
+                                          tension=np.zeros_like(designs.tension[ok]))
+        best, back = np.inf, None
+        for _ in range(2):
+            start = time.perf_counter()
+            back = solve(driven, S42, loads=loads.take(ok), workers=0)
+            best = min(best, time.perf_counter() - start)
+        good = back.converged
+        print(f"| {name} | {int(ok.sum())} | {int(good.sum())} | "
+              f"{np.abs(back.tension[good] - designs.tension[ok][good]).max():.1e} | "
+              f"{np.abs(back.displacement[good] - forward.displacement[ok][good]).max():.1e} | "
+              f"{ok.sum() / best:,.0f} |")
 
 
 def high_tension(n: int) -> None:
@@ -172,9 +205,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--designs", type=int, default=2000)
     parser.add_argument("--plot", default=None, help="write the termination figure here (PNG)")
+    parser.add_argument("--loaded", type=int, default=200, help="designs of the loaded displacement rows")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     throughput(args.designs)
+    loaded_displacement(args.loaded)
     high_tension(args.designs)
     step_control(500)
     termination(args.plot)
