@@ -121,7 +121,7 @@ module = httpclient if protocol == "http" else grpcclient
 arrays = np.load(path)
 client = module.InferenceServerClient(url)
 inputs = []
-for name in ("design", "layout", "poisson", "s"):
+for name in ("design", "layout", "poisson", "s", *(n for n in ("gravity", "density", "tip_force") if n in arrays)):
     tensor = module.InferInput(name, list(arrays[name].shape), "FP64")
     tensor.set_data_from_numpy(arrays[name])
     inputs.append(tensor)
@@ -142,11 +142,11 @@ print(json.dumps(errors))
 """
 
 
-def _triton(server, tmp_path, protocol: str, d: DesignBatch, layout: np.ndarray):
-    """:data:`TRITON_SCRIPT` in a process of its own on designs ``d`` with the ``layout`` tensor:
-    the finished process and the arrays it received."""
+def _triton(server, tmp_path, protocol: str, d: DesignBatch, layout: np.ndarray, loads: dict | None = None):
+    """:data:`TRITON_SCRIPT` in a process of its own on designs ``d`` with the ``layout`` tensor (and
+    the load tensors ``loads`` by name): the finished process and the arrays it received."""
     path = tmp_path / "robots.npz"
-    np.savez(path, design=d.features(), layout=layout, poisson=d.poissons, s=S)
+    np.savez(path, design=d.features(), layout=layout, poisson=d.poissons, s=S, **(loads or {}))
     script = tmp_path / "client.py"
     script.write_text(TRITON_SCRIPT)
     url = server.url.removeprefix("http://") if protocol == "http" else server.grpc_target
@@ -198,6 +198,24 @@ def test_oip_exact_model_takes_the_real_robot_layout_columns(server, tmp_path, p
     np.testing.assert_allclose(got["exact_tension"], exact.tension, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(got["exact_tension_profile"], exact.tension_profile, rtol=1e-12, atol=1e-12)
     assert not np.allclose(exact.tension_profile[:, 0], exact.tension_profile[:, -1])  # friction acted
+
+
+@pytest.mark.parametrize("protocol", ["http", "grpc"])
+def test_oip_exact_model_takes_displacement_in_gravity(server, tmp_path, protocol):
+    """The OIP ``exact`` model answers a displacement-driven tendon in gravity and under a tip force
+    as the Python API does (the loaded displacement solve)."""
+    from tdcr.robot.designs import ExternalLoads
+
+    d = robots()
+    layout = np.stack([d.angles, d.ends, np.nan_to_num(d.displacement), d.displacement_driven.astype(float)], axis=-1)
+    loads = {"gravity": np.tile([0.0, 9.81, 0.0], (2, 1)), "density": np.full(2, 7000.0),
+             "tip_force": np.tile([0.0, 0.0, -0.01], (2, 1))}
+    run, got = _triton(server, tmp_path, protocol, d, layout, loads)
+    exact = solve(d, S, loads=ExternalLoads(**loads))
+    assert (got["exact_status"] == 0).all() and exact.converged.all()
+    np.testing.assert_allclose(got["exact_tension"], exact.tension, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got["exact_displacement"][1, 4], 1e-3, atol=1e-10)
+    assert got["exact_tension"][1, 4] > 0.0 and not np.allclose(exact.tension, solve(d, S).tension)
 
 
 @pytest.mark.parametrize("protocol", ["http", "grpc"])
