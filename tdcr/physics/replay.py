@@ -4,7 +4,8 @@ Each command row is a design (:meth:`tdcr.robot.real.Robot.designs`): the robot'
 tendon's displacement (or tension) from the row and its motion from the command history (pull or
 release, the sign of its friction, eq. CAP; a hold keeps the last).  Given the motions the rows are
 independent equilibria, so they are solved side by side on every core, each run of rows in order
-with warm starts (``solve(..., sequence=True)``); the measured point of each tip follows from the
+with warm starts (``solve(..., sequence=True)``; in gravity or under a tip wrench, the robot file's
+loads, each row on its own: the loaded displacement solve); the measured point of each tip follows from the
 robot's marker and base pose, seen through its lag in time when the rows' times are given
 (:meth:`tdcr.robot.real.Measurement.points`, eq. LAG).
 """
@@ -65,7 +66,7 @@ def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None
     """
     commands = np.asarray(commands, dtype=np.float64)
     motion = motions(commands, robot.actuation.deadband) if motion is None else motion
-    sol = solve(robot.designs(commands, motion), np.ones(1),
+    sol = solve(robot.designs(commands, motion), np.ones(1), loads=robot.row_loads(len(commands)),
                 options=options, workers=workers, sequence=True)
     position, rotation = sol.backbone[:, -1], sol.rotation[:, -1]
     return Replay(points=robot.measurement.points(position, rotation, time), tip_position=position,

@@ -5,7 +5,8 @@ A robot file (JSON Schema: ``openapi/robot.schema.json``, :data:`ROBOT_SCHEMA`):
 
     {"name": "ftdcr_v4",
      "design": {...a request design (``tdcr.api.schemas.Design``): E, r, L, poisson, and tendons with
-                offset, angle, pitch, end, stiffness, friction, zero...},
+                offset, angle, pitch, end, stiffness, friction, zero...; optionally gravity (m/s^2)
+                with density (kg/m^3), tip_force and tip_moment, in the base frame, for every row},
      "actuation": {"columns": [one CSV column per tendon, in tendon order], "unit": "mm" | "m" | "N",
                    "kind": "displacement" | "tension", "deadband": the least command change that moves
                    a tendon (the actuation's unit; default 0): below it the tendon holds its motion},
@@ -35,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tdcr.robot.designs import DesignBatch
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 from tdcr.robot.fields import MOTIONS
 
 #: Units of the actuation and measurement columns: name -> factor to SI (m or N).
@@ -135,7 +136,9 @@ def settle(points: np.ndarray, time: np.ndarray, time_constant: float) -> np.nda
 class Robot:
     """A real robot (a robot file): its ``design`` (one design, :class:`DesignBatch`), its
     :class:`Actuation` and :class:`Measurement`, the recording's ``time_column`` and optional
-    ``label_column``, and the file's ``extra`` keys (e.g. ``fitted``), kept as they are."""
+    ``label_column``, the file's ``extra`` keys (e.g. ``fitted``), kept as they are, and the
+    design's ``loads`` (gravity and a tip wrench in the base frame, one row; None: none), which
+    every command row carries."""
 
     name: str
     design: DesignBatch
@@ -144,6 +147,11 @@ class Robot:
     time_column: str = "timestamp"
     label_column: str | None = None
     extra: dict = field(default_factory=dict)
+    loads: ExternalLoads | None = None
+
+    def row_loads(self, n_rows: int) -> ExternalLoads | None:
+        """The loads of ``n_rows`` command rows (each the robot's), or None without loads."""
+        return None if self.loads is None else self.loads.take(np.zeros(n_rows, dtype=np.int64))
 
     @property
     def n_tendons(self) -> int:
@@ -152,7 +160,11 @@ class Robot:
     def to_json(self) -> dict:
         """The robot file's JSON (the design as a request gives it)."""
         a, m = self.actuation, self.measurement
-        out = {"name": self.name, "design": self.design.to_dicts()[0],
+        design = self.design.to_dicts()[0]
+        if self.loads is not None:  # as a request design gives them: only those given
+            design |= {name: np.asarray(value)[0].tolist() for name, value in vars(self.loads).items()
+                       if value is not None}
+        out = {"name": self.name, "design": design,
                "actuation": {"columns": list(a.columns), "unit": a.unit, "kind": a.kind,
                              "deadband": a.deadband / a.scale},
                "measurement": {"columns": list(m.columns), "unit": m.unit, "marker": m.marker.tolist(),
@@ -249,7 +261,11 @@ def load_robot(source: str | Path | dict) -> Robot:
         request = validate_json({"designs": [data["design"]], "points": 2}, target="solver")
     except InvalidRequest as exc:
         raise RobotFileError("; ".join(f"design{_where(p.loc[2:])}: {p.msg}" for p in exc.problems)) from None
-    design = request.groups[0].designs
+    design, loads = request.groups[0].designs, request.groups[0].loads
+    if loads is not None:  # absent gravity and density come as NaN from JSON
+        loads = ExternalLoads(**{name: None if value is None or not np.isfinite(value).all() else value
+                                 for name, value in vars(loads).items()})
+        loads = None if loads.is_zero() else loads
     a, m = data["actuation"], data["measurement"]
     kind = _choice(a, "kind", "actuation", KINDS, "displacement")
     unit = _choice(a, "unit", "actuation", KINDS[kind])
@@ -263,7 +279,7 @@ def load_robot(source: str | Path | dict) -> Robot:
     known = {"name", "design", "actuation", "measurement", "time_column", "label_column"}
     return Robot(name=str(data.get("name", "robot")), design=design, actuation=actuation, measurement=measurement,
                  time_column=str(data.get("time_column", "timestamp")), label_column=data.get("label_column"),
-                 extra={k: v for k, v in data.items() if k not in known})
+                 extra={k: v for k, v in data.items() if k not in known}, loads=loads)
 
 
 def _where(loc: tuple) -> str:

@@ -88,6 +88,10 @@ DIFF_STEP = 1e-2
 LOSS, F_SCALE, PRIOR = "linear", 5.0, MappingProxyType({"tendon_angle": 0.2})
 #: The losses :func:`fit` offers (``least_squares``'s names).
 LOSSES = ("linear", "soft_l1")
+#: Why a robot with loads is not fitted (yet): a replay in gravity solves each row on its own.
+LOADS_NOT_FITTED = ("fit takes no loads yet (gravity, tip_force, tip_moment): a replay under loads solves each "
+                    "row's tensions on the loaded solver, about 100x slower than without, too slow for a fit's "
+                    "hundreds of replays; remove them to fit, and give them back to replay")
 #: A row whose answer is not finite scores this error per coordinate, m.
 FAILED_ERROR = 0.05
 
@@ -397,6 +401,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     for name, problem in (("prior", check_prior(prior)), ("f_scale", check_f_scale(f_scale))):
         if problem:
             raise ValueError(f"{name}: {problem}")
+    if robot.loads is not None:
+        raise ValueError(f"design: {LOADS_NOT_FITTED}")
     start = time.perf_counter()
     layout = _layout(robot, groups)
     scale = np.array([_SCALE[g] for g in layout.groups])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tdcr.physics.cosserat import solve
-from tdcr.physics.replay import replay
+from tdcr.physics.replay import REPLAY_OPTIONS, replay
 from tdcr.robot.designs import DesignBatch
 from tdcr.robot.real import RobotFileError, load_robot, motions, read_recording
 
@@ -213,6 +213,60 @@ def test_the_cli_replays_and_exits_2_on_bad_input(tmp_path):
     run = subprocess.run([sys.executable, "-m", "tdcr.cli", "replay", str(EXAMPLE), str(bad), "--out", str(out)],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 2 and "column timestamp, row 2" in run.stderr and "Traceback" not in run.stderr
+
+
+def _in_gravity(data: dict) -> dict:
+    """The example robot file without friction, in gravity along the base's -z (hanging upright)."""
+    data = json.loads(json.dumps(data))
+    for tendon in data["design"]["tendons"]:
+        tendon["friction"] = 0.0
+    data["design"] |= {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
+    return data
+
+
+def test_a_robot_file_with_gravity_replays_every_row_in_gravity(tmp_path):
+    """The design's loads reach every command row: the replay equals each row's loaded solve, differs
+    from the replay without them, and the robot file written keeps them."""
+    from tdcr.robot.designs import ExternalLoads
+
+    data = _in_gravity(json.loads(EXAMPLE.read_text()))
+    robot = load_robot(data)
+    assert robot.loads is not None
+    recording = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
+    commands = recording.commands[:6]
+    answer = replay(robot, commands)
+    rows = robot.designs(commands)
+    loads = ExternalLoads(gravity=np.tile([0.0, 3.0, -9.81], (6, 1)), density=np.full(6, 7800.0))
+    direct = solve(rows, np.ones(1), loads=loads, options=REPLAY_OPTIONS)
+    assert answer.converged.all() and direct.converged.all()
+    np.testing.assert_allclose(answer.tip_position, direct.backbone[:, -1], rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(answer.tension, direct.tension, rtol=0.0, atol=1e-12)
+    unloaded = replay(load_robot(data | {"design": {k: v for k, v in data["design"].items()
+                                                    if k not in ("gravity", "density")}}), commands)
+    assert np.abs(answer.tip_position - unloaded.tip_position).max() > 1e-4  # the weight moved the tips
+    robot.save(tmp_path / "robot.json")
+    again = load_robot(tmp_path / "robot.json")
+    np.testing.assert_array_equal(again.loads.gravity, robot.loads.gravity)
+    np.testing.assert_array_equal(again.loads.density, robot.loads.density)
+
+
+def test_gravity_with_friction_and_a_fit_under_loads_are_refused_by_name(tmp_path):
+    from tdcr.search.fit import fit
+
+    data = _in_gravity(json.loads(EXAMPLE.read_text()))
+    data["design"]["tendons"][2]["friction"] = 0.1
+    with pytest.raises(RobotFileError, match=r"design\.tendons\[2\]\.friction: friction covers tendon loads"):
+        load_robot(data)
+    robot = load_robot(_in_gravity(json.loads(EXAMPLE.read_text())))
+    sample = ROOT / "tests" / "data" / "ftdcr_v4_sample.csv"
+    with pytest.raises(ValueError, match="fit takes no loads yet"):
+        fit(robot, read_recording(sample, robot), groups=("marker",))
+    path = tmp_path / "robot.json"
+    robot.save(path)
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(path), str(sample), "--out",
+                          str(tmp_path / "no.json")], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2 and "design: fit takes no loads yet" in run.stderr and "Traceback" not in run.stderr
+    assert not (tmp_path / "no.json").exists()
 
 
 def test_the_robot_schema_is_committed_and_the_example_follows_it():
