@@ -140,6 +140,13 @@ class ShapeRequest:
         return sum(int(g.designs.displacement_driven.any(axis=1).sum()) for g in self.groups
                    if g.designs.displacement is not None)
 
+    @cached_property
+    def n_loaded_displacement(self) -> int:
+        """Designs with a displacement-driven tendon under loads (the solver finds their tensions on
+        the loaded solver)."""
+        return sum(int((g.designs.displacement_driven.any(axis=1) & _loaded(g.loads)).sum()) for g in self.groups
+                   if g.designs.displacement is not None and g.loads is not None)
+
     @property
     def pose(self) -> bool:
         """Whether backbone or rotation are wanted (tendon models then fit a pose)."""

@@ -27,15 +27,21 @@ class WorkBudget:
 
     def estimate(self, request: ShapeRequest) -> float:
         """Estimated seconds of ``request`` (a design with displacement actuation costs
-        :data:`DISPLACEMENT_COST` tendon-only solves)."""
+        :data:`DISPLACEMENT_COST` tendon-only solves, and under loads :data:`LOADED_DISPLACEMENT_COST`
+        loaded ones)."""
         tendon_only = request.n_designs - request.n_loaded + (DISPLACEMENT_COST - 1) * request.n_displacement
+        loaded = request.n_loaded + (LOADED_DISPLACEMENT_COST - 1) * request.n_loaded_displacement
         points = max(request.fractions.size, DEFAULT_POINTS) / DEFAULT_POINTS
-        return points * (tendon_only * self.seconds_per_design + request.n_loaded * self.seconds_per_loaded_design)
+        return points * (tendon_only * self.seconds_per_design + loaded * self.seconds_per_loaded_design)
 
 
 #: Tendon-only solves that a design with displacement actuation costs (Newton on its tensions,
 #: measured: 22,000 tendon-only designs/s against 2,800 with displacements on 2 cores).
 DISPLACEMENT_COST = 8
+#: Loaded solves that a design with displacement actuation under loads costs (its unloaded tensions,
+#: then Newton with differences on the loaded solver; measured: 53-70 designs/s against about 700
+#: loaded ones on 2 cores, benchmarks/any_robot.py).
+LOADED_DISPLACEMENT_COST = 13
 
 
 class TooMuchWork(ValueError):

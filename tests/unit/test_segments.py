@@ -242,3 +242,21 @@ def test_inverse_kinematics_reaches_a_target_of_a_two_segment_robot():
     assert result["status"] == "reached"
     reached = solve(robot.replace(tension=np.array([result["tensions"]])), np.array([1.0])).backbone[0, 0]
     assert np.linalg.norm(reached - target) < 1e-4 * 0.2
+
+
+def test_admission_counts_a_displacement_in_gravity_as_several_loaded_solves():
+    """The service's work estimate: a loaded design costs one loaded solve, a displacement-driven one
+    under the same loads LOADED_DISPLACEMENT_COST of them (and the displacement's unloaded start)."""
+    from tdcr.api.validation import validate_json
+    from tdcr.physics.exact import DISPLACEMENT_COST, LOADED_DISPLACEMENT_COST, WorkBudget
+
+    tendons = [{"offset": 0.008, "pitch": 0.0, "tension": 1.0}] + [{"offset": 0.008, "pitch": 0.0, "tension": 0.0}] * 3
+    gravity = {"gravity": [0.0, 0.0, -9.81], "density": 7800.0}
+    design = {"E": 3e10, "r": 1e-3, "L": 0.2, "tendons": tendons} | gravity
+    driven = design | {"tendons": [{"offset": 0.008, "pitch": 0.0, "displacement": 1e-3}] + tendons[1:]}
+    budget = WorkBudget(seconds_per_design=1.0, seconds_per_loaded_design=10.0, max_seconds=1e9)
+    one = budget.estimate(validate_json({"points": 42, "designs": [design]}, target="solver"))
+    request = validate_json({"points": 42, "designs": [design, driven]}, target="solver")
+    assert request.n_loaded == 2 and request.n_displacement == 1 and request.n_loaded_displacement == 1
+    assert one == 10.0
+    assert budget.estimate(request) == 10.0 * (1 + LOADED_DISPLACEMENT_COST) + (DISPLACEMENT_COST - 1)
