@@ -9,7 +9,8 @@ the two termination rules, and the public examples -- measured in one run on one
   for displacements, then solved).
 * Displacement actuation in gravity and under a tip force (``--loaded`` designs, random loads of
   the operators' training ranges): the displacements of a loaded tension solve given back, the
-  tensions recovered (max error), the displacements met, and designs/s.
+  tensions recovered (max error), the displacements met, and designs/s; and ``tdcr.replay`` of the
+  shared FTDCR v4 robot (friction 0) in gravity, rows/s.
 * tau = 20 N on one tendon of Table I designs: how many converge, and how many are flagged.
 * The step control's own estimate on two-segment helical designs.
 * The termination rules against each other: relative l2 of the tendon positions between
@@ -93,6 +94,38 @@ def loaded_displacement(n: int) -> None:
               f"{np.abs(back.tension[good] - designs.tension[ok][good]).max():.1e} | "
               f"{np.abs(back.displacement[good] - forward.displacement[ok][good]).max():.1e} | "
               f"{ok.sum() / best:,.0f} |")
+
+
+def replay_in_gravity(n: int) -> None:
+    """The shared FTDCR v4 robot file (9 tendons) without friction and in gravity: ``n`` rows of its
+    val.csv replayed in order (``tdcr.replay``: the loaded displacement solve, Jacobians shared along
+    the sequence), rows/s of the best of 2, against the same rows without gravity."""
+    from pathlib import Path
+
+    from tdcr.physics.replay import replay
+    from tdcr.robot.real import load_robot, read_recording
+
+    root = Path(__file__).resolve().parents[1]
+    data = json.loads((root / "examples" / "ftdcr_v4.json").read_text())
+    for tendon in data["design"]["tendons"]:
+        tendon["friction"] = 0.0
+    plain = load_robot(data)
+    hanging = load_robot(data | {"design": data["design"] | {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}})
+    commands = read_recording(root.parent / "shared" / "real_robot" / "ftdcr_v4" / "val.csv", plain).commands[:n]
+    print(f"\n### Replay in gravity: the FTDCR v4 robot file without friction, {len(commands)} val rows\n")
+    print("| robot | rows converged | rows/s | tip moved by gravity, max mm |\n|---|---:|---:|---:|")
+    tips = {}
+    for name, robot in (("without loads", plain), ("in gravity, g = (0, 3, -9.81) m/s^2, 7,800 kg/m^3", hanging)):
+        replay(robot, commands[:8])  # compiled
+        best = np.inf
+        for _ in range(2):
+            start = time.perf_counter()
+            answer = replay(robot, commands)
+            best = min(best, time.perf_counter() - start)
+        tips[name] = answer.tip_position
+        moved = 1e3 * np.linalg.norm(answer.tip_position - tips["without loads"], axis=1).max()
+        print(f"| {name} | {int(answer.converged.sum())} / {len(commands)} | {len(commands) / best:,.0f} | "
+              f"{moved:.2f} |")
 
 
 def high_tension(n: int) -> None:
@@ -210,6 +243,7 @@ def main() -> None:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     throughput(args.designs)
     loaded_displacement(args.loaded)
+    replay_in_gravity(args.loaded)
     high_tension(args.designs)
     step_control(500)
     termination(args.plot)

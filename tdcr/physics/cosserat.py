@@ -361,7 +361,7 @@ def solve(
         if shortcut or jacobian or opts.linearized:
             raise ValueError("displacement actuation covers consistent termination (no Jacobian, not linearized)")
         if loaded:
-            return _solve_displacement_loaded(designs, fractions_out, loads, opts, workers)
+            return _solve_displacement_loaded(designs, fractions_out, loads, opts, workers, sequence=sequence)
         return _solve_displacement(designs, fractions_out, opts, workers, sequence=sequence)
     if (loaded or shortcut) and opts.linearized:
         raise ValueError("the linearized model covers tendon loads only, with consistent termination")
@@ -599,6 +599,8 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
 LOADED_DISPLACEMENT_NEWTON, LOADED_DISPLACEMENT_HALVINGS = 30, 6
 #: ... the forward difference of the path lengths to a tension: this times max(1 N, the tension), N.
 LOADED_DISPLACEMENT_DIFF = 1e-6
+#: ... with ``sequence``: one design in this many differences its Jacobian at the start (replays).
+LOADED_DISPLACEMENT_SHARED = 8
 #: ... Newton goes on to this fraction of ``displacement_tol`` (an answer within the tolerance counts
 #: as found): a series spring k turns a miss r into a tension error k r, and the iterations that close
 #: the gap are superlinear (at k = 5,000 N/m the tension errors fell from 2e-7 to 3e-13 N).
@@ -606,7 +608,7 @@ LOADED_DISPLACEMENT_MARGIN = 0.01
 
 
 def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
-                               opts: SolverOptions, threads: int) -> RodSolution:
+                               opts: SolverOptions, threads: int, *, sequence: bool = False) -> RodSolution:
     """Displacement actuation in gravity and under tip loads: the tensions ``tau`` (B, N_t) at which
     every displacement-driven tendon i meets min(s_i tau_i, c_i tau_i + d_i(tau) - w_i) = 0 (eq. SE
     with its slack branch: w_i its pull-in minus its drive's ``zero``, c_i its compliance 1 /
@@ -616,7 +618,9 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     (one loaded solve per driven tendon, every design in one batch), then kept up to date by
     Broyden's update along each step, and differenced again where no step along it lowers the miss.
     Each step is capped like the unloaded kernel's (1 N + 50 % of the tension) and halved until the
-    worst miss shrinks.  Without friction (the loaded kernel has none)."""
+    worst miss shrinks.  With ``sequence`` (one robot's commands in order, :func:`tdcr.replay`) only
+    every :data:`LOADED_DISPLACEMENT_SHARED`-th design (a leader) differences its Jacobian at the
+    start, and the designs after it start from its Jacobian.  Without friction (the loaded kernel has none)."""
     driven = designs.displacement_driven
     wanted = np.where(driven, designs.displacement - designs.resolved("zero"), 0.0)  # w (B, N_t), m
     compliance = designs.compliance
@@ -644,6 +648,9 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     miss = miss_at(tension, rows)
     found = np.zeros(b, dtype=bool)
     jacobians, refresh = np.zeros((b, n_t, n_t)), np.ones(b, dtype=bool)  # dr/dtau (m/N), and where to difference
+    shared = sequence and b > 1
+    if shared:  # neighbouring commands are close: one design in LOADED_DISPLACEMENT_SHARED differences
+        refresh[:] = np.arange(b) % LOADED_DISPLACEMENT_SHARED == 0
     for iteration in range(LOADED_DISPLACEMENT_NEWTON + 1):
         err = worst(phi(tension[rows], miss, rows))
         found[rows[err <= opts.displacement_tol]] = True
@@ -656,6 +663,13 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
             if not rows.size:
                 break
         tau = tension[rows]
+        followers = np.empty(0, dtype=np.int64)
+        if shared:  # the first iteration: a design whose leader is solved takes the leader's Jacobian
+            solving = np.zeros(b, dtype=bool)
+            solving[rows] = True
+            leads = rows // LOADED_DISPLACEMENT_SHARED * LOADED_DISPLACEMENT_SHARED
+            refresh[rows[~solving[leads]]] = True  # its leader met the displacements already: its own
+            followers, shared = rows[~refresh[rows]], False
         stale = np.nonzero(refresh[rows])[0]  # forward differences where Broyden's updates lost their way
         if stale.size:
             fresh = np.zeros((stale.size, n_t, n_t))
@@ -665,6 +679,7 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
                 bumped[:, j] += h
                 fresh[:, :, j] = (miss_at(bumped, rows[stale]) - miss[stale]) / h[:, None]
             jacobians[rows[stale]], refresh[rows[stale]] = fresh, False
+        jacobians[followers] = jacobians[followers // LOADED_DISPLACEMENT_SHARED * LOADED_DISPLACEMENT_SHARED]
         jac = jacobians[rows]  # dr/dtau, m/N
         scale[rows] = np.maximum(np.abs(np.nan_to_num(np.diagonal(jac, axis1=1, axis2=2))), 1e-9)
         residual = phi(tau, miss, rows)

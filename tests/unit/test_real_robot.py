@@ -239,8 +239,9 @@ def test_a_robot_file_with_gravity_replays_every_row_in_gravity(tmp_path):
     loads = ExternalLoads(gravity=np.tile([0.0, 3.0, -9.81], (6, 1)), density=np.full(6, 7800.0))
     direct = solve(rows, np.ones(1), loads=loads, options=REPLAY_OPTIONS)
     assert answer.converged.all() and direct.converged.all()
-    np.testing.assert_allclose(answer.tip_position, direct.backbone[:, -1], rtol=0.0, atol=1e-12)
-    np.testing.assert_allclose(answer.tension, direct.tension, rtol=0.0, atol=1e-12)
+    # the replay's Newton starts from shared Jacobians (a sequence): the same equilibria to its tolerances
+    np.testing.assert_allclose(answer.tip_position, direct.backbone[:, -1], rtol=0.0, atol=1e-8)
+    np.testing.assert_allclose(answer.tension, direct.tension, rtol=0.0, atol=1e-6)
     unloaded = replay(load_robot(data | {"design": {k: v for k, v in data["design"].items()
                                                     if k not in ("gravity", "density")}}), commands)
     assert np.abs(answer.tip_position - unloaded.tip_position).max() > 1e-4  # the weight moved the tips
