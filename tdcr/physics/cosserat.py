@@ -658,10 +658,10 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
         rows, miss = rows[~done], miss[~done]
         if iteration == LOADED_DISPLACEMENT_NEWTON:
             break
-        if not rows.size or not np.isfinite(miss).all():  # a failed solve is left to the status
-            rows, miss = rows[np.isfinite(miss).all(axis=1)], miss[np.isfinite(miss).all(axis=1)]
-            if not rows.size:
-                break
+        solved = np.isfinite(miss).all(axis=1)  # a failed solve is left to the status
+        rows, miss = rows[solved], miss[solved]
+        if not rows.size:
+            break
         tau = tension[rows]
         followers = np.empty(0, dtype=np.int64)
         if shared:  # the first iteration: a design whose leader is solved takes the leader's Jacobian

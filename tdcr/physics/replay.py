@@ -4,8 +4,8 @@ Each command row is a design (:meth:`tdcr.robot.real.Robot.designs`): the robot'
 tendon's displacement (or tension) from the row and its motion from the command history (pull or
 release, the sign of its friction, eq. CAP; a hold keeps the last).  Given the motions the rows are
 independent equilibria, so they are solved side by side on every core, each run of rows in order
-with warm starts (``solve(..., sequence=True)``; in gravity or under a tip wrench, the robot file's
-loads, each row on its own: the loaded displacement solve); the measured point of each tip follows from the
+with warm starts (``solve(..., sequence=True)``; under the robot file's loads, the loaded
+displacement solve, its Jacobians shared along the sequence); the measured point of each tip follows from the
 robot's marker and base pose, seen through its lag in time when the rows' times are given
 (:meth:`tdcr.robot.real.Measurement.points`, eq. LAG).
 """

@@ -161,9 +161,11 @@ class Robot:
         """The robot file's JSON (the design as a request gives it)."""
         a, m = self.actuation, self.measurement
         design = self.design.to_dicts()[0]
-        if self.loads is not None:  # as a request design gives them: only those given
-            design |= {name: np.asarray(value)[0].tolist() for name, value in vars(self.loads).items()
-                       if value is not None}
+        if self.loads is not None:  # as a request gives them: the loads that act (a weight with its density)
+            acting = {"gravity": self.loads.gravity, "density": self.loads.gravity,
+                      "tip_force": self.loads.tip_force, "tip_moment": self.loads.tip_moment}
+            design |= {name: np.asarray(getattr(self.loads, name))[0].tolist() for name, value in acting.items()
+                       if value is not None and np.any(value)}
         out = {"name": self.name, "design": design,
                "actuation": {"columns": list(a.columns), "unit": a.unit, "kind": a.kind,
                              "deadband": a.deadband / a.scale},
@@ -261,11 +263,8 @@ def load_robot(source: str | Path | dict) -> Robot:
         request = validate_json({"designs": [data["design"]], "points": 2}, target="solver")
     except InvalidRequest as exc:
         raise RobotFileError("; ".join(f"design{_where(p.loc[2:])}: {p.msg}" for p in exc.problems)) from None
-    design, loads = request.groups[0].designs, request.groups[0].loads
-    if loads is not None:  # absent gravity and density come as NaN from JSON
-        loads = ExternalLoads(**{name: None if value is None or not np.isfinite(value).all() else value
-                                 for name, value in vars(loads).items()})
-        loads = None if loads.is_zero() else loads
+    design, loads = request.groups[0].designs, request.groups[0].loads  # loads: absent ones as zeros
+    loads = None if loads is None or loads.is_zero() else loads
     a, m = data["actuation"], data["measurement"]
     kind = _choice(a, "kind", "actuation", KINDS, "displacement")
     unit = _choice(a, "unit", "actuation", KINDS[kind])

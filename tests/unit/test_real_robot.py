@@ -249,6 +249,12 @@ def test_a_robot_file_with_gravity_replays_every_row_in_gravity(tmp_path):
     again = load_robot(tmp_path / "robot.json")
     np.testing.assert_array_equal(again.loads.gravity, robot.loads.gravity)
     np.testing.assert_array_equal(again.loads.density, robot.loads.density)
+    pushed = data | {"design": {k: v for k, v in data["design"].items() if k not in ("gravity", "density")}
+                     | {"tip_force": [0.0, 0.01, 0.0]}}  # a tip force alone: no weight written
+    load_robot(pushed).save(tmp_path / "pushed.json")
+    written = json.loads((tmp_path / "pushed.json").read_text())["design"]
+    assert written["tip_force"] == [0.0, 0.01, 0.0] and "density" not in written and "gravity" not in written
+    np.testing.assert_array_equal(load_robot(tmp_path / "pushed.json").loads.tip_force, [[0.0, 0.01, 0.0]])
 
 
 def test_gravity_with_friction_and_a_fit_under_loads_are_refused_by_name(tmp_path):
