@@ -50,7 +50,9 @@ class LoadBound:
 #: Admissible external loads (physics solver only).
 LOADS: dict[str, LoadBound] = {
     "gravity": LoadBound("gravity", "m/s^2", (-100.0, 100.0)),  # 10 g per component
-    "density": LoadBound("density", "kg/m^3", (0.0, 25_000.0), exclusive_min=True),  # osmium: 22,600
+    # Effective density: the rod's mass per length (disks and tendons it carries included) over its
+    # cross-section, so above any metal's (osmium: 22,600); opencr-mujoco's FTDCR files use 37,708.
+    "density": LoadBound("density", "kg/m^3", (0.0, 100_000.0), exclusive_min=True),
     "tip_force": LoadBound("tip_force", "N", (-100.0, 100.0)),
     "tip_moment": LoadBound("tip_moment", "N m", (-10.0, 10.0)),
 }

@@ -202,7 +202,7 @@ def test_python_api_refuses_loads_an_operator_cannot_take_and_bad_loads():
     with pytest.raises(ValueError, match=r"designs\[0\]\.gravity: model 'fno' takes no external loads"):
         Surrogate.shipped("fno").predict(designs.features(), GRID, loads=loads)
     bad = ExternalLoads(gravity=loads.gravity, density=-np.ones(3), tip_force=loads.tip_force)
-    with pytest.raises(ValueError, match=r"designs\[0\]\.density: must be in \(0, 25000\] kg/m\^3, got -1"):
+    with pytest.raises(ValueError, match=r"designs\[0\]\.density: must be in \(0, 100000\] kg/m\^3, got -1"):
         Surrogate.shipped(LOADED[0]).predict(designs.features(), GRID, loads=bad)
     # zero loads are no loads, for any operator
     zero = ExternalLoads(tip_force=np.zeros((3, 3)))
