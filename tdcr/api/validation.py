@@ -268,23 +268,19 @@ def _checked(groups: list[DesignGroup], fractions: np.ndarray | None, problems: 
 
 
 def _check_actuation(group: DesignGroup, *, jacobian: bool, termination: str) -> list[Problem]:
-    """Problems of what the solver covers: displacement actuation with consistent termination and no
-    Jacobian (in gravity and under tip loads too), friction under tendon loads so; the Jacobian of
-    segments under consistent termination."""
+    """Problems of what the solver covers: displacement actuation and friction with consistent
+    termination and no Jacobian (in gravity and under tip loads too); the Jacobian of segments under
+    consistent termination."""
     designs, problems = group.designs, []
-    loaded = np.zeros(len(group.rows), dtype=bool) if group.loads is None else _loaded(_zero_absent(group.loads))
-    for where, field, what, instead, under_loads in [
-            (designs.displacement_driven, "displacement", "displacement actuation", "give the tension", True),
-            (designs.capstan != 0.0, "friction", "friction", "the friction", False)]:
-        covers = ("termination 'exact' and no Jacobian" if under_loads
-                  else "tendon loads with termination 'exact' and no Jacobian")
+    for where, field, what, instead in [
+            (designs.displacement_driven, "displacement", "displacement actuation", "give the tension"),
+            (designs.capstan != 0.0, "friction", "friction", "the friction")]:
         for b, i in zip(*np.nonzero(where), strict=True):
-            if (loaded[b] and not under_loads) or jacobian or termination != "exact":
-                why = ("the tip Jacobian" if jacobian else f"termination {termination!r}"
-                       if termination != "exact" else "gravity and tip loads")
+            if jacobian or termination != "exact":
+                why = "the tip Jacobian" if jacobian else f"termination {termination!r}"
                 problems.append(Problem(("designs", int(group.rows[b]), "tendons", int(i), field),
-                                        f"{what} covers {covers}: remove {why}, or {instead}",
-                                        f"{field}_unsupported"))
+                                        f"{what} covers termination 'exact' and no Jacobian: remove {why}, or "
+                                        f"{instead}", f"{field}_unsupported"))
                 break
     if jacobian and termination != "exact":
         problems += [Problem(("designs", int(group.rows[b]), "jacobian"), "the tip Jacobian of segments is the "

@@ -1673,19 +1673,35 @@ def _step_act(edges, k):
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot_pass(m0, n_start, edges, rod, f_g, tols, want_var, shortcut, record, jac_out, lengths):
+def _shoot_pass(m0, n_start, edges, rod, capstan, f_g, tols, want_var, shortcut, record, jac_out, lengths):
     """One RK4 integration of the :class:`Rod` ``rod`` under the weight per length ``f_g`` (3,) N/m
     from M(0) = ``m0`` and N(0) = ``n_start`` over ``edges`` (fractions of
     L; a tendon end is a zero-width step, :func:`_with_ends`), N' = -f_g between ends and, with
     ``shortcut``, the jump of :func:`_jump` at each.  Writes the tip moment's Jacobian
     dM(L)/dM(0) into ``jac_out`` (3, 3) (if ``want_var``) and, ``record`` = (out_step (n,), pos (n, 3),
-    rot (n, 3, 3), x (n, 6)), poses and strains at the edges ``out_step`` (entries < 0 skipped).  With ``lengths`` of
+    rot (n, 3, 3), x (n, 6), gain (n, N_t)), poses, strains and the tendons' friction gains exp(capstan_i
+    theta_i) at the edges ``out_step`` (entries < 0 skipped).
+
+    With friction (``capstan`` (N_t,), eq. CAP) each tendon pulls with tau_i exp(capstan_i theta_i(s))
+    in the local equations (W1, W2); the totals N, M are those of rod and tendons together, which
+    friction (internal to them) leaves alone.  The wrap angle theta_i is summed edge to edge from the
+    angle between the tendon's unit tangents (:func:`_wrap_angle`, the frames' relative rotation
+    R_k^T R_k+1 taken from the state; a tendon end's kink is a zero-width step).  An edge's strains
+    start from the angle predicted by the last step's rate and are solved again until the corrected
+    angle moves the gains by at most ``_WRAP_TOL``; a step's inner stages take the angle on that rate.
+    The variational equations hold the gains fixed (a chord Jacobian for the shooting).  With ``lengths`` of
     size N_t (else empty), the tendons' path lengths int |g_i| ds, m, integrated as one more state by the same RK4
     stages.
     Returns (M(L) (3,), N(L) (3,), converged, residual)."""
     length, tau, end, kse, kbt = rod.length, rod.tension, rod.end, rod.kse, rod.kbt
-    out_step, pos_out, rot_out, x_out = record
+    out_step, pos_out, rot_out, x_out, gain_out = record
     n_t = rod.offset.shape[0]
+    friction = has_friction(capstan)
+    theta, theta_edge, rate = np.zeros(n_t), np.zeros(n_t), np.zeros(n_t)  # rad, rad, rad/m
+    tangents, tangents_prev = np.empty((n_t, 3)), np.empty((n_t, 3))
+    rot_prev, turn = np.eye(3), np.empty((3, 3))
+    tau_stage = np.empty(n_t)
+    h_prev = 0.0
     ws = (np.empty((n_t, 2)), np.empty((n_t, 2)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)),
           np.empty(6), np.empty(6), np.empty(6))
     p, rot, mom = np.zeros(3), np.eye(3), m0.copy()
@@ -1714,7 +1730,35 @@ def _shoot_pass(m0, n_start, edges, rod, f_g, tols, want_var, shortcut, record, 
         s0 = edges[k] * length
         # stage 1 (also the strains at the edge, for the outputs)
         _active_tensions(tau, end, _step_act(edges, k), tau_step)
-        c, r = _stage(s0, (p, rot, mom, dp, drot, dmom), x, want_var, rod, tau_step, force, tols, ws, f[0])
+        if friction:
+            for i in range(n_t):
+                theta_edge[i] = theta[i] + rate[i] * h_prev  # predicted, corrected below
+            for _ in range(_MAX_WRAP_CORRECTIONS + 1):
+                for i in range(n_t):
+                    tau_stage[i] = tau_step[i] * math.exp(capstan[i] * theta_edge[i])
+                c, r = _stage(s0, (p, rot, mom, dp, drot, dmom), x, want_var, rod, tau_stage, force, tols, ws, f[0])
+                _unit_tangents(x, ws[0], ws[1], tangents)
+                if k == 0:
+                    break
+                for a in range(3):  # R_prev^T R: the frames' relative rotation
+                    for b in range(3):
+                        turn[a, b] = (rot_prev[0, a] * rot[0, b] + rot_prev[1, a] * rot[1, b]
+                                      + rot_prev[2, a] * rot[2, b])
+                move = 0.0
+                for i in range(n_t):
+                    new = theta[i] + _wrap_angle(tangents_prev[i], tangents[i], turn)
+                    move = max(move, abs(capstan[i] * (new - theta_edge[i])))
+                    theta_edge[i] = new
+                if move <= _WRAP_TOL:
+                    break
+            for i in range(n_t):
+                if h_prev > 0.0:
+                    rate[i] = (theta_edge[i] - theta[i]) / h_prev
+                theta[i] = theta_edge[i]
+            tangents_prev[:, :] = tangents
+            rot_prev[:, :] = rot
+        else:
+            c, r = _stage(s0, (p, rot, mom, dp, drot, dmom), x, want_var, rod, tau_step, force, tols, ws, f[0])
         ok = ok and c
         if not (r <= worst):
             worst = r
@@ -1725,9 +1769,12 @@ def _shoot_pass(m0, n_start, edges, rod, f_g, tols, want_var, shortcut, record, 
                 pos_out[j, :] = p
                 rot_out[j, :, :] = rot
                 x_out[j, :] = x
+                for i in range(n_t):
+                    gain_out[j, i] = math.exp(capstan[i] * theta[i]) if friction else 1.0
         if k == k_steps:
             break
         h = (edges[k + 1] - edges[k]) * length
+        h_prev = h
         if h == 0.0:  # a tendon end: the totals are continuous, or jump by Rucker & Webster's rule
             if shortcut and k > 0 and edges[k] > edges[k - 1]:
                 _active_tensions(tau, end, edges[k], tau_right)
@@ -1751,8 +1798,11 @@ def _shoot_pass(m0, n_start, edges, rod, f_g, tols, want_var, shortcut, record, 
                         for j2 in range(3):
                             tdrot[q, i, j2] = drot[q, i, j2] + a * prev[4][q, i, j2]
             cur = f[st]
-            c, r = _stage(s0 + a, (tp, trot, tmom, tdp, tdrot, tdmom), xs, want_var, rod, tau_step, f_stage, tols,
-                          ws, cur)
+            if friction:
+                for i in range(n_t):
+                    tau_stage[i] = tau_step[i] * math.exp(capstan[i] * (theta[i] + rate[i] * a))
+            c, r = _stage(s0 + a, (tp, trot, tmom, tdp, tdrot, tdmom), xs, want_var, rod,
+                          tau_stage if friction else tau_step, f_stage, tols, ws, cur)
             ok = ok and c
             if not (r <= worst):
                 worst = r
@@ -1830,7 +1880,7 @@ def _solve_dense(a, b, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot_residual(y, lam, edges, rod, load, tols, record, jac, resid):
+def _shoot_residual(y, lam, edges, rod, capstan, load, tols, record, jac, resid):
     """One pass of :func:`_shoot_pass` (``tols.shortcut``: Rucker & Webster's rule) from the unknowns
     ``y`` = (N(0), M(0)) (6,), the :class:`Load` ``load`` scaled by ``lam``: the tip
     conditions' mismatch into ``resid`` (6,) = (L (N(L) - F_tip), M(L) - M_tip), N m.  Without
@@ -1841,8 +1891,8 @@ def _shoot_residual(y, lam, edges, rod, load, tols, record, jac, resid):
     if not shortcut:
         for i in range(3):
             y[i] = lam * (f_tip[i] + f_g[i] * length)
-    mom, force, ok, worst = _shoot_pass(y[3:], y[:3], edges, rod, fg, tols, not shortcut, shortcut, record, jac,
-                                        np.empty(0))
+    mom, force, ok, worst = _shoot_pass(y[3:], y[:3], edges, rod, capstan, fg, tols, not shortcut, shortcut, record,
+                                        jac, np.empty(0))
     for i in range(3):
         resid[i] = length * (force[i] - lam * f_tip[i])
         resid[3 + i] = mom[i] - lam * m_tip[i]
@@ -1850,7 +1900,7 @@ def _shoot_residual(y, lam, edges, rod, load, tols, record, jac, resid):
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot(y, lam, edges, rod, load, tols, scale, record, info, jac):
+def _shoot(y, lam, edges, rod, capstan, load, tols, scale, record, info, jac):
     """Newton on the tip conditions of the :class:`Rod` ``rod`` for the unknowns ``y`` = (N(0), M(0))
     (in place), the :class:`Load` ``load`` scaled by ``lam``, with backtracking when a step does not reduce the
     mismatch.  Consistent termination: N(0) is known, M(0) alone is shot with the variational Jacobian dM(L)/dM(0);
@@ -1861,7 +1911,7 @@ def _shoot(y, lam, edges, rod, load, tols, scale, record, info, jac):
     largest local residual (N), ``jac`` (3, 3) dM(L)/dM(0) of the last pass.
     Returns (converged, passes, det of the shooting Jacobian)."""
     length, shortcut, shoot_tol, max_shoot = rod.length, tols.shortcut, tols.shooting_tol, tols.max_shooting
-    out_step, pos, rot, x = record
+    out_step, pos, rot, x, gain = record
     first = 0 if shortcut else 3
     step, y_prev = np.zeros(6), y.copy()
     resid, r_q, y_q = np.empty(6), np.empty(6), np.empty(6)
@@ -1870,7 +1920,7 @@ def _shoot(y, lam, edges, rod, load, tols, scale, record, info, jac):
     err_prev, alpha, det = np.inf, 1.0, np.nan
     passes = 0
     for it in range(max_shoot):
-        ok, worst = _shoot_residual(y, lam, edges, rod, load, tols, record, jac, resid)
+        ok, worst = _shoot_residual(y, lam, edges, rod, capstan, load, tols, record, jac, resid)
         passes += 1
         err = 0.0
         for i in range(first, 6):
@@ -1889,7 +1939,7 @@ def _shoot(y, lam, edges, rod, load, tols, scale, record, info, jac):
                 delta = 1e-7 * (scale / length if q < 3 else scale) + 1e-14
                 y_q[:] = y
                 y_q[q] += delta
-                _shoot_residual(y_q, lam, edges, rod, load, tols, (none, pos, rot, x), jac, r_q)
+                _shoot_residual(y_q, lam, edges, rod, capstan, load, tols, (none, pos, rot, x, gain), jac, r_q)
                 for i in range(6):
                     full[i, q] = (r_q[i] - resid[i]) / delta
             passes += 6
@@ -1943,8 +1993,9 @@ def _masked_richardson(fine, coarse, out_step):
 
 
 @njit(cache=True, error_model="numpy")
-def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
-    """One design, the :class:`Rod` ``rod``, under its :class:`Load` ``load``: distributed weight
+def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac):
+    """One design, the :class:`Rod` ``rod`` with its tendons' ``capstan`` (N_t,) (eq. CAP), under its
+    :class:`Load` ``load``: distributed weight
     ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N), ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges
     must end at 1: the tip condition) with every tendon end added (:func:`_with_ends`); with ``tols.shortcut`` Rucker &
     Webster's rule at
@@ -1969,16 +2020,16 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
     # the outputs and, after them, the tendons' ends (their termination points)
     n_ext = n_out + n_t
     steps0 = np.concatenate((out_step0, end_step))
-    pos, rot, xo = np.zeros((n_ext, 3)), np.zeros((n_ext, 3, 3)), np.zeros((n_ext, 6))
+    pos, rot, xo, gain = np.zeros((n_ext, 3)), np.zeros((n_ext, 3, 3)), np.zeros((n_ext, 6)), np.ones((n_ext, n_t))
     rho_out = _output_offsets(fractions_out, length, offset, pitch, angle)
     k0 = edges0.shape[0] - 1
     # first guess: the loads' moment about the base on the tendon-only shape (its tip from one pass)
     tip_step = np.array([k0], dtype=np.int64)
-    tip_p, tip_r, tip_x = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6))
+    tip_p, tip_r, tip_x, tip_g = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6)), np.empty((1, n_t))
     zero3 = np.zeros(3)
     jac = np.empty((3, 3))
-    _shoot_pass(zero3.copy(), zero3.copy(), edges0, rod, zero3, tols, False, False, (tip_step, tip_p, tip_r, tip_x),
-                jac, np.empty(0))
+    _shoot_pass(zero3.copy(), zero3.copy(), edges0, rod, capstan, zero3, tols, False, False,
+                (tip_step, tip_p, tip_r, tip_x, tip_g), jac, np.empty(0))
     tip = tip_p[0]
     y = np.zeros(6)
     half = 0.5 * length
@@ -1990,7 +2041,8 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
     start = y.copy()
     info = np.empty(3)
     none = np.full(n_ext, -1, dtype=np.int64)  # continuation steps record nothing
-    ok, passes, det = _shoot(y, 1.0, edges0, rod, load, tols, scale, (steps0, pos, rot, xo), info, shoot_jac)
+    ok, passes, det = _shoot(y, 1.0, edges0, rod, capstan, load, tols, scale, (steps0, pos, rot, xo, gain), info,
+                             shoot_jac)
     for n_steps in (4, 16):  # load continuation from the tendon-only state when the direct Newton fails
         if ok:
             break
@@ -1998,8 +2050,8 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
         for k in range(1, n_steps + 1):
             for i in range(6):
                 y[i] += start[i] / n_steps  # predictor: the first guess scales with the loads
-            ok, used, det = _shoot(y, k / n_steps, edges0, rod, load, tols, scale,
-                                   (steps0 if k == n_steps else none, pos, rot, xo), info, shoot_jac)
+            ok, used, det = _shoot(y, k / n_steps, edges0, rod, capstan, load, tols, scale,
+                                   (steps0 if k == n_steps else none, pos, rot, xo, gain), info, shoot_jac)
             passes += used
             if not ok:
                 break
@@ -2021,11 +2073,12 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
     c_out = np.empty(n_out, dtype=np.int64)
     for j in range(n_out):
         c_out[j] = to_coarse[out_step0[j]]
-    c_pos, c_rot, c_x, coarse = (np.zeros((n_out, 3)), np.zeros((n_out, 3, 3)), np.zeros((n_out, 6)),
-                                 np.zeros((n_out, n_t, 3)))
+    c_pos, c_rot, c_x, c_gain, coarse = (np.zeros((n_out, 3)), np.zeros((n_out, 3, 3)), np.zeros((n_out, 6)),
+                                         np.ones((n_out, n_t)), np.zeros((n_out, n_t, 3)))
     c_y = y.copy()
     c_info = np.empty(3)
-    c_ok, used, _ = _shoot(c_y, 1.0, c_edges, rod, load, tols, scale, (c_out, c_pos, c_rot, c_x), c_info, jac)
+    c_ok, used, _ = _shoot(c_y, 1.0, c_edges, rod, capstan, load, tols, scale, (c_out, c_pos, c_rot, c_x, c_gain),
+                           c_info, jac)
     passes += used
     _loaded_outputs(c_out, rho_out, c_pos, c_rot, coarse)
     estimate = _masked_richardson(tendons_out, coarse, c_out) if c_ok else np.inf
@@ -2041,7 +2094,8 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
         finer[-1] = edges[-1]
         edges = finer
         steps = np.where(steps >= 0, steps * 2, steps)
-        ok, used, det = _shoot(y, 1.0, edges, rod, load, tols, scale, (steps, pos, rot, xo), info, shoot_jac)
+        ok, used, det = _shoot(y, 1.0, edges, rod, capstan, load, tols, scale, (steps, pos, rot, xo, gain), info,
+                               shoot_jac)
         passes += used
         _loaded_outputs(steps[:n_out], rho_out, pos[:n_out], rot[:n_out], tendons_out)
         mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
@@ -2051,16 +2105,16 @@ def solve_loaded_design(rod, load, grid, tols, view, shoot_jac):
     rot_out[:, :, :] = rot[:n_out]
     x_out[:, :] = xo[:n_out]
     # the path lengths on the final grid: one more pass from the result, recording nothing
-    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, rod, f_g, tols, False, tols.shortcut, (none, pos, rot, xo), jac,
-                displacement_out)
+    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, rod, capstan, f_g, tols, False, tols.shortcut,
+                (none, pos, rot, xo, gain), jac, displacement_out)
     for i in range(n_t):
         displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
     terminal = np.zeros((n_t, 3))
     _end_points(pos[n_out:], rot[n_out:], length, end_step, end, offset, pitch, angle, terminal)
     _clamp_ended(fractions_out, end, terminal, tendons_out)
-    for j in range(n_out):  # without friction each tendon pulls with its tension up to its end
+    for j in range(n_out):  # each tendon pulls with tau_i exp(capstan_i theta_i) up to its end (eq. CAP)
         for i in range(n_t):
-            view.profile[j, i] = tau[i] if end[i] >= fractions_out[j] else 0.0
+            view.profile[j, i] = tau[i] * gain[j, i] if end[i] >= fractions_out[j] else 0.0
     tip_residual = mismatch / length
     residual = worst if worst > tip_residual else tip_residual
     if not _all_finite(residual, tendons_out):
@@ -2082,7 +2136,8 @@ def solve_loaded_batch(rods, loads, grid, tols, out):
     ``loads``, without the GIL (:func:`tdcr.physics.cosserat._run_kernel` runs chunks side by side),
     into the :class:`Shapes` ``out`` (``iterations``: passes)."""
     for b in range(rods.length.shape[0]):
-        res = solve_loaded_design(_rod(rods, b), _load(loads, b), grid, tols, _design_shapes(out, b), out.shoot_jac[b])
+        res = solve_loaded_design(_rod(rods, b), rods.capstan[b], _load(loads, b), grid, tols, _design_shapes(out, b),
+                                  out.shoot_jac[b])
         _store_summary(out, b, res)
         m0 = out.m0[b]
         m0[0], m0[1], m0[2] = res[5], res[6], res[7]

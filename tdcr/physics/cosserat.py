@@ -355,8 +355,8 @@ def solve(
     fractions_out = np.asarray(fractions, dtype=np.float64) if validated else check_inputs(designs, fractions, loads)
     loaded = loads is not None and not loads.is_zero()
     shortcut = termination == "rucker_webster" and bool(designs.segmented.any())
-    if (designs.capstan != 0.0).any() and (loaded or shortcut or jacobian or opts.linearized):
-        raise ValueError("friction covers tendon loads with consistent termination (no Jacobian, not linearized)")
+    if (designs.capstan != 0.0).any() and (shortcut or jacobian or opts.linearized):
+        raise ValueError("friction covers consistent termination (no Jacobian, not linearized)")
     if designs.displacement_driven.any():
         if shortcut or jacobian or opts.linearized:
             raise ValueError("displacement actuation covers consistent termination (no Jacobian, not linearized)")
@@ -620,7 +620,8 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     Each step is capped like the unloaded kernel's (1 N + 50 % of the tension) and halved until the
     worst miss shrinks.  With ``sequence`` (one robot's commands in order, :func:`tdcr.replay`) only
     every :data:`LOADED_DISPLACEMENT_SHARED`-th design (a leader) differences its Jacobian at the
-    start, and the designs after it start from its Jacobian.  Without friction (the loaded kernel has none)."""
+    start, and the designs after it start from its Jacobian.  Friction acts as in the unloaded solve
+    (eq. CAP, each tendon's ``motion``): the loaded kernel carries it."""
     driven = designs.displacement_driven
     wanted = np.where(driven, designs.displacement - designs.resolved("zero"), 0.0)  # w (B, N_t), m
     compliance = designs.compliance

@@ -14,7 +14,7 @@ import pytest
 from tdcr import design_space
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
-from tdcr.robot.designs import DesignBatch
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
 S = np.linspace(0.0, 1.0, 11)
@@ -75,7 +75,6 @@ def test_exact_refuses_bad_layouts_by_name(server, change, field, words):
 def test_displacement_in_gravity_is_answered_and_a_bad_termination_refused(server):
     """A displacement-driven tendon under gravity and a tip force: /exact answers what the Python API
     does (the loaded displacement solve); the shortcut termination or an unknown one is refused."""
-    from tdcr.robot.designs import ExternalLoads
 
     loads = {"gravity": [9.81, 0.0, 0.0], "density": 8000.0, "tip_force": [0.01, 0.0, 0.0]}
     design = robots().take([1]).to_dicts()[0] | loads
@@ -175,14 +174,24 @@ def test_exact_json_takes_a_real_robot_file_design_and_answers_tension_profiles(
     answer = httpx.post(server.url + "/exact", json={"points": 11, "designs": [design]})
     assert answer.status_code == 200, answer.text
     (result,) = answer.json()["results"]
-    local = solve(robot.design.replace(displacement=np.where(np.arange(9) == 0, 0.002, robot.design.displacement),
-                                       friction=np.where(np.arange(9) == 0, 0.1, 0.0)[None],
-                                       motion=np.where(np.arange(9) == 0, -1.0, 1.0)[None]), np.linspace(0, 1, 11))
+    local_design = robot.design.replace(displacement=np.where(np.arange(9) == 0, 0.002, robot.design.displacement),
+                                        friction=np.where(np.arange(9) == 0, 0.1, 0.0)[None],
+                                        motion=np.where(np.arange(9) == 0, -1.0, 1.0)[None])
+    local = solve(local_design, np.linspace(0, 1, 11))
     assert result["status"] == "converged"
     np.testing.assert_allclose(result["tension_profile"], local.tension_profile[0], rtol=1e-12, atol=1e-12)
     assert result["tension_profile"][-1][0] == 0.0 < result["tension_profile"][0][0]  # ends at 0.06 m
-    design["tip_force"] = [0.01, 0.0, 0.0]  # friction covers tendon loads only: refused by name
+    design["tip_force"] = [0.01, 0.0, 0.0]  # friction under a tip load: the loaded kernel carries it
     answer = httpx.post(server.url + "/exact", json={"points": 11, "designs": [design]})
+    assert answer.status_code == 200, answer.text
+    (pushed,) = answer.json()["results"]
+    local = solve(local_design, np.linspace(0, 1, 11), loads=ExternalLoads(tip_force=np.array([[0.01, 0.0, 0.0]])))
+    assert pushed["status"] == "converged" and local.converged.all()
+    np.testing.assert_allclose(pushed["tension"], local.tension[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(pushed["tension_profile"], local.tension_profile[0], rtol=1e-12, atol=1e-12)
+    assert np.abs(np.array(pushed["backbone"]) - result["backbone"]).max() > 1e-4  # the load acted
+    shortcut = {"points": 11, "designs": [design], "termination": "rucker_webster"}
+    answer = httpx.post(server.url + "/exact", json=shortcut)  # friction covers consistent termination only
     assert answer.status_code == 422 and "designs[0].tendons[0].friction" in answer.text
 
 
@@ -204,7 +213,6 @@ def test_oip_exact_model_takes_the_real_robot_layout_columns(server, tmp_path, p
 def test_oip_exact_model_takes_displacement_in_gravity(server, tmp_path, protocol):
     """The OIP ``exact`` model answers a displacement-driven tendon in gravity and under a tip force
     as the Python API does (the loaded displacement solve)."""
-    from tdcr.robot.designs import ExternalLoads
 
     d = robots()
     layout = np.stack([d.angles, d.ends, np.nan_to_num(d.displacement), d.displacement_driven.astype(float)], axis=-1)

@@ -63,9 +63,10 @@ def _end_beyond_the_design(body) -> bool:
 
 
 def _actuation_beyond_tendon_loads(body) -> bool:
-    """Whether a body's design has a tendon with friction or a displacement together with loads, a
-    Jacobian or the shortcut termination (the solver covers those under tendon loads only: a rule
-    across fields, as above)."""
+    """Whether a body's design has a tendon with friction together with a Jacobian or the shortcut
+    termination, or a displacement together with those or with loads (the solver refuses the first
+    two, and a displaced design under loads costs 13 loaded solves in admission: a rule across
+    fields, as above)."""
     if not isinstance(body, dict):
         return False
     designs = body.get("designs") or ([body["design"]] if isinstance(body.get("design"), dict) else [])
@@ -74,9 +75,10 @@ def _actuation_beyond_tendon_loads(body) -> bool:
         if not isinstance(d, dict):
             continue
         tendons = [t for t in d.get("tendons") or [] if isinstance(t, dict)]
-        special = any((t.get("friction") or 0) > 0 or t.get("displacement") is not None for t in tendons)
+        friction = any((t.get("friction") or 0) > 0 for t in tendons)
+        displaced = any(t.get("displacement") is not None for t in tendons)
         loaded = any(d.get(k) is not None for k in ("gravity", "tip_force", "tip_moment"))
-        if special and (loaded or other):
+        if (friction and other) or (displaced and (loaded or other)):
             return True
     return False
 

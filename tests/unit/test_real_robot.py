@@ -6,14 +6,16 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tdcr.physics.cosserat import solve
+from tdcr.metrics import relative_l2
+from tdcr.physics.cosserat import SolverOptions, solve
 from tdcr.physics.replay import REPLAY_OPTIONS, replay
-from tdcr.robot.designs import DesignBatch
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 from tdcr.robot.real import RobotFileError, load_robot, motions, read_recording
 
 pytestmark = pytest.mark.unit
@@ -41,14 +43,42 @@ def test_friction_zero_and_rigid_tendons_give_todays_answers():
     np.testing.assert_array_equal(base.tension_profile[:, :, 0], 3.0)  # constant without friction
 
 
+#: Gravity across the rod and a tip force (the loaded kernel), for the tests of friction under loads.
+LOADS = ExternalLoads(gravity=np.array([[0.0, 9.81, -9.81]]), density=np.array([7800.0]),
+                      tip_force=np.array([[0.0, 0.0, -0.05]]))
+
+
+def test_friction_zero_under_loads_gives_todays_loaded_answers():
+    """In gravity and under a tip force, friction 0 (either motion) is the loaded kernel's answer to
+    1e-12; and under a vanishing load the loaded kernel with friction gives the tendon-only
+    kernel's friction answer (two integrators: the loaded one's RK4 steps against the node chain) to
+    the solvers' tolerances."""
+    designs = _design(2, tension=(3.0, 0.5, 0.0, 1.0), pitch=np.array([[0, 5, -5, 2]] * 2, float))
+    loads = LOADS.take(np.zeros(2, dtype=np.int64))
+    base = solve(designs, FRACTIONS, loads=loads)
+    same = solve(designs.replace(friction=np.zeros((2, 4)), motion=np.array([[1, -1, 1, -1]] * 2, float)), FRACTIONS,
+                 loads=loads)
+    assert base.converged.all() and same.converged.all()
+    np.testing.assert_allclose(same.tendons, base.tendons, rtol=0, atol=1e-12)
+    rubbing = designs.replace(friction=np.full((2, 4), 0.3), motion=np.array([[1.0] * 4, [-1.0] * 4]))
+    vanishing = ExternalLoads(tip_force=np.full((2, 3), 1e-12))
+    loaded, free = solve(rubbing, FRACTIONS, loads=vanishing), solve(rubbing, FRACTIONS)
+    assert loaded.converged.all() and free.converged.all()
+    tolerance = 2 * SolverOptions().step_tol  # each within its step control's relative l2 error
+    assert (relative_l2(loaded.tendons, free.tendons) < tolerance).all()
+    assert (relative_l2(loaded.tension_profile, free.tension_profile) < tolerance).all()
+    assert np.abs(free.tension_profile[:, -1, 0] - 3.0).min() > 0.1  # friction acted
+
+
+@pytest.mark.parametrize("loads", [None, LOADS], ids=["tendon loads", "gravity and a tip force"])
 @pytest.mark.parametrize("motion", [1.0, -1.0], ids=["pull", "release"])
-def test_the_tension_profile_is_the_capstan_law_of_the_answers_own_geometry(motion):
+def test_the_tension_profile_is_the_capstan_law_of_the_answers_own_geometry(motion, loads):
     """tau(s) = tau(0) exp(-/+ mu int |dt/ds| ds), the wrap angle measured on the answer's own tendon
     path (its tangents by finite differences of the returned positions, a fine output grid)."""
     mu = 0.3
     fractions = np.linspace(0.0, 1.0, 801)
     sol = solve(_design(friction=np.full((1, 4), mu), motion=np.full((1, 4), motion),
-                        pitch=np.full((1, 4), 4.0)), fractions)
+                        pitch=np.full((1, 4), 4.0)), fractions, loads=loads)
     assert sol.converged.all()
     path = sol.tendons[0, :, 0]  # (n, 3) the pulled tendon, helical
     tangent = np.diff(path, axis=0)
@@ -69,16 +99,25 @@ def test_a_planar_bend_wraps_as_far_as_the_tip_turns():
     np.testing.assert_allclose(wrap, abs(tip_angle), rtol=1e-7)
 
 
-def test_friction_is_internal_the_rod_and_tendons_carry_no_net_load():
-    """Friction only moves load between tendon and rod: without external loads the total force
-    across every cut, rod plus tendons (tau_i(s) t_i, from the answer's profile and tendon path),
-    is zero to the solver's tolerance."""
-    sol = solve(_design(friction=np.full((1, 4), 0.4), tension=(3.0, 1.0, 0.0, 0.0)), np.linspace(0, 1, 401))
+@pytest.mark.parametrize("loads", [None, LOADS], ids=["tendon loads", "gravity and a tip force"])
+def test_friction_is_internal_the_rod_and_tendons_carry_only_the_external_load(loads):
+    """Friction only moves load between tendon and rod: the total force across every cut, rod plus
+    tendons (tau_i(s) t_i, from the answer's profile and tendon path), is the external load beyond
+    the cut, F_tip + rho A g (L - s) (zero under tendon loads alone), to the solver's tolerance."""
+    fractions = np.linspace(0, 1, 401)
+    design = _design(friction=np.full((1, 4), 0.4), tension=(3.0, 1.0, 0.0, 0.0))
+    sol = solve(design, fractions, loads=loads)
+    assert sol.converged.all()
     path = sol.tendons[0]  # (n, N_t, 3)
     t = np.gradient(path, axis=0)
     t /= np.linalg.norm(t, axis=2, keepdims=True)
     total = sol.force[0] + np.einsum("ni,nij->nj", sol.tension_profile[0], t)
-    assert np.abs(total[5:-5]).max() < 1e-4 * 4.0  # central differences of the path: O(h^2)
+    beyond = np.zeros((len(fractions), 3))
+    if loads is not None:
+        weight = loads.density[0] * np.pi * design.r[0] ** 2 * loads.gravity[0]  # N/m
+        beyond = loads.tip_force[0] + np.outer(design.L[0] * (1.0 - fractions), weight)
+        assert np.abs(beyond).max() > 0.05  # the loads are not small beside the 1e-4 tolerance
+    assert np.abs((total - beyond)[5:-5]).max() < 1e-4 * 4.0  # central differences of the path: O(h^2)
 
 
 def test_a_series_spring_pulls_with_k_times_the_pull_in_it_takes_up():
@@ -269,13 +308,32 @@ def test_an_effective_density_with_disks_is_taken_and_the_bound_is_named():
         load_robot(data)
 
 
-def test_gravity_with_friction_and_a_fit_under_loads_are_refused_by_name(tmp_path):
+def test_a_fitted_robot_with_friction_replays_in_gravity():
+    """The shipped fitted robot (friction on its tendons) in gravity: every row converges, each row's
+    answer is its own loaded solve with friction, and friction still moves the tips there."""
+    from tdcr.robot.designs import ExternalLoads
+
+    fitted = json.loads((ROOT / "examples" / "ftdcr_v4_fitted.json").read_text())
+    fitted["design"] |= {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
+    robot = load_robot(fitted)
+    assert robot.loads is not None and (robot.design.resolved("friction") > 0).any()
+    recording = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
+    commands, time = recording.commands[:6], recording.time[:6]
+    answer = replay(robot, commands, time=time)
+    rows = robot.designs(commands)
+    loads = ExternalLoads(gravity=np.tile([0.0, 3.0, -9.81], (6, 1)), density=np.full(6, 7800.0))
+    direct = solve(rows, np.ones(1), loads=loads, options=REPLAY_OPTIONS)
+    assert answer.converged.all() and direct.converged.all()
+    np.testing.assert_allclose(answer.tip_position, direct.backbone[:, -1], rtol=0.0, atol=1e-8)
+    np.testing.assert_allclose(answer.tension, direct.tension, rtol=0.0, atol=1e-6)
+    frictionless = replay(replace(robot, design=robot.design.replace(friction=np.zeros_like(robot.design.offset))),
+                          commands, time=time)
+    assert np.abs(answer.tip_position - frictionless.tip_position).max() > 2e-5  # 90 um on these rows
+
+
+def test_a_fit_under_loads_is_refused_by_name(tmp_path):
     from tdcr.search.fit import fit
 
-    data = _in_gravity(json.loads(EXAMPLE.read_text()))
-    data["design"]["tendons"][2]["friction"] = 0.1
-    with pytest.raises(RobotFileError, match=r"design\.tendons\[2\]\.friction: friction covers tendon loads"):
-        load_robot(data)
     robot = load_robot(_in_gravity(json.loads(EXAMPLE.read_text())))
     sample = ROOT / "tests" / "data" / "ftdcr_v4_sample.csv"
     with pytest.raises(ValueError, match="fit takes no loads yet"):
@@ -303,7 +361,6 @@ def test_the_robot_schema_is_committed_and_the_example_follows_it():
 def test_fit_recovers_a_known_robot_from_its_own_replay():
     """A recording made by the solver from a known robot (with friction): the fit, started from
     perturbed values, finds E, the drive zeros and the base position again and replays it to ~0 error."""
-    from dataclasses import replace
 
     from tdcr.robot.real import Recording
     from tdcr.search.fit import fit
@@ -336,7 +393,6 @@ def test_the_lag_is_the_step_response_of_a_first_order_system():
     measured point at row k >= 1 is b + (a - b) exp(-(t_k - t_0) / T) for uneven sample times; T = 0
     shows the equilibria as they are; a row that is not finite passes through and the next starts
     afresh; the robot's measured points with the rows' times are the lag of its static points."""
-    from dataclasses import replace
 
     from tdcr.robot.real import settle
 
@@ -374,7 +430,6 @@ def test_register_finds_a_base_turned_by_half_a_turn_and_the_fit_starts_there():
     """The rigid registration (Kabsch) of a replay to points measured in a frame turned by about
     half a turn recovers that base pose exactly (same physics): least squares from the file's pose
     could not; the fit then starts from it and ends at ~0 error."""
-    from dataclasses import replace
 
     from tdcr.robot.real import Recording
     from tdcr.search.fit import fit, register
@@ -398,7 +453,6 @@ def test_a_parameter_the_data_do_not_move_is_reported_as_not_identified():
     """A lag of 2 ms under samples 0.5-11 s apart moves no measured point (exp(-250) = 0): its
     standard error is unbounded (inf, null in the report), not the pseudo-inverse's 0, while the
     marker beside it is identified."""
-    from dataclasses import replace
 
     from tdcr.robot.real import Recording
     from tdcr.search.fit import fit
@@ -437,7 +491,6 @@ def test_fit_recovers_each_tendons_offset_and_angle(group):
     by the solver with every tendon's offset (4.1-4.9 mm) or angle (+-0.1 rad) its own, fitted from
     the robot file's values with ``tendon_offset`` or ``tendon_angle`` (without the default prior),
     gives each taut tendon's value again and replays it to ~0 error."""
-    from dataclasses import replace
 
     from tdcr.search.fit import fit
 
@@ -459,7 +512,6 @@ def test_the_tendons_common_turn_is_the_bases_and_their_differences_are_identifi
     fitted with ``base_rotation``, the reported tendon turns have zero mean, the base rotation holds
     the common part, and each turn's standard error is that of the differences (small), not of the
     ridge the pair would leave."""
-    from dataclasses import replace
 
     from tdcr.search.fit import fit
 
@@ -482,7 +534,6 @@ def test_a_prior_on_one_group_holds_that_group_and_frees_the_others():
     """``fit``'s ``prior`` per group: a narrow prior on ``tendon_angle`` holds the turns at the
     file's angles though the recording was made with others, while ``marker``, without a prior,
     still moves to the true marker; a prior on no group, or a width <= 0, is refused."""
-    from dataclasses import replace
 
     from tdcr.search.fit import fit
 

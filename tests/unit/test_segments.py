@@ -211,11 +211,14 @@ def test_vanishing_loads_give_the_unloaded_displacement_answer():
     np.testing.assert_allclose(tiny.backbone, plain.backbone, atol=1e-8)
 
 
-def test_friction_under_loads_is_still_refused_by_name():
+def test_friction_with_the_shortcut_termination_or_a_jacobian_is_refused_by_name():
     d = DesignBatch(E=[30e9], r=[8e-4], L=[0.2], offset=[[0.008] * 4], pitch=[[0.0] * 4],
                     tension=[[1.0, 0.0, 0.0, 0.0]], friction=[[0.1] * 4])
-    with pytest.raises(ValueError, match="friction covers tendon loads"):
-        solve(d, FRACTIONS, loads=_in_gravity(1))
+    assert solve(d, FRACTIONS, loads=_in_gravity(1)).converged.all()  # in gravity: the loaded kernel carries it
+    with pytest.raises(ValueError, match="friction covers consistent termination"):
+        solve(d.replace(end=np.array([[0.1, 0.2, 0.2, 0.2]])), FRACTIONS, termination="rucker_webster")
+    with pytest.raises(ValueError, match="friction covers consistent termination"):
+        solve(d, FRACTIONS, jacobian=True)
 
 
 def test_high_tension_converges_or_is_flagged():
