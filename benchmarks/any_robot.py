@@ -10,7 +10,7 @@ the two termination rules, and the public examples -- measured in one run on one
 * Displacement actuation in gravity and under a tip force (``--loaded`` designs, random loads of
   the operators' training ranges): the displacements of a loaded tension solve given back, the
   tensions recovered (max error), the displacements met, and designs/s; and ``tdcr.replay`` of the
-  shared FTDCR v4 robot (friction 0) in gravity, rows/s.
+  shared FTDCR v4 robot (friction 0, and fitted with friction) in gravity, rows/s.
 * tau = 20 N on one tendon of Table I designs: how many converge, and how many are flagged.
 * The step control's own estimate on two-segment helical designs.
 * The termination rules against each other: relative l2 of the tendon positions between
@@ -97,9 +97,10 @@ def loaded_displacement(n: int) -> None:
 
 
 def replay_in_gravity(n: int) -> None:
-    """The shared FTDCR v4 robot file (9 tendons) without friction and in gravity: ``n`` rows of its
-    val.csv replayed in order (``tdcr.replay``: the loaded displacement solve, Jacobians shared along
-    the sequence), rows/s of the best of 2, against the same rows without gravity."""
+    """The shared FTDCR v4 robot file (9 tendons) without friction, and the fitted one
+    (``examples/ftdcr_v4_fitted.json``, with friction), each without loads and in gravity: ``n`` rows
+    of its val.csv replayed in order (``tdcr.replay``: the loaded displacement solve, Jacobians shared
+    along the sequence), rows/s of the best of 2, and how far gravity moved the tips."""
     from pathlib import Path
 
     from tdcr.physics.replay import replay
@@ -109,23 +110,28 @@ def replay_in_gravity(n: int) -> None:
     data = json.loads((root / "examples" / "ftdcr_v4.json").read_text())
     for tendon in data["design"]["tendons"]:
         tendon["friction"] = 0.0
-    plain = load_robot(data)
-    hanging = load_robot(data | {"design": data["design"] | {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}})
-    commands = read_recording(root.parent / "shared" / "real_robot" / "ftdcr_v4" / "val.csv", plain).commands[:n]
-    print(f"\n### Replay in gravity: the FTDCR v4 robot file without friction, {len(commands)} val rows\n")
-    print("| robot | rows converged | rows/s | tip moved by gravity, max mm |\n|---|---:|---:|---:|")
-    tips = {}
-    for name, robot in (("without loads", plain), ("in gravity, g = (0, 3, -9.81) m/s^2, 7,800 kg/m^3", hanging)):
-        replay(robot, commands[:8])  # compiled
-        best = np.inf
-        for _ in range(2):
-            start = time.perf_counter()
-            answer = replay(robot, commands)
-            best = min(best, time.perf_counter() - start)
-        tips[name] = answer.tip_position
-        moved = 1e3 * np.linalg.norm(answer.tip_position - tips["without loads"], axis=1).max()
-        print(f"| {name} | {int(answer.converged.sum())} / {len(commands)} | {len(commands) / best:,.0f} | "
-              f"{moved:.2f} |")
+    fitted = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())
+    weight = {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
+    robots = {"the robot file, friction 0": data, "the fitted robot, with friction": fitted}
+    val = root.parent / "shared" / "real_robot" / "ftdcr_v4" / "val.csv"
+    print(f"\n### Replay in gravity: the FTDCR v4 robot files, {n} val rows, g = (0, 3, -9.81) m/s^2, 7,800 kg/m^3\n")
+    print("| robot | loads | rows converged | rows/s | tip moved by gravity, max mm |\n|---|---|---:|---:|---:|")
+    for name, robot_data in robots.items():
+        tips = None
+        for loads, robot in (("none", load_robot(robot_data)),
+                             ("gravity", load_robot(robot_data | {"design": robot_data["design"] | weight}))):
+            recording = read_recording(val, robot)
+            commands, times = recording.commands[:n], recording.time[:n]
+            replay(robot, commands[:8])  # compiled
+            best = np.inf
+            for _ in range(2):
+                start = time.perf_counter()
+                answer = replay(robot, commands, time=times)
+                best = min(best, time.perf_counter() - start)
+            tips = answer.tip_position if tips is None else tips
+            moved = 1e3 * np.linalg.norm(answer.tip_position - tips, axis=1).max()
+            print(f"| {name} | {loads} | {int(answer.converged.sum())} / {len(commands)} | "
+                  f"{len(commands) / best:,.0f} | {moved:.2f} |")
 
 
 def high_tension(n: int) -> None:
