@@ -1673,6 +1673,58 @@ def _step_act(edges, k):
 
 
 @njit(cache=True, error_model="numpy")
+def _gained(tau, capstan, wrap, ahead, out):
+    """``out`` (N_t,) = ``tau`` (N_t,) exp(capstan_i (theta_i + rate_i ahead)): the tensions ``ahead``
+    m past the last edge of :func:`_shoot_pass` (eq. CAP; ``wrap`` as :func:`_edge_with_friction`'s)."""
+    for i in range(tau.shape[0]):
+        out[i] = tau[i] * math.exp(capstan[i] * (wrap[0, i] + wrap[2, i] * ahead))
+
+
+@njit(cache=True, error_model="numpy")
+def _edge_with_friction(first, s0, state, x, want_var, rod, capstan, tau_step, force, tols, ws, deriv, wrap, frames,
+                        rot_prev, turn, h_prev):
+    """:func:`_stage` at an edge of :func:`_shoot_pass` with friction (eq. CAP): into ``tau_step``
+    (N_t,) the tensions where they act (``wrap[3]``) times exp(capstan_i theta_i), theta_i predicted
+    from the last step's rate,
+    then corrected by the angle the tendons' unit tangents turned since the last edge (the frames'
+    relative rotation R_prev^T R) and solved again until the gains move by at most ``_WRAP_TOL``.
+    Updates ``wrap`` (4, N_t) = (theta, its value at this edge, its rate rad/m; the tensions: read),
+    ``frames`` (2, N_t, 3) = (tangents here, at the last edge) and ``rot_prev`` (3, 3).
+    Returns (converged, residual) of the last :func:`_stage`."""
+    theta, theta_edge, rate, tau_base = wrap[0], wrap[1], wrap[2], wrap[3]
+    tangents, tangents_prev = frames[0], frames[1]
+    rot = state[1]
+    n_t = capstan.shape[0]
+    for i in range(n_t):
+        theta_edge[i] = theta[i] + rate[i] * h_prev  # predicted, corrected below
+    c, r = False, np.inf
+    for _ in range(_MAX_WRAP_CORRECTIONS + 1):
+        for i in range(n_t):
+            tau_step[i] = tau_base[i] * math.exp(capstan[i] * theta_edge[i])
+        c, r = _stage(s0, state, x, want_var, rod, tau_step, force, tols, ws, deriv)
+        _unit_tangents(x, ws[0], ws[1], tangents)
+        if first:
+            break
+        for a in range(3):  # R_prev^T R: the frames' relative rotation
+            for b in range(3):
+                turn[a, b] = rot_prev[0, a] * rot[0, b] + rot_prev[1, a] * rot[1, b] + rot_prev[2, a] * rot[2, b]
+        move = 0.0
+        for i in range(n_t):
+            new = theta[i] + _wrap_angle(tangents_prev[i], tangents[i], turn)
+            move = max(move, abs(capstan[i] * (new - theta_edge[i])))
+            theta_edge[i] = new
+        if move <= _WRAP_TOL:
+            break
+    for i in range(n_t):
+        if h_prev > 0.0:
+            rate[i] = (theta_edge[i] - theta[i]) / h_prev
+        theta[i] = theta_edge[i]
+    tangents_prev[:, :] = tangents
+    rot_prev[:, :] = rot
+    return c, r
+
+
+@njit(cache=True, error_model="numpy")
 def _shoot_pass(m0, n_start, edges, rod, capstan, f_g, tols, want_var, shortcut, record, jac_out, lengths):
     """One RK4 integration of the :class:`Rod` ``rod`` under the weight per length ``f_g`` (3,) N/m
     from M(0) = ``m0`` and N(0) = ``n_start`` over ``edges`` (fractions of
@@ -1697,10 +1749,11 @@ def _shoot_pass(m0, n_start, edges, rod, capstan, f_g, tols, want_var, shortcut,
     out_step, pos_out, rot_out, x_out, gain_out = record
     n_t = rod.offset.shape[0]
     friction = has_friction(capstan)
-    theta, theta_edge, rate = np.zeros(n_t), np.zeros(n_t), np.zeros(n_t)  # rad, rad, rad/m
-    tangents, tangents_prev = np.empty((n_t, 3)), np.empty((n_t, 3))
+    n_f = n_t if friction else 0  # the friction state's size (none without friction)
+    wrap = np.zeros((4, n_f))  # theta (rad), its prediction at the edge, its rate (rad/m), the tensions
+    tau_base = wrap[3]  # the tensions where they act, before the gains
+    frames = np.zeros((2, n_f, 3))  # the tendons' unit tangents at this edge and the last
     rot_prev, turn = np.eye(3), np.empty((3, 3))
-    tau_stage = np.empty(n_t)
     h_prev = 0.0
     ws = (np.empty((n_t, 2)), np.empty((n_t, 2)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)),
           np.empty(6), np.empty(6), np.empty(6))
@@ -1729,35 +1782,12 @@ def _shoot_pass(m0, n_start, edges, rod, capstan, f_g, tols, want_var, shortcut,
     for k in range(k_steps + 1):
         s0 = edges[k] * length
         # stage 1 (also the strains at the edge, for the outputs)
-        _active_tensions(tau, end, _step_act(edges, k), tau_step)
         if friction:
-            for i in range(n_t):
-                theta_edge[i] = theta[i] + rate[i] * h_prev  # predicted, corrected below
-            for _ in range(_MAX_WRAP_CORRECTIONS + 1):
-                for i in range(n_t):
-                    tau_stage[i] = tau_step[i] * math.exp(capstan[i] * theta_edge[i])
-                c, r = _stage(s0, (p, rot, mom, dp, drot, dmom), x, want_var, rod, tau_stage, force, tols, ws, f[0])
-                _unit_tangents(x, ws[0], ws[1], tangents)
-                if k == 0:
-                    break
-                for a in range(3):  # R_prev^T R: the frames' relative rotation
-                    for b in range(3):
-                        turn[a, b] = (rot_prev[0, a] * rot[0, b] + rot_prev[1, a] * rot[1, b]
-                                      + rot_prev[2, a] * rot[2, b])
-                move = 0.0
-                for i in range(n_t):
-                    new = theta[i] + _wrap_angle(tangents_prev[i], tangents[i], turn)
-                    move = max(move, abs(capstan[i] * (new - theta_edge[i])))
-                    theta_edge[i] = new
-                if move <= _WRAP_TOL:
-                    break
-            for i in range(n_t):
-                if h_prev > 0.0:
-                    rate[i] = (theta_edge[i] - theta[i]) / h_prev
-                theta[i] = theta_edge[i]
-            tangents_prev[:, :] = tangents
-            rot_prev[:, :] = rot
+            _active_tensions(tau, end, _step_act(edges, k), tau_base)
+            c, r = _edge_with_friction(k == 0, s0, (p, rot, mom, dp, drot, dmom), x, want_var, rod, capstan, tau_step,
+                                       force, tols, ws, f[0], wrap, frames, rot_prev, turn, h_prev)
         else:
+            _active_tensions(tau, end, _step_act(edges, k), tau_step)
             c, r = _stage(s0, (p, rot, mom, dp, drot, dmom), x, want_var, rod, tau_step, force, tols, ws, f[0])
         ok = ok and c
         if not (r <= worst):
@@ -1769,8 +1799,8 @@ def _shoot_pass(m0, n_start, edges, rod, capstan, f_g, tols, want_var, shortcut,
                 pos_out[j, :] = p
                 rot_out[j, :, :] = rot
                 x_out[j, :] = x
-                for i in range(n_t):
-                    gain_out[j, i] = math.exp(capstan[i] * theta[i]) if friction else 1.0
+                if friction:
+                    _gained(np.ones(n_t), capstan, wrap, 0.0, gain_out[j])
         if k == k_steps:
             break
         h = (edges[k + 1] - edges[k]) * length
@@ -1799,10 +1829,9 @@ def _shoot_pass(m0, n_start, edges, rod, capstan, f_g, tols, want_var, shortcut,
                             tdrot[q, i, j2] = drot[q, i, j2] + a * prev[4][q, i, j2]
             cur = f[st]
             if friction:
-                for i in range(n_t):
-                    tau_stage[i] = tau_step[i] * math.exp(capstan[i] * (theta[i] + rate[i] * a))
-            c, r = _stage(s0 + a, (tp, trot, tmom, tdp, tdrot, tdmom), xs, want_var, rod,
-                          tau_stage if friction else tau_step, f_stage, tols, ws, cur)
+                _gained(tau_base, capstan, wrap, a, tau_step)
+            c, r = _stage(s0 + a, (tp, trot, tmom, tdp, tdrot, tdmom), xs, want_var, rod, tau_step, f_stage, tols,
+                          ws, cur)
             ok = ok and c
             if not (r <= worst):
                 worst = r
