@@ -263,24 +263,29 @@ def _in_gravity(data: dict) -> dict:
     return data
 
 
+def _replay_in_gravity(robot, rows: int = 6):
+    """The first ``rows`` rows of the shared sample replayed by a robot with loads, checked against
+    each row's own loaded solve (the replay's Newton starts from shared Jacobians, a sequence: the
+    same equilibria to its tolerances).  Returns (the replay, the commands, the times)."""
+    assert robot.loads is not None
+    recording = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
+    commands, time = recording.commands[:rows], recording.time[:rows]
+    answer = replay(robot, commands, time=time)
+    direct = solve(robot.designs(commands), np.ones(1), loads=robot.row_loads(rows), options=REPLAY_OPTIONS)
+    assert answer.converged.all() and direct.converged.all()
+    assert robot.row_loads(rows).gravity[0, 2] == -9.81  # the file's loads, row by row
+    np.testing.assert_allclose(answer.tip_position, direct.backbone[:, -1], rtol=0.0, atol=1e-8)
+    np.testing.assert_allclose(answer.tension, direct.tension, rtol=0.0, atol=1e-6)
+    return answer, commands, time
+
+
 def test_a_robot_file_with_gravity_replays_every_row_in_gravity(tmp_path):
     """The design's loads reach every command row: the replay equals each row's loaded solve, differs
     from the replay without them, and the robot file written keeps them."""
-    from tdcr.robot.designs import ExternalLoads
 
     data = _in_gravity(json.loads(EXAMPLE.read_text()))
     robot = load_robot(data)
-    assert robot.loads is not None
-    recording = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
-    commands = recording.commands[:6]
-    answer = replay(robot, commands)
-    rows = robot.designs(commands)
-    loads = ExternalLoads(gravity=np.tile([0.0, 3.0, -9.81], (6, 1)), density=np.full(6, 7800.0))
-    direct = solve(rows, np.ones(1), loads=loads, options=REPLAY_OPTIONS)
-    assert answer.converged.all() and direct.converged.all()
-    # the replay's Newton starts from shared Jacobians (a sequence): the same equilibria to its tolerances
-    np.testing.assert_allclose(answer.tip_position, direct.backbone[:, -1], rtol=0.0, atol=1e-8)
-    np.testing.assert_allclose(answer.tension, direct.tension, rtol=0.0, atol=1e-6)
+    answer, commands, _ = _replay_in_gravity(robot)
     unloaded = replay(load_robot(data | {"design": {k: v for k, v in data["design"].items()
                                                     if k not in ("gravity", "density")}}), commands)
     assert np.abs(answer.tip_position - unloaded.tip_position).max() > 1e-4  # the weight moved the tips
@@ -311,21 +316,11 @@ def test_an_effective_density_with_disks_is_taken_and_the_bound_is_named():
 def test_a_fitted_robot_with_friction_replays_in_gravity():
     """The shipped fitted robot (friction on its tendons) in gravity: every row converges, each row's
     answer is its own loaded solve with friction, and friction still moves the tips there."""
-    from tdcr.robot.designs import ExternalLoads
-
     fitted = json.loads((ROOT / "examples" / "ftdcr_v4_fitted.json").read_text())
     fitted["design"] |= {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
     robot = load_robot(fitted)
-    assert robot.loads is not None and (robot.design.resolved("friction") > 0).any()
-    recording = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", robot)
-    commands, time = recording.commands[:6], recording.time[:6]
-    answer = replay(robot, commands, time=time)
-    rows = robot.designs(commands)
-    loads = ExternalLoads(gravity=np.tile([0.0, 3.0, -9.81], (6, 1)), density=np.full(6, 7800.0))
-    direct = solve(rows, np.ones(1), loads=loads, options=REPLAY_OPTIONS)
-    assert answer.converged.all() and direct.converged.all()
-    np.testing.assert_allclose(answer.tip_position, direct.backbone[:, -1], rtol=0.0, atol=1e-8)
-    np.testing.assert_allclose(answer.tension, direct.tension, rtol=0.0, atol=1e-6)
+    assert (robot.design.resolved("friction") > 0).any()
+    answer, commands, time = _replay_in_gravity(robot)
     frictionless = replay(replace(robot, design=robot.design.replace(friction=np.zeros_like(robot.design.offset))),
                           commands, time=time)
     assert np.abs(answer.tip_position - frictionless.tip_position).max() > 2e-5  # 90 um on these rows
