@@ -129,8 +129,11 @@ EXTREME_LOADS = [{"gravity": [100.0, -100.0, 100.0], "density": 25_000.0, "tip_f
                   "tip_moment": [0.0, 0.0, 0.0]}]
 
 
+@pytest.mark.parametrize("friction", [0.0, 2.0], ids=["frictionless", "friction 2, releasing"])
 @pytest.mark.parametrize("corner", [0.0, 1.0])
 @pytest.mark.parametrize("loads", EXTREME_LOADS)
-def test_the_loaded_solver_answers_numbers_or_flags_the_design(corner, loads):
+def test_the_loaded_solver_answers_numbers_or_flags_the_design(corner, loads, friction):
     designs = [{**d, **loads} for d in ds.DesignBatch.from_features(_admissible(np.full((1, 15), corner))).to_dicts()]
+    for d in designs:
+        d["tendons"] = [t | {"friction": friction, "motion": "release"} for t in d["tendons"]]
     _assert_numbers(solve_request(validate_json({"designs": designs, "points": 5}, target="solver")).results(), designs)
