@@ -68,6 +68,16 @@ def test_friction_zero_under_loads_gives_todays_loaded_answers():
     assert (relative_l2(loaded.tendons, free.tendons) < tolerance).all()
     assert (relative_l2(loaded.tension_profile, free.tension_profile) < tolerance).all()
     assert np.abs(free.tension_profile[:, -1, 0] - 3.0).min() > 0.1  # friction acted
+    # two segments: the continuing tendons' kinks where three tendons end count in both kernels
+    segments = DesignBatch(E=np.full(2, 30e9), r=np.full(2, 0.001), L=np.full(2, 0.2), offset=np.full((2, 6), 0.008),
+                           pitch=np.tile([0, 3, -3, 0, 2, -2.0], (2, 1)),
+                           tension=np.tile([2.0, 0.3, 0.0, 1.5, 0.0, 0.4], (2, 1)),
+                           angle=np.tile(np.arange(6) * np.pi / 3, (2, 1)), end=np.tile([0.1] * 3 + [0.2] * 3, (2, 1)),
+                           friction=np.full((2, 6), 0.3), motion=np.array([[1.0] * 6, [-1.0] * 6]))
+    loaded, free = solve(segments, FRACTIONS, loads=vanishing), solve(segments, FRACTIONS)
+    assert loaded.converged.all() and free.converged.all()
+    assert (relative_l2(loaded.tendons, free.tendons) < tolerance).all()
+    assert (relative_l2(loaded.tension_profile, free.tension_profile) < tolerance).all()
 
 
 @pytest.mark.parametrize("loads", [None, LOADS], ids=["tendon loads", "gravity and a tip force"])
