@@ -1685,9 +1685,9 @@ def _edge_with_friction(first, s0, state, x, want_var, rod, capstan, tau_step, f
                         rot_prev, turn, h_prev):
     """:func:`_stage` at an edge of :func:`_shoot_pass` with friction (eq. CAP): into ``tau_step``
     (N_t,) the tensions where they act (``wrap[3]``) times exp(capstan_i theta_i), theta_i predicted
-    from the last step's rate,
-    then corrected by the angle the tendons' unit tangents turned since the last edge (the frames'
-    relative rotation R_prev^T R) and solved again until the gains move by at most ``_WRAP_TOL``.
+    from the last step's rate, then corrected by the angle the tendons' unit tangents turned since
+    the last edge (the frames' relative rotation R_prev^T R) and solved again until the gains move by
+    at most ``_WRAP_TOL``.
     Updates ``wrap`` (4, N_t) = (theta, its value at this edge, its rate rad/m; the tensions: read),
     ``frames`` (2, N_t, 3) = (tangents here, at the last edge) and ``rot_prev`` (3, 3).
     Returns (converged, residual) of the last :func:`_stage`."""
