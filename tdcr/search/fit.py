@@ -91,7 +91,8 @@ LOSSES = ("linear", "soft_l1")
 #: Why a robot with loads is not fitted (yet): a replay in gravity solves each row on its own.
 LOADS_NOT_FITTED = ("fit takes no loads yet (gravity, tip_force, tip_moment): a replay under loads solves each "
                     "row's tensions on the loaded solver, about 100x slower than without, too slow for a fit's "
-                    "hundreds of replays; remove them to fit, and give them back to replay")
+                    "hundreds of replays; remove them to fit (the fitted values then absorb what they do, so "
+                    "replay the fitted robot without them too)")
 #: A row whose answer is not finite scores this error per coordinate, m.
 FAILED_ERROR = 0.05
 
