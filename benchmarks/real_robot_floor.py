@@ -15,7 +15,9 @@ It then lists the pairs of rows of each file whose commands agree (every drive w
 mm) but that lie more than 3 rows apart, with the distance between their measured tips and between
 the joint fit's predicted tips.  Where the measured tips are far apart but the model's are not, the
 robot remembers something the model does not (its state differs for one command and the same
-motions).  Figures depend on the machine: it is printed.
+motions).  Last, the loops of the single-drive sweeps (:func:`sweep_loops`): how much more bent the
+release branch is than the pull branch at the same command, measured and predicted.  Figures
+depend on the machine: it is printed.
 """
 
 from __future__ import annotations
@@ -64,6 +66,38 @@ def repeated_commands(recording: Recording, tolerance: float, min_apart: int = 3
 def rows_of(answer: Replay, keep: np.ndarray) -> Replay:
     """The rows of a replay where ``keep`` ``(T,)`` is true."""
     return Replay(**{f.name: getattr(answer, f.name)[keep] for f in fields(answer)})
+
+
+def sweep_loops(recording: Recording, points: np.ndarray, *, span: float = 3e-3,
+                others: float = 0.25) -> np.ndarray:
+    """The loops of the recording's single-drive sweeps: in each pattern (a run of one label) where one
+    drive's command spans at least ``span`` m and every other drive's at most ``others`` times that,
+    the tip's deflection |p - p_0| (p_0 the tip at the sweep's first row, ``points`` ``(T, 3)`` m,
+    measured or predicted) on each release row (after the largest command) minus the deflection
+    the pull branch (up to it) reaches at the same command, interpolated linearly.  Returns the
+    differences ``(K,)`` m over all sweeps: positive where the release branch is the more bent one
+    (lagging behind, as friction and the settling lag make it)."""
+    out = []
+    labels, scored = recording.labels, recording.has_measurement
+    starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], len(labels)], strict=True):
+        commands = recording.commands[a:b]
+        ranges = np.ptp(commands, axis=0) if b - a > 2 else np.zeros(commands.shape[1])
+        drive = int(np.argmax(ranges))
+        if ranges[drive] < span or np.delete(ranges, drive).max(initial=0.0) > others * ranges[drive]:
+            continue
+        u = commands[:, drive]
+        peak = int(np.argmax(u))
+        ok = scored[a:b] & np.isfinite(points[a:b]).all(axis=1)
+        pull = np.flatnonzero(ok[:peak + 1])
+        pull = pull[u[pull] >= np.maximum.accumulate(u[pull])]  # the pull branch's rising rows
+        release = np.flatnonzero(ok[peak + 1:]) + peak + 1
+        if pull.size < 2 or not release.size:
+            continue
+        deflection = np.linalg.norm(points[a:b] - points[a + pull[0]], axis=1)
+        inside = release[(u[release] >= u[pull[0]]) & (u[release] <= u[pull[-1]])]
+        out.extend(deflection[inside] - np.interp(u[inside], u[pull], deflection[pull]))
+    return np.array(out)
 
 
 def main() -> None:
@@ -118,6 +152,19 @@ def main() -> None:
                   f"{np.median(predicted):.2f} mm")
         else:
             print(f"  {name}: none")
+
+    print("\nthe single-drive sweeps' loops: the release branch's deflection minus the pull branch's at the same "
+          "command (positive: the release branch lags, more bent), mm, measured and predicted by the joint fit:")
+    for name, mask in (("train", in_train), ("val", in_val)):
+        recording = both.take(mask)
+        measured = sweep_loops(recording, recording.measured) * 1e3
+        predicted = sweep_loops(recording, part.points[mask]) * 1e3
+        if measured.size:
+            print(f"  {name}: {measured.size} release rows; measured mean {measured.mean():+.2f}, median "
+                  f"{np.median(measured):+.2f}; predicted mean {predicted.mean():+.2f}, median "
+                  f"{np.median(predicted):+.2f}")
+        else:
+            print(f"  {name}: no single-drive sweep")
 
 
 if __name__ == "__main__":
