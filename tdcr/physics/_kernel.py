@@ -229,6 +229,47 @@ def _wrap_angle(t_prev, t, turn):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _capstan_gain(capstan, theta):
+    """exp(capstan theta): a tendon's tension over its tension at the drive where its path has turned
+    by the wrap angle ``theta`` rad (eq. CAP; ``capstan`` -mu pulling, +mu releasing)."""
+    return math.exp(capstan * theta)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _predict_wraps(theta, rate, h, wraps):
+    """The wrap angles ``h`` m on, ``wraps`` (N_t,) = theta + rate h, from the last ones ``theta``
+    (N_t,) and their ``rate`` (N_t,) rad/m (exact for constant curvature)."""
+    for i in range(theta.shape[0]):
+        wraps[i] = theta[i] + rate[i] * h
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _correct_wraps(theta, t_prev, t, turn, capstan, tau, wraps):
+    """The wrap angles corrected by the solved geometry: ``wraps`` (N_t,) = theta (the last node's)
+    plus the angle each tendon's unit tangent turned from ``t_prev`` to ``t`` (N_t, 3)
+    (:func:`_wrap_angle`, ``turn`` the frames' relative rotation).  Returns how far that moves the
+    gains, max |capstan_i (new - old)| over the tendons that pull (``tau`` (N_t,) not 0: a slack or
+    ended tendon's tension does not move)."""
+    move = 0.0
+    for i in range(theta.shape[0]):
+        new = theta[i] + _wrap_angle(t_prev[i], t[i], turn)
+        if tau[i] != 0.0:
+            move = max(move, abs(capstan[i] * (new - wraps[i])))
+        wraps[i] = new
+    return move
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _accept_wraps(theta, rate, h, wraps):
+    """Move on to the corrected wrap angles ``wraps`` (N_t,): ``rate`` = (wraps - theta) / h (rad/m)
+    for the next prediction (a kink at an end, h = 0, is no rate), then ``theta`` = wraps."""
+    for i in range(theta.shape[0]):
+        if h > 0.0:
+            rate[i] = (wraps[i] - theta[i]) / h
+        theta[i] = wraps[i]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _unit_tangents(x, rho, drho, out):
     """Every tendon's body-frame unit tangent t_i = g_i / |g_i| (:func:`_tendon`) at strains ``x``, (N_t, 3)."""
     for i in range(rho.shape[0]):
@@ -1432,9 +1473,9 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, 
             drho[i, 0], drho[i, 1] = -offset[i] * pitch[i] * sin_phi[i], offset[i] * pitch[i] * cos_phi[i]
         if friction:  # the tensions at the predicted wrap angle; the steps restart where the acting tendons change
             h = (node_fractions[k] - node_fractions[order[j - 1]]) * length if j else 0.0
+            _predict_wraps(theta, rate, h, theta_new)
             for i in range(n_t):
-                theta_new[i] = theta[i] + rate[i] * h
-                gains[k, i] = math.exp(capstan[i] * theta_new[i])
+                gains[k, i] = _capstan_gain(capstan[i], theta_new[i])
             _node_tensions(tau, end, act[k], gains, k, tau_node)
             changed = False
             for i in range(n_t):
@@ -1474,26 +1515,20 @@ def _solve_nodes_chain(node_fractions, act, x_nodes, rod, tols, order, stretch, 
         if friction:
             for correction in range(_MAX_WRAP_CORRECTIONS + 1):
                 _unit_tangents(x_nodes[k], rho, drho, t_now)
-                if j:
-                    _relative_rotation(x_nodes[order[j - 1], 3:], x_nodes[k, 3:], h, twist, turn, step_p)
-                move = 0.0
-                for i in range(n_t):
-                    new = theta[i] + (_wrap_angle(t_prev[i], t_now[i], turn) if j else 0.0)
-                    if tau_node[i] != 0.0:  # a slack or ended tendon's tension does not move
-                        move = max(move, abs(capstan[i] * (new - theta_new[i])))
-                    theta_new[i] = new
+                if not j:  # the base: no turn yet
+                    break
+                _relative_rotation(x_nodes[order[j - 1], 3:], x_nodes[k, 3:], h, twist, turn, step_p)
+                move = _correct_wraps(theta, t_prev, t_now, turn, capstan, tau_node, theta_new)
                 if not (move > _WRAP_TOL) or correction == _MAX_WRAP_CORRECTIONS:
                     break
                 for i in range(n_t):
-                    gains[k, i] = math.exp(capstan[i] * theta_new[i])
+                    gains[k, i] = _capstan_gain(capstan[i], theta_new[i])
                 _node_tensions(tau, end, act[k], gains, k, tau_node)
                 conv, more, r = _node_strains(x_nodes[k], rho, drho, tau_node, rod, tols, work, jac, low)
                 it += more
+            _accept_wraps(theta, rate, h, theta_new)
             for i in range(n_t):
-                if h > 0.0:  # the rate for the next prediction (a kink at an end is no rate)
-                    rate[i] = (theta_new[i] - theta[i]) / h
-                theta[i] = theta_new[i]
-                gains[k, i] = math.exp(capstan[i] * theta[i])
+                gains[k, i] = _capstan_gain(capstan[i], theta[i])
                 t_prev[i, 0], t_prev[i, 1], t_prev[i, 2] = t_now[i, 0], t_now[i, 1], t_now[i, 2]
         _node_stretch(x_nodes[k], rho, drho, stretch, k)
         ok = ok and conv
@@ -1677,7 +1712,7 @@ def _gained(tau, capstan, wrap, ahead, out):
     """``out`` (N_t,) = ``tau`` (N_t,) exp(capstan_i (theta_i + rate_i ahead)): the tensions ``ahead``
     m past the last edge of :func:`_shoot_pass` (eq. CAP; ``wrap`` as :func:`_edge_with_friction`'s)."""
     for i in range(tau.shape[0]):
-        out[i] = tau[i] * math.exp(capstan[i] * (wrap[0, i] + wrap[2, i] * ahead))
+        out[i] = tau[i] * _capstan_gain(capstan[i], wrap[0, i] + wrap[2, i] * ahead)
 
 
 @njit(cache=True, error_model="numpy")
@@ -1695,12 +1730,11 @@ def _edge_with_friction(first, s0, state, x, want_var, rod, capstan, tau_step, f
     tangents, tangents_prev = frames[0], frames[1]
     rot = state[1]
     n_t = capstan.shape[0]
-    for i in range(n_t):
-        theta_edge[i] = theta[i] + rate[i] * h_prev  # predicted, corrected below
+    _predict_wraps(theta, rate, h_prev, theta_edge)  # corrected below
     c, r = False, np.inf
     for _ in range(_MAX_WRAP_CORRECTIONS + 1):
         for i in range(n_t):
-            tau_step[i] = tau_base[i] * math.exp(capstan[i] * theta_edge[i])
+            tau_step[i] = tau_base[i] * _capstan_gain(capstan[i], theta_edge[i])
         c, r = _stage(s0, state, x, want_var, rod, tau_step, force, tols, ws, deriv)
         _unit_tangents(x, ws[0], ws[1], tangents)
         if first:
@@ -1708,17 +1742,9 @@ def _edge_with_friction(first, s0, state, x, want_var, rod, capstan, tau_step, f
         for a in range(3):  # R_prev^T R: the frames' relative rotation
             for b in range(3):
                 turn[a, b] = rot_prev[0, a] * rot[0, b] + rot_prev[1, a] * rot[1, b] + rot_prev[2, a] * rot[2, b]
-        move = 0.0
-        for i in range(n_t):
-            new = theta[i] + _wrap_angle(tangents_prev[i], tangents[i], turn)
-            move = max(move, abs(capstan[i] * (new - theta_edge[i])))
-            theta_edge[i] = new
-        if move <= _WRAP_TOL:
+        if _correct_wraps(theta, tangents_prev, tangents, turn, capstan, tau_base, theta_edge) <= _WRAP_TOL:
             break
-    for i in range(n_t):
-        if h_prev > 0.0:
-            rate[i] = (theta_edge[i] - theta[i]) / h_prev
-        theta[i] = theta_edge[i]
+    _accept_wraps(theta, rate, h_prev, theta_edge)
     tangents_prev[:, :] = tangents
     rot_prev[:, :] = rot
     return c, r
