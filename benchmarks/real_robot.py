@@ -3,6 +3,7 @@
     python benchmarks/real_robot.py                      # the shared FTDCR v4 recording
     python benchmarks/real_robot.py --robot R.json --train T.csv --validate V.csv
     python benchmarks/real_robot.py --fit GROUPS         # other parameter groups (tdcr fit's --fit)
+    python benchmarks/real_robot.py --gravity=GX,GY,GZ --density RHO   # the robot in gravity (base frame)
 
 Rows: the validation file's RMSE (aligned: the mean error over the file removed; plain), the fit's
 time, and the replay's speed (rows/s on every core, each of 5 runs; the train file, with the fitted
@@ -13,6 +14,7 @@ Figures depend on the machine: it is printed.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import sys
@@ -53,9 +55,16 @@ def main() -> None:
     parser.add_argument("--budget", type=float, default=BUDGET, help="the fit's search budget, s")
     parser.add_argument("--out", default=None, help="write the fitted robot file here")
     parser.add_argument("--fit", default=",".join(DEFAULT_GROUPS), help="the groups fitted (tdcr fit's --fit)")
+    parser.add_argument("--gravity", default=None, help="GX,GY,GZ m/s^2 in the robot's base frame: fit and replay "
+                        "under it (the robot file's design then carries it, with --density)")
+    parser.add_argument("--density", type=float, default=None, help="with --gravity: the rod's effective density")
+    parser.add_argument("--repeats", type=int, default=5, help="replays timed, each way")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
-    robot = load_robot(args.robot)
+    data = json.loads(Path(args.robot).read_text())
+    if args.gravity:
+        data["design"] |= {"gravity": [float(g) for g in args.gravity.split(",")], "density": args.density}
+    robot = load_robot(data)
     train = read_recording(args.train, robot)
     val = read_recording(args.validate, robot)
     start = time.perf_counter()
@@ -64,12 +73,15 @@ def main() -> None:
     if args.out:
         result.robot.save(args.out)
     fitted = result.robot
-    rates = _rates(fitted, train)
+    rates = _rates(fitted, train, args.repeats)
     frictionless = replace(fitted, design=fitted.design.replace(friction=np.zeros(fitted.design.offset.shape)))
-    rates_frictionless = _rates(frictionless, train)
+    rates_frictionless = _rates(frictionless, train, args.repeats)
     start_errors = errors(replay(robot, val.commands, time=val.time), val)
     print(f"\nfit: {result.solves} replays of {len(train.time)} rows; train RMSE {result.train.rmse:.2f} mm, aligned "
           f"{result.train.aligned:.2f} mm (start {result.initial.rmse:.2f} / {result.initial.aligned:.2f})")
+    if result.load_rounds:
+        print("under loads, the loaded train RMSE at the start and after each round kept, mm: "
+              + ", ".join(f"{e.rmse:.2f}" for e in result.load_rounds))
     for p in result.parameters:
         print(f"  {p.name:18s} {p.value:12.5g} +- {p.stderr:.2g} {p.unit}")
     rows = {"val aligned RMSE, mm": result.validate.aligned, "val plain RMSE, mm": result.validate.rmse,

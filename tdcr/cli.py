@@ -83,7 +83,7 @@ def _cmd_replay(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from tdcr.search.fit import LOADS_NOT_FITTED, check_f_scale, check_groups, fit, parse_prior, plot
+    from tdcr.search.fit import check_f_scale, check_groups, fit, parse_prior, plot
 
     groups = tuple(g.strip() for g in args.fit.split(",") if g.strip())
     problem = check_groups(groups)
@@ -97,8 +97,6 @@ def _cmd_fit(args) -> int:
     if problem:
         raise UsageError(f"--f-scale: {problem}")
     robot, train = _robot_and_recording(args.robot, args.train, measured=True)
-    if robot.loads is not None:
-        raise UsageError(f"{args.robot}: design: {LOADS_NOT_FITTED}")
     validate = None if args.validate is None else _robot_and_recording(args.robot, args.validate, measured=True)[1]
     if not train.has_measurement.any():
         raise UsageError(f"{args.train}: no row has a measurement ({', '.join(robot.measurement.columns)})")
@@ -582,7 +580,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_replay)
 
     p = command("fit", "identify a real robot from motion-capture data (the 'design' extra: scipy, matplotlib)")
-    p.add_argument("robot", help="robot file: the start of every parameter")
+    p.add_argument("robot", help="robot file: the start of every parameter (with loads: fitted in rounds, "
+                   "each holding the loads' shift of the tips; tdcr/search/fit.py)")
     p.add_argument("train", help="CSV of commands and measured tips to fit")
     p.add_argument("--validate", default=None, help="CSV only scored, by the fitted robot")
     p.add_argument("--out", required=True, help="the fitted robot file (replay, solve and the service take it)")

@@ -23,6 +23,17 @@ trust-region reflective with bounds, forward-difference Jacobian):
   the measured ones (Kabsch, :func:`register`) when that lowers the error: least squares alone
   cannot turn the base by half a turn.
 
+Under the robot file's loads (gravity, a tip wrench) a replay solves every row on the loaded solver,
+80-120x slower than without, too slow for the least squares' hundreds of replays.  The fit then runs
+in rounds (a defect correction, at most :data:`LOADED_ROUNDS`): each round's least squares replays
+without the loads and moves every row's tip pose by the loads' shift, the loaded replay's pose minus
+the unloaded one's at the values the round starts from; one loaded replay at the round's best
+values then gives the next shift and the loaded cost.  The rounds stop when one lowers that cost by
+less than :data:`LOADED_RTOL` (a round that raises it is undone).  The reported errors are the loaded
+replay's at the fitted values.  The search's Jacobian holds the shift fixed, so the steps and the
+standard errors leave out how the loads' effect changes with the values: along a direction that
+only the loads' effect tells apart the rounds move slowly.
+
 A segment is the tendons that end together.  Every parameter is reported with its standard error
 from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p)), taken in the span of the
 directions that move the robot: with ``base_rotation`` fitted, a common turn of every tendon is the
@@ -88,11 +99,9 @@ DIFF_STEP = 1e-2
 LOSS, F_SCALE, PRIOR = "linear", 5.0, MappingProxyType({"tendon_angle": 0.2})
 #: The losses :func:`fit` offers (``least_squares``'s names).
 LOSSES = ("linear", "soft_l1")
-#: Why a robot with loads is not fitted (yet): a replay in gravity solves each row on its own.
-LOADS_NOT_FITTED = ("fit takes no loads yet (gravity, tip_force, tip_moment): a replay under loads solves each "
-                    "row's tensions on the loaded solver, about 100x slower than without, too slow for a fit's "
-                    "hundreds of replays; remove them to fit (the fitted values then absorb what they do, so "
-                    "replay the fitted robot without them too)")
+#: Under loads: the most rounds of least squares with the loads' shift held; they stop once a round
+#: lowers the loaded replay's cost by less than this fraction (and one that raises it is undone).
+LOADED_ROUNDS, LOADED_RTOL = 6, 0.01
 #: A row whose answer is not finite scores this error per coordinate, m.
 FAILED_ERROR = 0.05
 
@@ -278,7 +287,8 @@ class FitResult:
     ``train`` and (if given) ``validate`` :class:`Errors`, the replays ``train_replay`` and
     ``validate_replay``, the ``initial`` train errors, ``seconds``, ``solves`` (replays run) and
     ``prior``, the prior's width of each fitted group that had one (search units: the standard
-    errors of those groups carry it), and the search's ``groups``, ``loss`` and ``f_scale`` (mm)."""
+    errors of those groups carry it), the search's ``groups``, ``loss`` and ``f_scale`` (mm), and
+    under loads ``load_rounds``: the loaded replay's train errors at the start and after each round kept."""
 
     robot: Robot
     parameters: list[Parameter]
@@ -293,10 +303,12 @@ class FitResult:
     groups: tuple[str, ...] = ()
     loss: str = LOSS
     f_scale: float = F_SCALE
+    load_rounds: tuple[Errors, ...] = ()
 
     def report(self) -> dict:
         """The fit as JSON (the robot file's ``fitted``)."""
-        return {"parameters": [{"name": p.name, "value": p.value,
+        rounds = {"load_rounds": [e.as_dict() for e in self.load_rounds]} if self.load_rounds else {}
+        return rounds | {"parameters": [{"name": p.name, "value": p.value,
                                 "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit}
                                for p in self.parameters],
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
@@ -402,8 +414,6 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     for name, problem in (("prior", check_prior(prior)), ("f_scale", check_f_scale(f_scale))):
         if problem:
             raise ValueError(f"{name}: {problem}")
-    if robot.loads is not None:
-        raise ValueError(f"design: {LOADS_NOT_FITTED}")
     start = time.perf_counter()
     layout = _layout(robot, groups)
     scale = np.array([_SCALE[g] for g in layout.groups])
@@ -419,17 +429,30 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     bar = tqdm(desc="fit: replays", unit="replay", disable=not progress, leave=False)
     solves = [0]
     best = {"cost": np.inf, "z": np.zeros(len(x0))}
+    unloaded = replace(robot, loads=None)
+    shift: list[_LoadShift | None] = [None]  # the loads' shift of the rows' tip poses (None: no loads)
+    loaded_replay: list[Replay | None] = [None]  # the last loaded replay, at the shift's values
 
     def solved(x: np.ndarray) -> Replay:
+        """The replay at ``x`` without loads (cached), moved by the loads' ``shift``."""
         key = np.round(x[physics], 14).tobytes()
         if key not in cache:
             if len(cache) > 64:
                 cache.clear()
-            cache[key] = replay(_apply(robot, layout, x, base_angles), train.commands, workers=workers,
+            cache[key] = replay(_apply(unloaded, layout, x, base_angles), train.commands, workers=workers,
                                 options=REPLAY_OPTIONS)
             solves[0] += 1
             bar.update(1)
-        return cache[key]
+        return cache[key] if shift[0] is None else shift[0].moved(cache[key])
+
+    def shift_at(x: np.ndarray) -> _LoadShift:
+        """The loads' shift at ``x``: one loaded replay against the unloaded one."""
+        loaded_replay[0] = replay(_apply(robot, layout, x, base_angles), train.commands, workers=workers,
+                                  options=REPLAY_OPTIONS)
+        solves[0] += 1
+        bar.update(1)
+        shift[0] = None
+        return _LoadShift.between(loaded_replay[0], solved(x))
 
     def residual(z: np.ndarray, *, track: bool = True) -> np.ndarray:
         if track and time.perf_counter() - start > budget:
@@ -448,6 +471,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             best["cost"], best["z"] = cost, z.copy()
         return r
 
+    if robot.loads is not None:
+        shift[0] = shift_at(x0)
     initial_robot = _apply(robot, layout, x0, base_angles)
     initial = errors(_replay_points(initial_robot, solved(x0), train.time), train)
     if {"base_position", "base_rotation"} <= set(groups):
@@ -458,12 +483,38 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             for k, g in enumerate(layout.groups):
                 if g in ("base_position", "base_rotation"):
                     x0[k] = np.clip(moved[k], lower[k], upper[k])
-    try:
-        least_squares(residual, np.zeros(len(x0)), bounds=((lower - x0) / scale, (upper - x0) / scale),
-                      diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf", x_scale=1.0, loss=loss,
-                      f_scale=f_scale)
-    except _OutOfTime:
-        pass
+    rounds = []  # under loads: the loaded replay's train errors at the start and after each round kept
+
+    def loaded_errors(z: np.ndarray) -> Errors:
+        return errors(_replay_points(_apply(robot, layout, x0 + z * scale, base_angles), loaded_replay[0],
+                                     train.time), train)
+
+    if robot.loads is not None:
+        cost = _robust_cost(residual(best["z"], track=False), loss, f_scale)  # the loaded one: the shift is x0's
+        rounds.append(loaded_errors(best["z"]))
+    for _ in range(LOADED_ROUNDS if robot.loads is not None else 1):
+        z_start, best["cost"] = best["z"].copy(), np.inf
+        try:
+            least_squares(residual, z_start, bounds=((lower - x0) / scale, (upper - x0) / scale),
+                          diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf", x_scale=1.0, loss=loss,
+                          f_scale=f_scale)
+            spent = False
+        except _OutOfTime:
+            spent = True
+        if robot.loads is None:
+            break
+        last = (z_start, shift[0], loaded_replay[0])
+        z_new = best["z"] if np.isfinite(best["cost"]) else z_start
+        shift[0] = shift_at(x0 + z_new * scale)  # the loaded replay at the round's best
+        new_cost = _robust_cost(residual(z_new, track=False), loss, f_scale)
+        if not new_cost < cost:  # the loaded fit got no better: keep the last round's
+            best["z"], shift[0], loaded_replay[0] = last
+            break
+        best["z"] = z_new
+        rounds.append(loaded_errors(z_new))
+        if spent or new_cost > (1.0 - LOADED_RTOL) * cost:
+            break
+        cost = new_cost
     z = best["z"]
     jac = _jacobian(lambda v: residual(v, track=False), z)
     bar.close()
@@ -484,7 +535,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         value = math.exp(v) if g in _LOG else v
         params.append(Parameter(name=name, value=float(value), stderr=float(value * se if g in _LOG else se),
                                 unit=_NAME_UNITS.get(name) or _UNITS[g]))
-    train_replay = _replay_points(fitted, solved(x), train.time)
+    # under loads the last loaded replay, at these values (the shift's): its own tensions and statuses
+    train_replay = _replay_points(fitted, solved(x) if loaded_replay[0] is None else loaded_replay[0], train.time)
     val_replay = None if validate is None else replay(fitted, validate.commands, time=validate.time,
                                                       workers=workers, options=REPLAY_OPTIONS)
     seconds = time.perf_counter() - start
@@ -492,8 +544,29 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                     validate=None if validate is None else errors(val_replay, validate), train_replay=train_replay,
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0],
                     prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)},
-                    groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale)
+                    groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale,
+                    load_rounds=tuple(rounds))
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
+
+
+@dataclass(frozen=True)
+class _LoadShift:
+    """What the robot file's loads do to each row's tip pose at some values: ``values`` ``(T, 12)``,
+    the loaded pose (p_l, R_l) against the unloaded one (p_u, R_u) as p_l - p_u (m) and R_l R_u^T
+    (row-major), so p_l = p_u + shift, R_l = shift R_u (base frame)."""
+
+    values: np.ndarray
+
+    @classmethod
+    def between(cls, loaded: Replay, unloaded: Replay) -> _LoadShift:
+        rotation = loaded.tip_rotation @ np.swapaxes(unloaded.tip_rotation, 1, 2)
+        position = loaded.tip_position - unloaded.tip_position
+        return cls(values=np.concatenate([position, rotation.reshape(-1, 9)], axis=1))
+
+    def moved(self, answer: Replay) -> Replay:
+        """The unloaded ``answer`` with its tip poses moved by the shift (NaN where a solve failed)."""
+        return replace(answer, tip_position=answer.tip_position + self.values[:, :3],
+                       tip_rotation=self.values[:, 3:].reshape(-1, 3, 3) @ answer.tip_rotation)
 
 
 def _prior_widths(prior: float | Mapping[str, float] | None, groups: Sequence[str]) -> np.ndarray:

@@ -336,19 +336,49 @@ def test_a_fitted_robot_with_friction_replays_in_gravity():
     assert np.abs(answer.tip_position - frictionless.tip_position).max() > 2e-5  # 90 um on these rows
 
 
-def test_a_fit_under_loads_is_refused_by_name(tmp_path):
+def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
+    """A recording made by the loaded solver from a known robot lying in gravity (its tips sag by
+    about 5 mm): the fit under the robot file's loads (rounds of least squares, each with the loads'
+    shift held) finds E and the drive zeros again, each kept round lowers the loaded replay's error,
+    and it ends far below the same fit without the loads; the CLI writes the loads back."""
+    from tdcr.robot.real import Recording
     from tdcr.search.fit import fit
 
-    robot = load_robot(_in_gravity(json.loads(EXAMPLE.read_text())))
+    data = _in_gravity(json.loads(EXAMPLE.read_text()))
+    data["design"] |= {"gravity": [9.81, 0.0, 0.0], "density": 40_000.0}  # lying on its side, heavy
+    truth = load_robot(data)
+    truth = replace(truth, design=truth.design.replace(zero=np.linspace(-3e-4, 3e-4, 9)[None]))
     sample = ROOT / "tests" / "data" / "ftdcr_v4_sample.csv"
-    with pytest.raises(ValueError, match="fit takes no loads yet"):
-        fit(robot, read_recording(sample, robot), groups=("marker",))
-    path = tmp_path / "robot.json"
-    robot.save(path)
-    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(path), str(sample), "--out",
-                          str(tmp_path / "no.json")], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 2 and "design: fit takes no loads yet" in run.stderr and "Traceback" not in run.stderr
-    assert not (tmp_path / "no.json").exists()
+    rec = read_recording(sample, truth)
+    made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands,
+                     measured=replay(truth, rec.commands, time=rec.time).points, rows=rec.rows, header=rec.header)
+    start = replace(truth, design=truth.design.replace(E=np.array([40e9]), zero=np.zeros((1, 9))))
+    options = {"groups": ("E", "zero"), "loss": "linear", "prior": None, "max_iterations": 20, "budget": 300}
+    result = fit(start, made, **options)
+    assert result.robot.loads is not None and result.train_replay.converged.all()
+    rmse = [e.rmse for e in result.load_rounds]  # mm: the start's (loaded), then each round's
+    assert len(rmse) >= 3 and all(b < a for a, b in zip(rmse, rmse[1:], strict=False))
+    assert rmse[0] == pytest.approx(result.initial.rmse) and rmse[-1] == pytest.approx(result.train.rmse)
+    assert result.initial.rmse > 3.0 and result.train.rmse < 0.3  # 0.17 mm
+    values = {p.name: p.value for p in result.parameters}
+    assert values["E"] == pytest.approx(50e9, rel=1e-2)
+    taut = replay(truth, rec.commands).tension.max(axis=0) > 0.0  # a tendon slack throughout shows no zero
+    zeros = np.array([values[f"zero[{i}]"] for i in range(9)])
+    np.testing.assert_allclose(zeros[taut], truth.design.resolved("zero")[0, taut], atol=5e-5)
+    without = fit(replace(start, loads=None), made, **options)
+    assert without.train.rmse > 3.0 * result.train.rmse  # 0.87 mm: the weight is not a matter of E and zeros
+
+    path = tmp_path / "robot.json"  # the sample's own measurements, the robot upright in gravity
+    load_robot(_in_gravity(json.loads(EXAMPLE.read_text()))).save(path)
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(path), str(sample), "--fit", "E,zero",
+                          "--quiet", "--out", str(tmp_path / "fitted.json")], capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr
+    report = json.loads(run.stdout)
+    assert report["load_rounds"][0]["rmse_mm"] == pytest.approx(report["initial_train"]["rmse_mm"])
+    assert report["train"]["rmse_mm"] == pytest.approx(report["load_rounds"][-1]["rmse_mm"])
+    assert report["train"]["rmse_mm"] < report["initial_train"]["rmse_mm"]
+    assert load_robot(tmp_path / "fitted.json").loads.gravity.tolist() == [[0.0, 3.0, -9.81]]
 
 
 def test_the_robot_schema_is_committed_and_the_example_follows_it():
