@@ -288,7 +288,8 @@ class FitResult:
     ``validate_replay``, the ``initial`` train errors, ``seconds``, ``solves`` (replays run) and
     ``prior``, the prior's width of each fitted group that had one (search units: the standard
     errors of those groups carry it), the search's ``groups``, ``loss`` and ``f_scale`` (mm), and
-    under loads ``load_rounds``: the loaded replay's train errors at the start and after each round kept."""
+    under loads ``load_rounds``: the loaded replay's train errors at the start (after the
+    registration) and after each round kept."""
 
     robot: Robot
     parameters: list[Parameter]
