@@ -504,8 +504,11 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             spent = True
         if robot.loads is None:
             break
+        if not np.isfinite(best["cost"]):  # the budget was spent before this round searched: keep the last
+            best["z"] = z_start
+            break
         last = (z_start, shift[0], loaded_replay[0])
-        z_new = best["z"] if np.isfinite(best["cost"]) else z_start
+        z_new = best["z"]
         shift[0] = shift_at(x0 + z_new * scale)  # the loaded replay at the round's best
         new_cost = _robust_cost(residual(z_new, track=False), loss, f_scale)
         if not new_cost < cost:  # the loaded fit got no better: keep the last round's

@@ -365,6 +365,8 @@ def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
     taut = replay(truth, rec.commands).tension.max(axis=0) > 0.0  # a tendon slack throughout shows no zero
     zeros = np.array([values[f"zero[{i}]"] for i in range(9)])
     np.testing.assert_allclose(zeros[taut], truth.design.resolved("zero")[0, taut], atol=5e-5)
+    spent = fit(start, made, **(options | {"budget": 0.0}))  # no time to search: the start, replayed under loads
+    assert len(spent.load_rounds) == 1 and spent.train.rmse == pytest.approx(result.initial.rmse)
     without = fit(replace(start, loads=None), made, **options)
     assert without.train.rmse > 3.0 * result.train.rmse  # 0.87 mm: the weight is not a matter of E and zeros
 
