@@ -70,13 +70,16 @@ class SurrogateModel(Model):
 
     def inverse(self, problem: InverseProblem) -> list[dict]:
         """Inverse kinematics with this operator (blocking: run it off the event loop); the design's
-        loads (``problem.loads``) need a loaded operator (:class:`InvalidRequest` naming the field else)."""
-        if problem.loads is not None and not self.surrogate.takes_loads:
-            raise InvalidRequest([p._replace(loc=("design",) + p.loc[2:]) for p in
-                                  check_model_loads(problem.loads, np.zeros(1, dtype=int), model=self.name)])
+        loads (``problem.loads``) need a loaded operator (:class:`InvalidRequest` naming the field else;
+        loads given as zeros are none)."""
+        loads = problem.loads
+        if not self.surrogate.takes_loads:
+            problems = check_model_loads(loads, np.zeros(1, dtype=int), model=self.name)
+            if problems:
+                raise InvalidRequest([p._replace(loc=("design",) + p.loc[2:]) for p in problems])
+            loads = None
         # validated; the differences may leave the bounds
-        tip_pose = model_tip_pose(self.batcher.predict,
-                                  load_row=None if problem.loads is None else problem.loads.matrix(1))
+        tip_pose = model_tip_pose(self.batcher.predict, load_row=None if loads is None else loads.matrix(1))
         return answer(problem, model_forward(problem.design, tip_pose))
 
     def close(self) -> None:
