@@ -434,8 +434,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     shift: list[_LoadShift | None] = [None]  # the loads' shift of the rows' tip poses (None: no loads)
     loaded_replay: list[Replay | None] = [None]  # the last loaded replay, at the shift's values
 
-    def solved(x: np.ndarray) -> Replay:
-        """The replay at ``x`` without loads (cached), moved by the loads' ``shift``."""
+    def unloaded_replay(x: np.ndarray) -> Replay:
+        """The replay at ``x`` without loads (cached)."""
         key = np.round(x[physics], 14).tobytes()
         if key not in cache:
             if len(cache) > 64:
@@ -444,7 +444,11 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                                 options=REPLAY_OPTIONS)
             solves[0] += 1
             bar.update(1)
-        return cache[key] if shift[0] is None else shift[0].moved(cache[key])
+        return cache[key]
+
+    def solved(x: np.ndarray) -> Replay:
+        """The replay at ``x``: without loads, moved by the loads' ``shift`` (if any)."""
+        return unloaded_replay(x) if shift[0] is None else shift[0].moved(unloaded_replay(x))
 
     def shift_at(x: np.ndarray) -> _LoadShift:
         """The loads' shift at ``x``: one loaded replay against the unloaded one."""
@@ -452,8 +456,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                                   options=REPLAY_OPTIONS)
         solves[0] += 1
         bar.update(1)
-        shift[0] = None
-        return _LoadShift.between(loaded_replay[0], solved(x))
+        return _LoadShift.between(loaded_replay[0], unloaded_replay(x))
 
     def residual(z: np.ndarray, *, track: bool = True) -> np.ndarray:
         if track and time.perf_counter() - start > budget:
