@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import BUDGET, DEFAULT_GROUPS, errors, fit  # noqa: E402
+from tdcr.search.fit import BUDGET, errors, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 TARGETS = {"val aligned RMSE, mm": ("<=", 6.5), "val plain RMSE, mm": ("<=", 8.0), "fit, s": ("<=", 300.0),
@@ -54,7 +54,7 @@ def main() -> None:
     parser.add_argument("--validate", default=str(SHARED / "val.csv"))
     parser.add_argument("--budget", type=float, default=BUDGET, help="the fit's search budget, s")
     parser.add_argument("--out", default=None, help="write the fitted robot file here")
-    parser.add_argument("--fit", default=",".join(DEFAULT_GROUPS), help="the groups fitted (tdcr fit's --fit)")
+    parser.add_argument("--fit", default=None, help="the groups fitted (tdcr fit's --fit; default: its defaults)")
     parser.add_argument("--gravity", default=None, help="GX,GY,GZ m/s^2 in the robot's base frame: fit and replay "
                         "under it (the robot file's design then carries it, with --density)")
     parser.add_argument("--density", type=float, default=None, help="with --gravity: the rod's effective density")
@@ -68,7 +68,7 @@ def main() -> None:
     train = read_recording(args.train, robot)
     val = read_recording(args.validate, robot)
     start = time.perf_counter()
-    result = fit(robot, train, validate=val, budget=args.budget, groups=tuple(args.fit.split(",")))
+    result = fit(robot, train, validate=val, budget=args.budget, groups=args.fit and tuple(args.fit.split(",")))
     fit_seconds = time.perf_counter() - start
     if args.out:
         result.robot.save(args.out)

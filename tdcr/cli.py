@@ -85,8 +85,8 @@ def _cmd_replay(args) -> int:
 def _cmd_fit(args) -> int:
     from tdcr.search.fit import check_f_scale, check_groups, fit, parse_prior, plot
 
-    groups = tuple(g.strip() for g in args.fit.split(",") if g.strip())
-    problem = check_groups(groups)
+    groups = None if args.fit is None else tuple(g.strip() for g in args.fit.split(",") if g.strip())
+    problem = None if groups is None else check_groups(groups)
     if problem:
         raise UsageError(f"--fit: {problem}")
     try:
@@ -97,6 +97,9 @@ def _cmd_fit(args) -> int:
     if problem:
         raise UsageError(f"--f-scale: {problem}")
     robot, train = _robot_and_recording(args.robot, args.train, measured=True)
+    problem = None if groups is None else check_groups(groups, robot)
+    if problem:
+        raise UsageError(f"--fit: {problem}")
     validate = None if args.validate is None else _robot_and_recording(args.robot, args.validate, measured=True)[1]
     if not train.has_measurement.any():
         raise UsageError(f"{args.train}: no row has a measurement ({', '.join(robot.measurement.columns)})")
@@ -549,6 +552,7 @@ class FORMATTER(argparse.ArgumentDefaultsHelpFormatter):
 def build_parser() -> argparse.ArgumentParser:
     from tdcr.search.fit import BUDGET as FIT_BUDGET
     from tdcr.search.fit import DEFAULT_GROUPS as FIT_DEFAULT_GROUPS
+    from tdcr.search.fit import DISPLACEMENT_ONLY as FIT_DISPLACEMENT_ONLY
     from tdcr.search.fit import F_SCALE as FIT_F_SCALE
     from tdcr.search.fit import GROUPS as FIT_GROUPS
     from tdcr.search.fit import LOSS as FIT_LOSS
@@ -586,8 +590,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", default=None, help="CSV only scored, by the fitted robot")
     p.add_argument("--out", required=True, help="the fitted robot file (replay, solve and the service take it)")
     p.add_argument("--plot", default=None, help="PNG of measured vs predicted tips and the error over time")
-    p.add_argument("--fit", default=",".join(FIT_DEFAULT_GROUPS),
-                   help=f"comma-separated parameter groups, of {', '.join(FIT_GROUPS)} (tdcr/search/fit.py)")
+    p.add_argument("--fit", default=None,
+                   help=f"comma-separated parameter groups, of {', '.join(FIT_GROUPS)} (tdcr/search/fit.py; "
+                        f"default: {','.join(FIT_DEFAULT_GROUPS)}, without {', '.join(FIT_DISPLACEMENT_ONLY)} "
+                        "for drives that command tensions)")
     p.add_argument("--max-iterations", type=int, default=FIT_MAX_ITERATIONS, help="least-squares iterations at most")
     p.add_argument("--budget", type=float, default=FIT_BUDGET, help="seconds of search at most (then the best point)")
     p.add_argument("--prior", default=format_prior(FIT_PRIOR),

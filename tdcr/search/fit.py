@@ -63,6 +63,9 @@ GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "offset", "tendon_
 #: the shared recording's single-tendon sweeps the bend's direction was 1-8 degrees off, docs/real_robot.md).
 DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "offset", "tendon_angle", "marker", "base_position",
                   "base_rotation", "time_constant")
+#: Groups that act only where the drives command displacements (a drive's zero and the tendons' series
+#: compliance turn a pull-in into a tension, eq. SE); a robot commanded in tensions fits without them.
+DISPLACEMENT_ONLY = ("zero", "elasticity", "stiffness")
 #: Groups that set the same values: at most one of each.
 EXCLUSIVE = (("elasticity", "stiffness"), ("offset", "tendon_offset"), ("angle", "tendon_angle"))
 #: Those of the measurement (changing them needs no new solve).
@@ -325,14 +328,28 @@ _UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "offset": 
           "time_constant": "s"}
 
 
-def check_groups(groups: Sequence[str]) -> str | None:
-    """Why :func:`fit` cannot identify ``groups`` (an unknown one, or two of :data:`EXCLUSIVE`), or None."""
+def default_groups(robot: Robot) -> tuple[str, ...]:
+    """The groups :func:`fit` identifies unless told otherwise: :data:`DEFAULT_GROUPS`, less
+    :data:`DISPLACEMENT_ONLY` for a robot commanded in tensions."""
+    if robot.actuation.kind == "displacement":
+        return DEFAULT_GROUPS
+    return tuple(g for g in DEFAULT_GROUPS if g not in DISPLACEMENT_ONLY)
+
+
+def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | None:
+    """Why :func:`fit` cannot identify ``groups`` (an unknown one, two of :data:`EXCLUSIVE`, or, for a
+    ``robot`` commanded in tensions, one of :data:`DISPLACEMENT_ONLY`), or None."""
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
         return f"unknown {', '.join(unknown)}; they are {', '.join(GROUPS)}"
     for pair in EXCLUSIVE:
         if set(pair) <= set(groups):
             return f"{pair[0]} and {pair[1]} set the same values: give one of them"
+    inert = [g for g in groups if g in DISPLACEMENT_ONLY]
+    if robot is not None and robot.actuation.kind != "displacement" and inert:
+        return (f"{', '.join(inert)} act{'s' if len(inert) == 1 else ''} only on displacement actuation; this "
+                f"robot's drives command "
+                f"{robot.actuation.kind}s (actuation.kind)")
     return None
 
 
@@ -379,7 +396,7 @@ def format_prior(prior: Mapping[str, float] | None) -> str:
     return "none" if prior is None else ",".join(f"{g}={w:g}" for g, w in prior.items())
 
 
-def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, groups: Sequence[str] = DEFAULT_GROUPS,
+def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, groups: Sequence[str] | None = None,
         max_iterations: int = MAX_ITERATIONS, budget: float = BUDGET, progress: bool = False, workers: int = 0,
         loss: str = LOSS, f_scale: float = F_SCALE, prior: float | Mapping[str, float] | None = PRIOR) -> FitResult:
     """Identify ``groups`` (:data:`GROUPS`) of the robot from the recording ``train``.
@@ -388,7 +405,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         robot: the robot file's robot: the start of every parameter.
         train: the recording fitted (its rows without a measurement are skipped).
         validate: a recording only scored (the fitted robot replays it).
-        groups: the parameter groups to identify.
+        groups: the parameter groups to identify (None: :func:`default_groups` of the robot).
         max_iterations: the most least-squares iterations (each a Jacobian: one replay per
             physics parameter).
         budget: seconds after which the search stops at the best point it has (the standard
@@ -407,7 +424,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     from scipy.optimize import least_squares
     from tqdm import tqdm
 
-    problem = check_groups(groups)
+    groups = default_groups(robot) if groups is None else groups
+    problem = check_groups(groups, robot)
     if problem:
         raise ValueError(f"groups: {problem}")
     if loss not in LOSSES:

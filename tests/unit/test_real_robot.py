@@ -635,3 +635,43 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
                               "--out", str(tmp_path / "no.json")], capture_output=True, text=True, timeout=300)
         assert run.returncode == 2 and words in run.stderr and "Traceback" not in run.stderr, run.stderr
         assert not (tmp_path / "no.json").exists()
+
+
+def test_a_robot_commanded_in_tensions_fits_without_the_groups_that_act_on_displacements(tmp_path):
+    """Drives that command tensions: a drive's zero and the series compliance act on nothing, so the
+    default groups leave them out (they would drift unidentified into the fitted file) and naming
+    one is refused, by the API and by the CLI (exit 2).  The fit finds E, here the one parameter
+    that moves the tips, from perturbed values."""
+    from tdcr.robot.real import Recording
+    from tdcr.search.fit import DISPLACEMENT_ONLY, default_groups, fit
+
+    data = json.loads(EXAMPLE.read_text())
+    data["actuation"] |= {"unit": "N", "kind": "tension", "deadband": 0.0}
+    for tendon in data["design"]["tendons"]:
+        tendon.pop("displacement", None)
+        tendon["tension"] = 0.0
+    truth = load_robot(data)
+    assert set(default_groups(truth)).isdisjoint(DISPLACEMENT_ONLY)
+    n = truth.n_tendons
+    commands = np.zeros((3 * n, n))  # N: each tendon pulled with 0.5, 1 and 1.5 N in turn
+    for k in range(n):
+        commands[3 * k:3 * k + 3, k] = [0.5, 1.0, 1.5]
+    made = Recording(time=0.5 * np.arange(3 * n), labels=np.repeat([f"t{k}" for k in range(n)], 3), commands=commands,
+                     measured=replay(truth, commands).points, rows=np.arange(1, 3 * n + 1), header=())
+    start = replace(truth, design=truth.design.replace(E=truth.design.E * 0.7))
+    result = fit(start, made, groups=("E",), max_iterations=10, budget=120, prior=None)
+    assert result.initial.rmse > 1.0 and result.train.rmse < 0.01  # mm
+    assert result.parameters[0].value == pytest.approx(truth.design.E[0], rel=1e-4)
+    for group in DISPLACEMENT_ONLY:
+        with pytest.raises(ValueError, match=f"{group} acts only on displacement actuation"):
+            fit(start, made, groups=("E", group))
+    robot_file = tmp_path / "tension.json"
+    robot_file.write_text(json.dumps(data))
+    csv_file = tmp_path / "rec.csv"
+    columns = [truth.time_column, *truth.actuation.columns, *truth.measurement.columns]
+    rows = np.column_stack([made.time, commands, made.measured / truth.measurement.scale])
+    csv_file.write_text(",".join(columns) + "\n" + "\n".join(",".join(f"{v:.9g}" for v in r) for r in rows) + "\n")
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(robot_file), str(csv_file), "--fit", "E,zero",
+                          "--out", str(tmp_path / "no.json")], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2 and "--fit: zero acts only on displacement actuation" in run.stderr, run.stderr
+    assert not (tmp_path / "no.json").exists()
