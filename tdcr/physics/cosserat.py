@@ -618,9 +618,12 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     (one loaded solve per driven tendon, every design in one batch), then kept up to date by
     Broyden's update along each step, and differenced again where no step along it lowers the miss.
     Each step is capped like the unloaded kernel's (1 N + 50 % of the tension) and halved until the
-    worst miss shrinks.  With ``sequence`` (one robot's commands in order, :func:`tdcr.replay`) only
-    every :data:`LOADED_DISPLACEMENT_SHARED`-th design (a leader) differences its Jacobian at the
-    start, and the designs after it start from its Jacobian.  Friction acts as in the unloaded solve
+    worst miss shrinks.  A design from whose tensions no step along a Jacobian differenced there
+    lowers the miss stops (the next iteration would repeat the same deterministic solves) and is
+    flagged ``displacement_not_met`` unless within the tolerance.  With ``sequence`` (one robot's
+    commands in order, :func:`tdcr.replay`) only every :data:`LOADED_DISPLACEMENT_SHARED`-th design
+    (a leader) differences its Jacobian at the start, and the designs after it start from its
+    Jacobian.  Friction acts as in the unloaded solve
     (eq. CAP, each tendon's ``motion``): the loaded kernel carries it."""
     driven = designs.displacement_driven
     wanted = np.where(driven, designs.displacement - designs.resolved("zero"), 0.0)  # w (B, N_t), m
@@ -648,6 +651,7 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     rows = np.arange(b)
     miss = miss_at(tension, rows)
     found = np.zeros(b, dtype=bool)
+    stuck = np.zeros(b, dtype=bool)  # no step from here lowers the miss, along a Jacobian differenced here
     jacobians, refresh = np.zeros((b, n_t, n_t)), np.ones(b, dtype=bool)  # dr/dtau (m/N), and where to difference
     shared = sequence and b > 1
     if shared:  # neighbouring commands are close: one design in LOADED_DISPLACEMENT_SHARED differences
@@ -659,7 +663,7 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
         rows, miss = rows[~done], miss[~done]
         if iteration == LOADED_DISPLACEMENT_NEWTON:
             break
-        solved = np.isfinite(miss).all(axis=1)  # a failed solve is left to the status
+        solved = np.isfinite(miss).all(axis=1) & ~stuck[rows]  # a failed solve is left to the status
         rows, miss = rows[solved], miss[solved]
         if not rows.size:
             break
@@ -680,6 +684,8 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
                 bumped[:, j] += h
                 fresh[:, :, j] = (miss_at(bumped, rows[stale]) - miss[stale]) / h[:, None]
             jacobians[rows[stale]], refresh[rows[stale]] = fresh, False
+        differenced = np.zeros(rows.size, dtype=bool)
+        differenced[stale] = True
         jacobians[followers] = jacobians[followers // LOADED_DISPLACEMENT_SHARED * LOADED_DISPLACEMENT_SHARED]
         jac = jacobians[rows]  # dr/dtau, m/N
         scale[rows] = np.maximum(np.abs(np.nan_to_num(np.diagonal(jac, axis1=1, axis2=2))), 1e-9)
@@ -713,6 +719,9 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
             update = unexplained[:, :, None] * moved[:, None, :] / norm2[:, None, None]
         jacobians[rows] = jac + np.where((norm2 > 0.0)[:, None, None], np.nan_to_num(update), 0.0)
         tension[rows] = tau
+        # the next iteration would difference the same Jacobian at the same tensions and fail the same
+        # steps (every solve is deterministic): such a design is left where it is, to its status
+        stuck[rows] = differenced & (moved == 0.0).all(axis=1)
     sol = _solve_loaded_compiled(designs.replace(tension=tension, displacement=None), fractions_out, loads, opts,
                                  threads)
     status = sol.status.copy()

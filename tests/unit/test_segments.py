@@ -211,6 +211,36 @@ def test_vanishing_loads_give_the_unloaded_displacement_answer():
     np.testing.assert_allclose(tiny.backbone, plain.backbone, atol=1e-8)
 
 
+def test_a_loaded_displacement_solve_that_cannot_move_stops_instead_of_repeating_itself(monkeypatch):
+    """A command of the FTDCR v6 recording (its sysid train file's row 443) upright in gravity (its
+    project's 37,708 kg/m^3), with friction 0.05, whose pull-ins the semismooth Newton cannot meet: from some
+    tensions on no step along a freshly differenced Jacobian solves, and each further iteration would
+    repeat the same solves (they are deterministic).  It stops there with displacement_not_met; it
+    used to repeat them to the 30th iteration: 357 loaded solves, 49 s on the 2-core VM (now 69)."""
+    import tdcr.physics.cosserat as cosserat
+    from tdcr.physics.replay import REPLAY_OPTIONS
+
+    angles = [0.0, 2.094395, -2.094395, 0.5236, 2.617995, -1.570795, 1.0472, -3.14159, -1.047195]
+    pull_in = [0.0, -9.2039e-05, -1.22718e-04, 0.0, -1.53398e-04, 0.0, 1.932816e-03, -3.788933e-03, 1.825437e-03]
+    motion = [1, -1, 1, -1, 1, 1, -1, 1, -1]
+    d = DesignBatch(E=[1e10], r=[5e-4], L=[0.222], offset=[[0.0045] * 9], pitch=[[0.0] * 9], tension=[[0.0] * 9],
+                    angle=[angles], end=[[0.1] * 3 + [0.2] * 3 + [0.222] * 3], displacement=[pull_in],
+                    stiffness=[[3000.0] * 9], friction=[[0.05] * 9], motion=[motion])
+    loads = ExternalLoads(gravity=[[0.2351, 0.0168, -9.8072]], density=[37708.0])
+    solves = [0]
+    loaded = cosserat._solve_loaded_compiled
+
+    def counted(*args, **kwargs):
+        solves[0] += 1
+        return loaded(*args, **kwargs)
+
+    monkeypatch.setattr(cosserat, "_solve_loaded_compiled", counted)
+    sol = solve(d, np.ones(1), loads=loads, options=REPLAY_OPTIONS)
+    assert sol.status[0] == Status.DISPLACEMENT_NOT_MET
+    # each Newton iteration differences 9 tendons and tries 7 step lengths: 30 of them are ~480 solves
+    assert solves[0] < 120, solves[0]
+
+
 def test_friction_with_the_shortcut_termination_or_a_jacobian_is_refused_by_name():
     d = DesignBatch(E=[30e9], r=[8e-4], L=[0.2], offset=[[0.008] * 4], pitch=[[0.0] * 4],
                     tension=[[1.0, 0.0, 0.0, 0.0]], friction=[[0.1] * 4])
