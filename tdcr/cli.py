@@ -595,7 +595,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"default: {','.join(FIT_DEFAULT_GROUPS)}, without {', '.join(FIT_DISPLACEMENT_ONLY)} "
                         "for drives that command tensions)")
     p.add_argument("--max-iterations", type=int, default=FIT_MAX_ITERATIONS, help="least-squares iterations at most")
-    p.add_argument("--budget", type=float, default=FIT_BUDGET, help="seconds of search at most (then the best point)")
+    p.add_argument("--budget", type=float, default=FIT_BUDGET, help="seconds of search at most (then the best point); "
+                   "under loads the loaded replays come on top")
     p.add_argument("--prior", default=format_prior(FIT_PRIOR),
                    help="Gaussian prior around the robot file's values: GROUP=WIDTH[,GROUP=WIDTH...] in the "
                         "search's units (0.1 rad of a turn, 1 mm of a zero, 10 %% of E ...), or none")

@@ -409,7 +409,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         max_iterations: the most least-squares iterations (each a Jacobian: one replay per
             physics parameter).
         budget: seconds after which the search stops at the best point it has (the standard
-            errors and the reports follow, about one more Jacobian).
+            errors and the reports follow, about one more Jacobian).  Under loads the loaded
+            replays (one at the start, one after each round, and validate's) come on top of it.
         progress: show a progress bar of the replays (tqdm, on stderr).
         workers: kernel threads (0: one per core).
         loss, f_scale: ``least_squares``'s loss on the point errors and its scale, mm (``"linear"``:
@@ -451,6 +452,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     unloaded = replace(robot, loads=None)
     shift: list[_LoadShift | None] = [None]  # the loads' shift of the rows' tip poses (None: no loads)
     loaded_replay: list[Replay | None] = [None]  # the last loaded replay, at the shift's values
+    loaded_seconds = [0.0]  # spent in loaded replays: not the search's, so not its budget's
 
     def unloaded_replay(x: np.ndarray) -> Replay:
         """The replay at ``x`` without loads (cached)."""
@@ -470,14 +472,16 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
 
     def shift_at(x: np.ndarray) -> _LoadShift:
         """The loads' shift at ``x``: one loaded replay against the unloaded one."""
+        begin = time.perf_counter()
         loaded_replay[0] = replay(_apply(robot, layout, x, base_angles), train.commands, workers=workers,
                                   options=REPLAY_OPTIONS)
         solves[0] += 1
         bar.update(1)
+        loaded_seconds[0] += time.perf_counter() - begin
         return _LoadShift.between(loaded_replay[0], unloaded_replay(x))
 
     def residual(z: np.ndarray, *, track: bool = True) -> np.ndarray:
-        if track and time.perf_counter() - start > budget:
+        if track and time.perf_counter() - start - loaded_seconds[0] > budget:
             raise _OutOfTime
         x = x0 + z * scale
         fitted = _apply(robot, layout, x, base_angles)
