@@ -623,8 +623,8 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     flagged ``displacement_not_met`` unless within the tolerance.  With ``sequence`` (one robot's
     commands in order, :func:`tdcr.replay`) only every :data:`LOADED_DISPLACEMENT_SHARED`-th design
     (a leader) differences its Jacobian at the start, and the designs after it start from its
-    Jacobian.  Friction acts as in the unloaded solve
-    (eq. CAP, each tendon's ``motion``): the loaded kernel carries it."""
+    Jacobian.  Friction acts as in the unloaded solve (eq. CAP, each tendon's ``motion``): the
+    loaded kernel carries it."""
     driven = designs.displacement_driven
     wanted = np.where(driven, designs.displacement - designs.resolved("zero"), 0.0)  # w (B, N_t), m
     compliance = designs.compliance

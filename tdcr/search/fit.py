@@ -347,8 +347,8 @@ def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | Non
             return f"{pair[0]} and {pair[1]} set the same values: give one of them"
     inert = [g for g in groups if g in DISPLACEMENT_ONLY]
     if robot is not None and robot.actuation.kind != "displacement" and inert:
-        return (f"{', '.join(inert)} act{'s' if len(inert) == 1 else ''} only on displacement actuation; this "
-                f"robot's drives command "
+        verb = "acts" if len(inert) == 1 else "act"
+        return (f"{', '.join(inert)} {verb} only on displacement actuation; this robot's drives command "
                 f"{robot.actuation.kind}s (actuation.kind)")
     return None
 
