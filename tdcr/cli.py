@@ -86,9 +86,6 @@ def _cmd_fit(args) -> int:
     from tdcr.search.fit import check_f_scale, check_groups, fit, parse_prior, plot
 
     groups = None if args.fit is None else tuple(g.strip() for g in args.fit.split(",") if g.strip())
-    problem = None if groups is None else check_groups(groups)
-    if problem:
-        raise UsageError(f"--fit: {problem}")
     try:
         prior = parse_prior(args.prior)
     except ValueError as exc:
