@@ -19,6 +19,7 @@ import os
 import platform
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import load_robot, read_recording  # noqa: E402
+from tdcr.search.fit import errors  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 #: Each feature set: the replay's values it stacks (tip position mm, tip direction x 100, tensions
@@ -42,10 +44,11 @@ FEATURES = {
 }
 
 
-def aligned_rmse(error: np.ndarray) -> float:
-    """RMS of the 3-D point errors ``(T, 3)`` mm after removing their mean."""
-    centred = error - error.mean(axis=0)
-    return float(np.sqrt((np.linalg.norm(centred, axis=1) ** 2).mean()))
+def corrected(answer, recording, correction: np.ndarray) -> float:
+    """Aligned RMSE, mm, of ``answer``'s points moved by ``correction`` ``(rows with a measurement, 3)`` mm."""
+    points = answer.points.copy()
+    points[recording.has_measurement] += correction * 1e-3
+    return errors(replace(answer, points=points), recording).aligned
 
 
 def main() -> None:
@@ -65,11 +68,9 @@ def main() -> None:
     train, val = read_recording(args.train, robot), read_recording(args.validate, robot)
     keep_t, keep_v = train.has_measurement, val.has_measurement
     answers = [replay(robot, rec.commands, time=rec.time) for rec in (train, val)]
-    predicted_t, predicted_v = (a.points[k] * 1e3 for a, k in zip(answers, (keep_t, keep_v), strict=True))
-    residual_t = train.measured[keep_t] * 1e3 - predicted_t
-    measured_v = val.measured[keep_v] * 1e3
-    print(f"physics alone: val aligned {aligned_rmse(predicted_v - measured_v):.2f} mm, "
-          f"train aligned {aligned_rmse(-residual_t):.2f} mm")
+    residual_t = (train.measured - answers[0].points)[keep_t] * 1e3  # mm
+    print(f"physics alone: val aligned {errors(answers[1], val).aligned:.2f} mm, "
+          f"train aligned {errors(answers[0], train).aligned:.2f} mm")
     print("\n| features | ridge | kNN | GP (train) |\n|---|---|---|---|")
     for name, features in FEATURES.items():
         x_t, x_v = features(answers[0], train)[keep_t], features(answers[1], val)[keep_v]
@@ -82,8 +83,8 @@ def main() -> None:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ConvergenceWarning)
                 model.fit(z_t, residual_t)
-            cells.append(f"{aligned_rmse(predicted_v + model.predict(z_v) - measured_v):.2f}")
-        cells[-1] += f" ({aligned_rmse(model.predict(z_t) - residual_t):.2f})"
+            cells.append(f"{corrected(answers[1], val, model.predict(z_v)):.2f}")
+        cells[-1] += f" ({corrected(answers[0], train, model.predict(z_t)):.2f})"
         print(f"| {name} | {' | '.join(cells)} |")
 
 
