@@ -80,7 +80,7 @@ def main() -> None:
     print(f"\nfit: {result.solves} replays of {len(train.time)} rows; train RMSE {result.train.rmse:.2f} mm, aligned "
           f"{result.train.aligned:.2f} mm (start {result.initial.rmse:.2f} / {result.initial.aligned:.2f})")
     if result.load_rounds:
-        print("under loads, the loaded train RMSE at the start and after each round kept, mm: "
+        print("under loads, the loaded train RMSE after each round kept (the first fitted without them), mm: "
               + ", ".join(f"{e.rmse:.2f}" for e in result.load_rounds))
     for p in result.parameters:
         print(f"  {p.name:18s} {p.value:12.5g} +- {p.stderr:.2g} {p.unit}")
@@ -100,9 +100,9 @@ def main() -> None:
     worst = sorted(result.validate.per_pattern.items(), key=lambda kv: -kv[1])[:5]
     print("\nval patterns, aligned RMSE mm (worst 5): " + ", ".join(f"{k} {v:.2f}" for k, v in worst))
     keep = np.array([worst[0][0] not in str(label) for label in val.labels])
-    err = (result.validate_replay.points - val.measured)[keep & val.has_measurement] * 1e3
-    print(f"val without {worst[0][0]}: aligned {np.sqrt(((err - err.mean(axis=0)) ** 2).sum(axis=1).mean()):.2f} mm, "
-          f"plain {np.sqrt((err**2).sum(axis=1).mean()):.2f} mm ({int(keep.sum())} rows)")
+    rest = errors(result.validate_replay.take(keep), val.take(keep))
+    print(f"val without {worst[0][0]}: aligned {rest.aligned:.2f} mm, plain {rest.rmse:.2f} mm "
+          f"({int(keep.sum())} rows)")
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ robot's marker and base pose, seen through its lag in time when the rows' times 
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,10 @@ class Replay:
     @property
     def converged(self) -> np.ndarray:
         return self.status == 0
+
+    def take(self, keep: np.ndarray) -> Replay:
+        """The rows where ``keep`` ``(T,)`` (bool) is true, in their order (as ``Recording.take``)."""
+        return Replay(**{f.name: getattr(self, f.name)[keep] for f in fields(self)})
 
 
 def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None, motion: np.ndarray | None = None,

@@ -25,14 +25,15 @@ trust-region reflective with bounds, forward-difference Jacobian):
 
 Under the robot file's loads (gravity, a tip wrench) a replay solves every row on the loaded solver,
 80-120x slower than without, too slow for the least squares' hundreds of replays.  The fit then runs
-in rounds (a defect correction, at most :data:`LOADED_ROUNDS`): each round's least squares replays
-without the loads and moves every row's tip pose by the loads' shift, the loaded replay's pose minus
-the unloaded one's at the values the round starts from; one loaded replay at the round's best
-values then gives the next shift and the loaded cost.  The rounds stop when one lowers that cost by
-less than :data:`LOADED_RTOL` (a round that raises it is undone).  The reported errors are the loaded
-replay's at the fitted values.  The search's Jacobian holds the shift fixed, so the steps and the
-standard errors leave out how the loads' effect changes with the values: along a direction that
-only the loads' effect tells apart the rounds move slowly.
+in rounds (a defect correction, at most :data:`LOADED_ROUNDS`).  The first round is the fit without
+the loads: a loaded replay at the file's values, far from the answer, is the costliest of all.  Each
+later round's least squares replays without the loads and moves every row's tip pose by the loads'
+shift, the loaded replay's pose minus the unloaded one's at the values the round starts from.  One
+loaded replay at each round's best values gives the next shift and the loaded cost.  The rounds
+stop when one lowers that cost by less than :data:`LOADED_RTOL` (a round that raises it is undone).
+The reported errors are the loaded replay's at the fitted values.  The search's Jacobian holds the
+shift fixed, so the steps and the standard errors leave out how the loads' effect changes with the
+values: along a direction that only the loads' effect tells apart the rounds move slowly.
 
 A segment is the tendons that end together.  Every parameter is reported with its standard error
 from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p)), taken in the span of the
@@ -291,8 +292,8 @@ class FitResult:
     ``validate_replay``, the ``initial`` train errors, ``seconds``, ``solves`` (replays run) and
     ``prior``, the prior's width of each fitted group that had one (search units: the standard
     errors of those groups carry it), the search's ``groups``, ``loss`` and ``f_scale`` (mm), and
-    under loads ``load_rounds``: the loaded replay's train errors at the start (after the
-    registration) and after each round kept."""
+    under loads ``load_rounds``: the loaded replay's train errors after each round kept (the first
+    round fits without the loads, so ``initial`` is the start's replay without them)."""
 
     robot: Robot
     parameters: list[Parameter]
@@ -410,7 +411,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             physics parameter).
         budget: seconds after which the search stops at the best point it has (the standard
             errors and the reports follow, about one more Jacobian).  Under loads the loaded
-            replays (one at the start, one after each round, and validate's) come on top of it.
+            replays (one after each round, and validate's) come on top of it.
         progress: show a progress bar of the replays (tqdm, on stderr).
         workers: kernel threads (0: one per core).
         loss, f_scale: ``least_squares``'s loss on the point errors and its scale, mm (``"linear"``:
@@ -497,8 +498,6 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             best["cost"], best["z"] = cost, z.copy()
         return r
 
-    if robot.loads is not None:
-        shift[0] = shift_at(x0)
     initial_robot = _apply(robot, layout, x0, base_angles)
     initial = errors(_replay_points(initial_robot, solved(x0), train.time), train)
     if {"base_position", "base_rotation"} <= set(groups):
@@ -509,15 +508,13 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             for k, g in enumerate(layout.groups):
                 if g in ("base_position", "base_rotation"):
                     x0[k] = np.clip(moved[k], lower[k], upper[k])
-    rounds = []  # under loads: the loaded replay's train errors at the start and after each round kept
+    rounds = []  # under loads: the loaded replay's train errors after each round kept
 
     def loaded_errors(z: np.ndarray) -> Errors:
         return errors(_replay_points(_apply(robot, layout, x0 + z * scale, base_angles), loaded_replay[0],
                                      train.time), train)
 
-    if robot.loads is not None:
-        cost = _robust_cost(residual(best["z"], track=False), loss, f_scale)  # the loaded one: the shift is x0's
-        rounds.append(loaded_errors(best["z"]))
+    cost = np.inf  # under loads: the loaded cost after the last round kept (none before the first)
     for _ in range(LOADED_ROUNDS if robot.loads is not None else 1):
         z_start, best["cost"] = best["z"].copy(), np.inf
         try:
@@ -531,6 +528,9 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             break
         if not np.isfinite(best["cost"]):  # the budget was spent before this round searched: keep the last
             best["z"] = z_start
+            if shift[0] is None:  # the first round: its start, replayed under the loads
+                shift[0] = shift_at(x0 + z_start * scale)
+                rounds.append(loaded_errors(z_start))
             break
         last = (z_start, shift[0], loaded_replay[0])
         z_new = best["z"]

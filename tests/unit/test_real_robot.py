@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -182,6 +182,10 @@ def test_replay_in_sequence_equals_independent_solves():
     for t, a in zip((0, 7, len(rec.time) - 1), alone, strict=True):
         np.testing.assert_allclose(a.points[0], together.points[t], rtol=0, atol=1e-8)
     assert together.converged.all()
+    keep = np.arange(len(rec.time)) % 3 == 1  # a fold of the replay is the fold's rows of every field
+    fold = together.take(keep)
+    for field in fields(fold):
+        np.testing.assert_array_equal(getattr(fold, field.name), getattr(together, field.name)[keep])
 
 
 def test_a_warm_start_lost_at_a_release_is_tried_again_from_the_rows_own_start():
@@ -338,11 +342,12 @@ def test_a_fitted_robot_with_friction_replays_in_gravity():
 
 def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
     """A recording made by the loaded solver from a known robot lying in gravity (its tips sag by
-    about 5 mm): the fit under the robot file's loads (rounds of least squares, each with the loads'
-    shift held) finds E and the drive zeros again, each kept round lowers the loaded replay's error,
-    and it ends far below the same fit without the loads; the CLI writes the loads back."""
+    about 5 mm): the fit under the robot file's loads (a first round without them, then rounds of
+    least squares, each with the loads' shift held) finds E and the drive zeros again, each kept
+    round lowers the loaded replay's error, and it ends far below the same fit without the loads;
+    the CLI writes the loads back."""
     from tdcr.robot.real import Recording
-    from tdcr.search.fit import fit
+    from tdcr.search.fit import errors, fit
 
     data = _in_gravity(json.loads(EXAMPLE.read_text()))
     data["design"] |= {"gravity": [9.81, 0.0, 0.0], "density": 40_000.0}  # lying on its side, heavy
@@ -356,17 +361,18 @@ def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
     options = {"groups": ("E", "zero"), "loss": "linear", "prior": None, "max_iterations": 20, "budget": 300}
     result = fit(start, made, **options)
     assert result.robot.loads is not None and result.train_replay.converged.all()
-    rmse = [e.rmse for e in result.load_rounds]  # mm: the start's (loaded), then each round's
+    rmse = [e.rmse for e in result.load_rounds]  # mm: after the first round (fitted without the loads), ...
     assert len(rmse) >= 3 and all(b < a for a, b in zip(rmse, rmse[1:], strict=False))
-    assert rmse[0] == pytest.approx(result.initial.rmse) and rmse[-1] == pytest.approx(result.train.rmse)
-    assert result.initial.rmse > 3.0 and result.train.rmse < 0.3  # 0.17 mm
+    assert rmse[-1] == pytest.approx(result.train.rmse)
+    assert result.initial.rmse > 3.0 and result.train.rmse < 0.1  # 0.034 mm
     values = {p.name: p.value for p in result.parameters}
-    assert values["E"] == pytest.approx(50e9, rel=1e-2)
+    assert values["E"] == pytest.approx(50e9, rel=2e-3)
     taut = replay(truth, rec.commands).tension.max(axis=0) > 0.0  # a tendon slack throughout shows no zero
     zeros = np.array([values[f"zero[{i}]"] for i in range(9)])
-    np.testing.assert_allclose(zeros[taut], truth.design.resolved("zero")[0, taut], atol=5e-5)
+    np.testing.assert_allclose(zeros[taut], truth.design.resolved("zero")[0, taut], atol=3e-5)  # 21 um
     spent = fit(start, made, **(options | {"budget": 0.0}))  # no time to search: the start, replayed under loads
-    assert len(spent.load_rounds) == 1 and spent.train.rmse == pytest.approx(result.initial.rmse)
+    loaded_start = errors(replay(start, made.commands, time=made.time), made)
+    assert len(spent.load_rounds) == 1 and spent.train.rmse == pytest.approx(loaded_start.rmse, rel=1e-9)
     without = fit(replace(start, loads=None), made, **options)
     assert without.train.rmse > 3.0 * result.train.rmse  # 0.87 mm: the weight is not a matter of E and zeros
 
@@ -377,7 +383,6 @@ def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
                          timeout=600)
     assert run.returncode == 0, run.stderr
     report = json.loads(run.stdout)
-    assert report["load_rounds"][0]["rmse_mm"] == pytest.approx(report["initial_train"]["rmse_mm"])
     assert report["train"]["rmse_mm"] == pytest.approx(report["load_rounds"][-1]["rmse_mm"])
     assert report["train"]["rmse_mm"] < report["initial_train"]["rmse_mm"]
     assert load_robot(tmp_path / "fitted.json").loads.gravity.tolist() == [[0.0, 3.0, -9.81]]
