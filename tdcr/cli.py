@@ -582,7 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("fit", "identify a real robot from motion-capture data (the 'design' extra: scipy, matplotlib)")
     p.add_argument("robot", help="robot file: the start of every parameter (with loads: fitted in rounds, "
-                   "each holding the loads' shift of the tips; tdcr/search/fit.py)")
+                   "the first without them, each later one holding the loads' shift of the tips; "
+                   "tdcr/search/fit.py)")
     p.add_argument("train", help="CSV of commands and measured tips to fit")
     p.add_argument("--validate", default=None, help="CSV only scored, by the fitted robot")
     p.add_argument("--out", required=True, help="the fitted robot file (replay, solve and the service take it)")
