@@ -27,7 +27,6 @@ import os
 import platform
 import sys
 import time
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +34,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tdcr.physics.replay import Replay  # noqa: E402
 from tdcr.robot.real import Recording, load_robot, read_recording  # noqa: E402
 from tdcr.search.fit import errors, fit  # noqa: E402
 
@@ -61,11 +59,6 @@ def repeated_commands(recording: Recording, tolerance: float, min_apart: int = 3
     scored = recording.has_measurement
     pairs = cKDTree(recording.commands).query_pairs(tolerance, p=np.inf)
     return sorted((i, j) for i, j in pairs if abs(j - i) > min_apart and scored[i] and scored[j])
-
-
-def rows_of(answer: Replay, keep: np.ndarray) -> Replay:
-    """The rows of a replay where ``keep`` ``(T,)`` is true."""
-    return Replay(**{f.name: getattr(answer, f.name)[keep] for f in fields(answer)})
 
 
 def sweep_loops(recording: Recording, points: np.ndarray, *, span: float = 3e-3,
@@ -123,8 +116,8 @@ def main() -> None:
     n = len(train.time)
     in_train, in_val = np.arange(len(both.time)) < n, np.arange(len(both.time)) >= n
     part = on_both.train_replay
-    joint_train = errors(rows_of(part, in_train), both.take(in_train))
-    joint_val = errors(rows_of(part, in_val), both.take(in_val))
+    joint_train = errors(part.take(in_train), both.take(in_train))
+    joint_val = errors(part.take(in_val), both.take(in_val))
 
     print("\n| fitted on | scored on | aligned RMSE, mm | plain RMSE, mm | max, mm | rows failed | fit, s |")
     print("|---|---|---|---|---|---|---|")
