@@ -26,14 +26,16 @@ trust-region reflective with bounds, forward-difference Jacobian):
 Under the robot file's loads (gravity, a tip wrench) a replay solves every row on the loaded solver,
 80-120x slower than without, too slow for the least squares' hundreds of replays.  The fit then runs
 in rounds (a defect correction, at most :data:`LOADED_ROUNDS`).  The first round is the fit without
-the loads: a loaded replay at the file's values, far from the answer, is the costliest of all.  Each
-later round's least squares replays without the loads and moves every row's tip pose by the loads'
-shift, the loaded replay's pose minus the unloaded one's at the values the round starts from.  One
-loaded replay at each round's best values gives the next shift and the loaded cost.  The rounds
-stop when one lowers that cost by less than :data:`LOADED_RTOL` (a round that raises it is undone).
-The reported errors are the loaded replay's at the fitted values.  The search's Jacobian holds the
-shift fixed, so the steps and the standard errors leave out how the loads' effect changes with the
-values: along a direction that only the loads' effect tells apart the rounds move slowly.
+the loads: a loaded replay at the file's values, far from the answer, is the costliest of all (but
+if a row fails under the loads at its values, the start is replayed under them too, and the next
+round starts there when that is better).  Each later round's least squares replays without the loads
+and moves every row's tip pose by the loads' shift, the loaded replay's pose minus the unloaded
+one's at the values the round starts from.  One loaded replay at each round's best values gives the
+next shift and the loaded cost.  The rounds stop when one lowers that cost by less than
+:data:`LOADED_RTOL` (a round that raises it is undone).  The reported errors are the loaded replay's
+at the fitted values.  The search's Jacobian holds the shift fixed, so the steps and the standard
+errors leave out how the loads' effect changes with the values: along a direction that only the
+loads' effect tells apart the rounds move slowly.
 
 A segment is the tendons that end together.  Every parameter is reported with its standard error
 from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p)), taken in the span of the
@@ -535,9 +537,21 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                 rounds.append(loaded_errors(z_start))
             break
         last = (z_start, shift[0], loaded_replay[0])
+        first = shift[0] is None
         z_new = best["z"]
         shift[0] = shift_at(x0 + z_new * scale)  # the loaded replay at the round's best
         new_cost = _robust_cost(residual(z_new, track=False), loss, f_scale)
+        if first and not loaded_replay[0].converged[scored].all():
+            # values fitted without the loads may not stand under them (a soft column buckles under
+            # its weight): the start replayed under the loads, and the next round from there if it is better
+            found = shift[0], loaded_replay[0]
+            shift[0] = shift_at(x0 + z_start * scale)
+            start_cost = _robust_cost(residual(z_start, track=False), loss, f_scale)
+            if start_cost < new_cost:
+                best["z"], cost = z_start, start_cost
+                rounds.append(loaded_errors(z_start))
+                continue
+            shift[0], loaded_replay[0] = found
         if not new_cost < cost:  # the loaded fit got no better: keep the last round's
             best["z"], shift[0], loaded_replay[0] = last
             break
