@@ -518,6 +518,11 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         return errors(_replay_points(_apply(robot, layout, x0 + z * scale, base_angles), loaded_replay[0],
                                      train.time), train)
 
+    def loaded_cost(z: np.ndarray) -> float:
+        """The loaded cost at ``z``: one loaded replay there, which becomes the shift."""
+        shift[0] = shift_at(x0 + z * scale)
+        return _robust_cost(residual(z, track=False), loss, f_scale)
+
     cost = np.inf  # under loads: the loaded cost after the last round kept (none before the first)
     for _ in range(LOADED_ROUNDS if robot.loads is not None else 1):
         z_start, best["cost"] = best["z"].copy(), np.inf
@@ -533,20 +538,18 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         if not np.isfinite(best["cost"]):  # the budget was spent before this round searched: keep the last
             best["z"] = z_start
             if shift[0] is None:  # the first round: its start, replayed under the loads
-                shift[0] = shift_at(x0 + z_start * scale)
+                loaded_cost(z_start)
                 rounds.append(loaded_errors(z_start))
             break
         last = (z_start, shift[0], loaded_replay[0])
         first = shift[0] is None
         z_new = best["z"]
-        shift[0] = shift_at(x0 + z_new * scale)  # the loaded replay at the round's best
-        new_cost = _robust_cost(residual(z_new, track=False), loss, f_scale)
+        new_cost = loaded_cost(z_new)  # the loaded replay at the round's best
         if first and not loaded_replay[0].converged[scored].all():
             # values fitted without the loads may not stand under them (a soft column buckles under
             # its weight): the start replayed under the loads, and the next round from there if it is better
             found = shift[0], loaded_replay[0]
-            shift[0] = shift_at(x0 + z_start * scale)
-            start_cost = _robust_cost(residual(z_start, track=False), loss, f_scale)
+            start_cost = loaded_cost(z_start)
             if start_cost < new_cost:
                 best["z"], cost = z_start, start_cost
                 rounds.append(loaded_errors(z_start))
