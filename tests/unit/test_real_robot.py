@@ -269,7 +269,7 @@ def test_the_cli_replays_and_exits_2_on_bad_input(tmp_path):
 
 
 def _in_gravity(data: dict) -> dict:
-    """The example robot file without friction, in gravity along the base's -z (hanging upright)."""
+    """The example robot file without friction, in gravity along the base's -z (standing upright, tilted)."""
     data = json.loads(json.dumps(data))
     for tendon in data["design"]["tendons"]:
         tendon["friction"] = 0.0
@@ -387,6 +387,40 @@ def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
     assert report["train"]["rmse_mm"] < report["initial_train"]["rmse_mm"]
     assert load_robot(tmp_path / "fitted.json").loads.gravity.tolist() == [[0.0, 3.0, -9.81]]
 
+
+def test_a_fit_under_loads_starts_again_from_the_start_when_the_first_rounds_values_buckle():
+    """A soft robot standing upright in gravity near its buckling load (E 15 GPa at 90,000 kg/m^3: the
+    heavy column's critical E is about 11.8 GPa).  The fit without the loads lowers E below that, to
+    bend as far as the weight does, and under the weight those values buckle: most rows fail.  The
+    fit under the loads must then go on from the start replayed under them (its first round's errors
+    are the start's), never from the buckled values, and recover E and the zeros."""
+    from tdcr.robot.real import Recording
+    from tdcr.search.fit import errors, fit
+
+    data = _in_gravity(json.loads(EXAMPLE.read_text()))
+    data["design"] |= {"E": 15e9, "gravity": [0.0, 0.0, -9.81], "density": 90_000.0}
+    truth = load_robot(data)
+    truth = replace(truth, design=truth.design.replace(zero=np.linspace(-3e-4, 3e-4, 9)[None]))
+    rec = read_recording(ROOT / "tests" / "data" / "ftdcr_v4_sample.csv", truth)
+    measured = replay(truth, rec.commands, time=rec.time)
+    assert measured.converged.all()
+    made = Recording(time=rec.time, labels=rec.labels, commands=rec.commands, measured=measured.points,
+                     rows=rec.rows, header=rec.header)
+    start = replace(truth, design=truth.design.replace(zero=np.zeros((1, 9))))
+    options = {"groups": ("E", "zero"), "loss": "linear", "prior": None, "max_iterations": 20, "budget": 300}
+
+    without = fit(replace(start, loads=None), made, **options)  # what the first round finds
+    assert without.robot.design.E[0] < 12e9  # 10.1 GPa
+    buckled = replay(replace(without.robot, loads=truth.loads), made.commands, time=made.time)
+    assert buckled.converged.mean() < 0.5  # 3 of 30 rows stand under the weight
+
+    result = fit(start, made, **options)
+    loaded_start = errors(replay(start, made.commands, time=made.time), made)
+    rmse = [e.rmse for e in result.load_rounds]  # mm: 3.56 (the start), 1.78, 1.66, 1.10, 0.95
+    assert rmse[0] == pytest.approx(loaded_start.rmse, rel=1e-9)
+    assert len(rmse) >= 3 and all(b < a for a, b in zip(rmse, rmse[1:], strict=False))
+    assert result.train_replay.converged.all() and result.train.rmse < 0.5 * loaded_start.rmse
+    assert abs(result.robot.design.E[0] - 15e9) < 0.5 * abs(without.robot.design.E[0] - 15e9)  # 14.4 GPa
 
 def test_the_robot_schema_is_committed_and_the_example_follows_it():
     import jsonschema
