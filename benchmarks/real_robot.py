@@ -36,6 +36,22 @@ TARGETS = {"val aligned RMSE, mm": ("<=", 6.5), "val plain RMSE, mm": ("<=", 8.0
            "replay, rows/s": (">=", 2000.0)}
 
 
+def add_load_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--gravity`` and ``--density``: the robot file's loads set from the command line (also
+    ``real_robot_floor.py``'s)."""
+    parser.add_argument("--gravity", default=None, help="GX,GY,GZ m/s^2 in the robot's base frame: fit and replay "
+                        "under it (the robot file's design then carries it, with --density)")
+    parser.add_argument("--density", type=float, default=None, help="with --gravity: the rod's effective density")
+
+
+def robot_under(path: str, args: argparse.Namespace):
+    """The robot file at ``path``, with ``args``' gravity and density (:func:`add_load_arguments`)."""
+    data = json.loads(Path(path).read_text())
+    if args.gravity:
+        data["design"] |= {"gravity": [float(g) for g in args.gravity.split(",")], "density": args.density}
+    return load_robot(data)
+
+
 def _rates(robot, recording, repeats: int = 5) -> np.ndarray:
     """Rows/s of ``repeats`` replays of the recording's commands (with its times: the lag too)."""
     replay(robot, recording.commands[:20])  # compiled
@@ -55,16 +71,11 @@ def main() -> None:
     parser.add_argument("--budget", type=float, default=BUDGET, help="the fit's search budget, s")
     parser.add_argument("--out", default=None, help="write the fitted robot file here")
     parser.add_argument("--fit", default=None, help="the groups fitted (tdcr fit's --fit; default: its defaults)")
-    parser.add_argument("--gravity", default=None, help="GX,GY,GZ m/s^2 in the robot's base frame: fit and replay "
-                        "under it (the robot file's design then carries it, with --density)")
-    parser.add_argument("--density", type=float, default=None, help="with --gravity: the rod's effective density")
+    add_load_arguments(parser)
     parser.add_argument("--repeats", type=int, default=5, help="replays timed, each way")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
-    data = json.loads(Path(args.robot).read_text())
-    if args.gravity:
-        data["design"] |= {"gravity": [float(g) for g in args.gravity.split(",")], "density": args.density}
-    robot = load_robot(data)
+    robot = robot_under(args.robot, args)
     train = read_recording(args.train, robot)
     val = read_recording(args.validate, robot)
     start = time.perf_counter()

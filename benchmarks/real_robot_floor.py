@@ -2,6 +2,7 @@
 
     python benchmarks/real_robot_floor.py                      # the shared FTDCR v4 recording
     python benchmarks/real_robot_floor.py --robot R.json --train T.csv --validate V.csv
+    python benchmarks/real_robot_floor.py --gravity=GX,GY,GZ --density RHO   # the robot in gravity (base frame)
 
 A fit on train can do no better on val than the best parameters for val itself.  This script fits
 the robot file with the default groups (:func:`tdcr.search.fit.fit`, ``--iterations`` least-squares
@@ -34,7 +35,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tdcr.robot.real import Recording, load_robot, read_recording  # noqa: E402
+from real_robot import add_load_arguments, robot_under  # noqa: E402  (this folder's)
+
+from tdcr.robot.real import Recording, read_recording  # noqa: E402
 from tdcr.search.fit import errors, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
@@ -100,9 +103,10 @@ def main() -> None:
     parser.add_argument("--validate", default=str(SHARED / "val.csv"))
     parser.add_argument("--iterations", type=int, default=40, help="least-squares iterations of each fit")
     parser.add_argument("--same", type=float, default=0.05, help="commands agree within this, mm (every drive)")
+    add_load_arguments(parser)
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
-    robot = load_robot(args.robot)
+    robot = robot_under(args.robot, args)
     train, val = read_recording(args.train, robot), read_recording(args.validate, robot)
     budget = 1e9  # the iterations bound each fit, not the clock
 
