@@ -23,6 +23,8 @@ ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "ftdcr_v4.json"
 #: The header and first 30 rows of the shared recording's validation file (tests/data/README.md).
 SAMPLE = ROOT / "tests" / "data" / "ftdcr_v4_sample.csv"
+#: The drive zeros of the known robots the fits must find again, m, (1, 9).
+KNOWN_ZEROS = np.linspace(-3e-4, 3e-4, 9)[None]
 
 
 def _design(n: int = 1, *, tension=(3.0, 0.0, 0.0, 0.0), **fields) -> DesignBatch:
@@ -361,7 +363,7 @@ def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
     data = _in_gravity(json.loads(EXAMPLE.read_text()))
     data["design"] |= {"gravity": [9.81, 0.0, 0.0], "density": 40_000.0}  # lying on its side, heavy
     truth = load_robot(data)
-    truth = replace(truth, design=truth.design.replace(zero=np.linspace(-3e-4, 3e-4, 9)[None]))
+    truth = replace(truth, design=truth.design.replace(zero=KNOWN_ZEROS))
     made, _ = _recorded_by(truth)
     start = replace(truth, design=truth.design.replace(E=np.array([40e9]), zero=np.zeros((1, 9))))
     options = {"groups": ("E", "zero"), "loss": "linear", "prior": None, "max_iterations": 20, "budget": 300}
@@ -406,7 +408,7 @@ def test_a_fit_under_loads_starts_again_from_the_start_when_the_first_rounds_val
     data = _in_gravity(json.loads(EXAMPLE.read_text()))
     data["design"] |= {"E": 15e9, "gravity": [0.0, 0.0, -9.81], "density": 90_000.0}
     truth = load_robot(data)
-    truth = replace(truth, design=truth.design.replace(zero=np.linspace(-3e-4, 3e-4, 9)[None]))
+    truth = replace(truth, design=truth.design.replace(zero=KNOWN_ZEROS))
     made, measured = _recorded_by(truth, rows=20)
     assert measured.converged.all()
     start = replace(truth, design=truth.design.replace(zero=np.zeros((1, 9))))
@@ -445,7 +447,7 @@ def test_fit_recovers_a_known_robot_from_its_own_replay():
 
     truth = load_robot(EXAMPLE)
     truth = replace(truth, design=truth.design.replace(friction=np.full((1, 9), 0.1),
-                                                       zero=np.linspace(-3e-4, 3e-4, 9)[None]),
+                                                       zero=KNOWN_ZEROS),
                     measurement=replace(truth.measurement, base_position=np.array([0.002, -0.001, -0.004]),
                                         time_constant=0.35))
     made, _ = _recorded_by(truth)
