@@ -109,7 +109,9 @@ class Tolerances(NamedTuple):
     max_shooting: int
     shortcut: bool  #: termination "rucker_webster": only the ending tendon's pull at each end (see _jump)
     linearized: bool  #: the first-order strains at every node instead of Newton (the operators' reference robot)
-    warm: bool  #: level 0's Newton starts from ``Shapes.nodes`` (the last solve's strains) instead of the chain
+    #: tendon-only: level 0's Newton starts from ``Shapes.nodes`` (the last solve's strains) instead of the chain;
+    #: loaded: the shooting starts from ``Shapes.m0`` where finite (a nearby solve's M(0); LOADED_WARM_PASSES)
+    warm: bool
     displacement_tol: float  #: displacement actuation: Newton on the tensions stops within this, m (find_tensions)
 
 
@@ -139,13 +141,14 @@ class Shapes(NamedTuple):
     """The outputs, written in place: ``backbone`` (B, n, 3), ``rotation`` (B, n, 3, 3), ``strains``
     (B, n, 6), ``tendons`` (B, n, N_t, 3); per design ``status``, ``residual`` N, ``iterations``
     (Newton iterations, or shooting passes), ``level`` (halvings) and ``estimate``; loaded only,
-    ``m0`` (B, 3) M(0) and ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise); ``displacement``
-    (B, N_t) m: each tendon's undeformed minus deformed path length (:func:`_path_lengths`);
-    ``jacobian`` (B, n, 6, N_t) the pose's sensitivity to the tensions, base frame (rows 0-2 dp/dtau
-    m/N, 3-5 the rotation vector of dR R^T / dtau rad/N; :func:`_pose_tangent`), or (0, ...) when
-    not wanted; ``nodes`` (B, 2 K0 + 1, 6) level 0's node strains (in: the warm starts of
-    ``Tolerances.warm``; out: this solve's), or (0, 0, 6) when not kept; ``profile`` (B, n, N_t) N
-    every tendon's tension at the outputs (eq. CAP; 0 beyond its end)."""
+    ``m0`` (B, 3) M(0) (in: the warm starts of ``Tolerances.warm``; out: this solve's) and
+    ``shoot_jac`` (B, 3, 3) dM(L)/dM(0) (empty otherwise); ``displacement`` (B, N_t) m: each
+    tendon's undeformed minus deformed path length (:func:`_path_lengths`); ``jacobian`` (B, n, 6,
+    N_t) the pose's sensitivity to the tensions, base frame (rows 0-2 dp/dtau m/N, 3-5 the rotation
+    vector of dR R^T / dtau rad/N; :func:`_pose_tangent`), or (0, ...) when not wanted; ``nodes``
+    (B, 2 K0 + 1, 6) level 0's node strains (in: the warm starts of ``Tolerances.warm``; out: this
+    solve's), or (0, 0, 6) when not kept; ``profile`` (B, n, N_t) N every tendon's tension at the
+    outputs (eq. CAP; 0 beyond its end)."""
 
     backbone: np.ndarray
     rotation: np.ndarray
@@ -1955,7 +1958,7 @@ def _shoot_residual(y, lam, edges, rod, capstan, load, tols, record, jac, resid)
 
 
 @njit(cache=True, error_model="numpy")
-def _shoot(y, lam, edges, rod, capstan, load, tols, scale, record, info, jac):
+def _shoot(y, lam, edges, rod, capstan, load, tols, scale, record, info, jac, max_passes):
     """Newton on the tip conditions of the :class:`Rod` ``rod`` for the unknowns ``y`` = (N(0), M(0))
     (in place), the :class:`Load` ``load`` scaled by ``lam``, with backtracking when a step does not reduce the
     mismatch.  Consistent termination: N(0) is known, M(0) alone is shot with the variational Jacobian dM(L)/dM(0);
@@ -1963,9 +1966,9 @@ def _shoot(y, lam, edges, rod, capstan, load, tols, scale, record, info, jac):
     6 x 6 Jacobian comes from one-sided differences (6 more passes).  Every pass
     records the poses and strains into ``record`` (:func:`_shoot_pass`), so on success they are those
     of the result; ``info`` (3,) receives the mismatch (N m), the pass's local flag (1/0) and its
-    largest local residual (N), ``jac`` (3, 3) dM(L)/dM(0) of the last pass.
-    Returns (converged, passes, det of the shooting Jacobian)."""
-    length, shortcut, shoot_tol, max_shoot = rod.length, tols.shortcut, tols.shooting_tol, tols.max_shooting
+    largest local residual (N), ``jac`` (3, 3) dM(L)/dM(0) of the last pass; at most ``max_passes``
+    passes, backtracks included.  Returns (converged, passes, det of the shooting Jacobian)."""
+    length, shortcut, shoot_tol, max_shoot = rod.length, tols.shortcut, tols.shooting_tol, max_passes
     out_step, pos, rot, x, gain = record
     first = 0 if shortcut else 3
     step, y_prev = np.zeros(6), y.copy()
@@ -2047,15 +2050,25 @@ def _masked_richardson(fine, coarse, out_step):
     return math.sqrt(diff / norm) / 15.0 if norm > 0.0 else math.sqrt(diff) / 15.0
 
 
+#: a warm start's shooting passes at most; one that needs more is not near and gives way to the cold
+#: first guess.  FTDCR v4 (fitted) in gravity: warm solves take 5 passes in all at the median (the
+#: coarse grid's estimate included; cold: 7 and the first guess's pass); v6 upright, near buckling:
+#: warm starts allowed the full max_shooting made its loaded displacement solves 1.5x slower
+LOADED_WARM_PASSES = 5
+
+
 @njit(cache=True, error_model="numpy")
-def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac):
+def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac, m0_start):
     """One design, the :class:`Rod` ``rod`` with its tendons' ``capstan`` (N_t,) (eq. CAP), under its
     :class:`Load` ``load``: distributed weight
     ``f_g`` (N/m, base frame) and tip loads ``f_tip`` (N), ``m_tip`` (N m), on the :class:`Grid` ``grid`` (its edges
     must end at 1: the tip condition) with every tendon end added (:func:`_with_ends`); with ``tols.shortcut`` Rucker &
     Webster's rule at
     the ends (:func:`_jump`).  ``shoot_jac`` (3, 3) receives the shooting Jacobian dM(L)/dM(0) at the
-    result (the identity for the unloaded rod; the caller judges several equilibria from it).
+    result (the identity for the unloaded rod; the caller judges several equilibria from it).  With
+    ``tols.warm`` the shooting starts from ``m0_start`` (3,) N m where finite (a nearby solve's M(0),
+    at most :data:`LOADED_WARM_PASSES` passes), else from the loads' moment about the base on the
+    tendon-only shape, with load continuation where that fails.
     Writes backbone, frames, strains, tendons and displacements into the :class:`DesignShapes` ``view``.
     Returns (status, residual N, shooting passes, level, error estimate, M(0) x 3)."""
     length, offset, pitch, angle, tau, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.tension, rod.end
@@ -2078,38 +2091,43 @@ def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac):
     pos, rot, xo, gain = np.zeros((n_ext, 3)), np.zeros((n_ext, 3, 3)), np.zeros((n_ext, 6)), np.ones((n_ext, n_t))
     rho_out = _output_offsets(fractions_out, length, offset, pitch, angle)
     k0 = edges0.shape[0] - 1
-    # first guess: the loads' moment about the base on the tendon-only shape (its tip from one pass)
-    tip_step = np.array([k0], dtype=np.int64)
-    tip_p, tip_r, tip_x, tip_g = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6)), np.empty((1, n_t))
-    zero3 = np.zeros(3)
-    jac = np.empty((3, 3))
-    _shoot_pass(zero3.copy(), zero3.copy(), edges0, rod, capstan, zero3, tols, False, False,
-                (tip_step, tip_p, tip_r, tip_x, tip_g), jac, np.empty(0))
-    tip = tip_p[0]
-    y = np.zeros(6)
-    half = 0.5 * length
+    info, jac, y = np.empty(3), np.empty((3, 3)), np.zeros(6)
     for i in range(3):
         y[i] = f_tip[i] + f_g[i] * length
-    y[3] = tip[1] * f_tip[2] - tip[2] * f_tip[1] + m_tip[0] + half * (tip[1] * f_g[2] - tip[2] * f_g[1])
-    y[4] = tip[2] * f_tip[0] - tip[0] * f_tip[2] + m_tip[1] + half * (tip[2] * f_g[0] - tip[0] * f_g[2])
-    y[5] = tip[0] * f_tip[1] - tip[1] * f_tip[0] + m_tip[2] + half * (tip[0] * f_g[1] - tip[1] * f_g[0])
-    start = y.copy()
-    info = np.empty(3)
+    ok, passes, det = False, 0, np.nan
+    if tols.warm and m0_start[0] == m0_start[0] and m0_start[1] == m0_start[1] and m0_start[2] == m0_start[2]:
+        y[3], y[4], y[5] = m0_start[0], m0_start[1], m0_start[2]  # a nearby solve's M(0)
+        ok, passes, det = _shoot(y, 1.0, edges0, rod, capstan, load, tols, scale, (steps0, pos, rot, xo, gain), info,
+                                 shoot_jac, min(LOADED_WARM_PASSES, tols.max_shooting))
     none = np.full(n_ext, -1, dtype=np.int64)  # continuation steps record nothing
-    ok, passes, det = _shoot(y, 1.0, edges0, rod, capstan, load, tols, scale, (steps0, pos, rot, xo, gain), info,
-                             shoot_jac)
-    for n_steps in (4, 16):  # load continuation from the tendon-only state when the direct Newton fails
-        if ok:
-            break
-        y[:] = 0.0
-        for k in range(1, n_steps + 1):
-            for i in range(6):
-                y[i] += start[i] / n_steps  # predictor: the first guess scales with the loads
-            ok, used, det = _shoot(y, k / n_steps, edges0, rod, capstan, load, tols, scale,
-                                   (steps0 if k == n_steps else none, pos, rot, xo, gain), info, shoot_jac)
-            passes += used
-            if not ok:
+    if not ok:
+        # first guess: the loads' moment about the base on the tendon-only shape (its tip from one pass)
+        tip_step = np.array([k0], dtype=np.int64)
+        tip_p, tip_r, tip_x, tip_g = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6)), np.empty((1, n_t))
+        zero3 = np.zeros(3)
+        _shoot_pass(zero3.copy(), zero3.copy(), edges0, rod, capstan, zero3, tols, False, False,
+                    (tip_step, tip_p, tip_r, tip_x, tip_g), jac, np.empty(0))
+        tip, half = tip_p[0], 0.5 * length
+        y[3] = tip[1] * f_tip[2] - tip[2] * f_tip[1] + m_tip[0] + half * (tip[1] * f_g[2] - tip[2] * f_g[1])
+        y[4] = tip[2] * f_tip[0] - tip[0] * f_tip[2] + m_tip[1] + half * (tip[2] * f_g[0] - tip[0] * f_g[2])
+        y[5] = tip[0] * f_tip[1] - tip[1] * f_tip[0] + m_tip[2] + half * (tip[0] * f_g[1] - tip[1] * f_g[0])
+        start = y.copy()
+        ok, used, det = _shoot(y, 1.0, edges0, rod, capstan, load, tols, scale, (steps0, pos, rot, xo, gain), info,
+                               shoot_jac, tols.max_shooting)
+        passes += used
+        for n_steps in (4, 16):  # load continuation from the tendon-only state when the direct Newton fails
+            if ok:
                 break
+            y[:] = 0.0
+            for k in range(1, n_steps + 1):
+                for i in range(6):
+                    y[i] += start[i] / n_steps  # predictor: the first guess scales with the loads
+                ok, used, det = _shoot(y, k / n_steps, edges0, rod, capstan, load, tols, scale,
+                                       (steps0 if k == n_steps else none, pos, rot, xo, gain), info, shoot_jac,
+                                       tols.max_shooting)
+                passes += used
+                if not ok:
+                    break
     _loaded_outputs(out_step0, rho_out, pos[:n_out], rot[:n_out], tendons_out)
     mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
     # the free estimate: the coarse grid joins pairs of equal steps (as the tendon-only kernel)
@@ -2133,7 +2151,7 @@ def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac):
     c_y = y.copy()
     c_info = np.empty(3)
     c_ok, used, _ = _shoot(c_y, 1.0, c_edges, rod, capstan, load, tols, scale, (c_out, c_pos, c_rot, c_x, c_gain),
-                           c_info, jac)
+                           c_info, jac, tols.max_shooting)
     passes += used
     _loaded_outputs(c_out, rho_out, c_pos, c_rot, coarse)
     estimate = _masked_richardson(tendons_out, coarse, c_out) if c_ok else np.inf
@@ -2150,7 +2168,7 @@ def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac):
         edges = finer
         steps = np.where(steps >= 0, steps * 2, steps)
         ok, used, det = _shoot(y, 1.0, edges, rod, capstan, load, tols, scale, (steps, pos, rot, xo, gain), info,
-                               shoot_jac)
+                               shoot_jac, tols.max_shooting)
         passes += used
         _loaded_outputs(steps[:n_out], rho_out, pos[:n_out], rot[:n_out], tendons_out)
         mismatch, local_ok, worst = info[0], info[1] > 0.0, info[2]
@@ -2189,10 +2207,10 @@ def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac):
 def solve_loaded_batch(rods, loads, grid, tols, out):
     """:func:`solve_loaded_design` for every design of :class:`Rods` ``rods`` under :class:`Loads`
     ``loads``, without the GIL (:func:`tdcr.physics.cosserat._run_kernel` runs chunks side by side),
-    into the :class:`Shapes` ``out`` (``iterations``: passes)."""
+    into the :class:`Shapes` ``out`` (``iterations``: passes; ``m0`` read first with ``tols.warm``)."""
     for b in range(rods.length.shape[0]):
         res = solve_loaded_design(_rod(rods, b), rods.capstan[b], _load(loads, b), grid, tols, _design_shapes(out, b),
-                                  out.shoot_jac[b])
+                                  out.shoot_jac[b], out.m0[b])
         _store_summary(out, b, res)
         m0 = out.m0[b]
         m0[0], m0[1], m0[2] = res[5], res[6], res[7]

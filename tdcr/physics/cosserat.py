@@ -543,15 +543,20 @@ def _from_kernel(designs: DesignBatch, mat: _Material, fractions_out: np.ndarray
 
 
 def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads, opts: SolverOptions,
-                           threads: int, *, shortcut: bool = False) -> RodSolution:
+                           threads: int, *, shortcut: bool = False,
+                           base_moment: np.ndarray | None = None) -> RodSolution:
     """The loaded shooting kernel (:func:`tdcr.physics._kernel.solve_loaded_design`) on ``threads``
     threads (0: all): variational shooting Jacobian, load continuation when needed, RK4 with the
-    step controlled per design like the tendon-only kernel."""
+    step controlled per design like the tendon-only kernel.  ``base_moment`` ``(B, 3)`` N m (float64,
+    C-contiguous): the shooting's M(0) to start each design from where finite (a nearby solve's; NaN:
+    the cold first guess), overwritten with each result's M(0)."""
     mat = material(designs)
     f_g, f_tip, m_tip = loads.resolved(designs.n_designs, mat.area)
     edges0 = _base_edges(fractions_out, opts.max_step_loads)
     kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=True,
                                                    shortcut=shortcut)
+    if base_moment is not None:  # the kernel reads its starts from m0 and writes the results there
+        out, tols = out._replace(m0=base_moment), _tolerances(opts, shortcut=bool(shortcut), warm=True)
     _run_kernel(kernel.solve_loaded_batch, threads, designs.n_designs, rods,
                 kernel.Loads(f_g=_kernel_array(f_g), f_tip=_kernel_array(f_tip), m_tip=_kernel_array(m_tip)), grid,
                 tols, out)
@@ -614,7 +619,8 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     with its slack branch: w_i its pull-in minus its drive's ``zero``, c_i its compliance 1 /
     stiffness, d_i(tau) the shortening of its path under the tensions and the loads, s_i > 0 a scale
     in m/N), then the loaded solve at those tensions.  Semismooth Newton on the loaded kernel,
-    started from the unloaded solve's tensions; the path lengths' Jacobian by forward differences
+    started from the unloaded solve's tensions, each loaded solve's shooting started from the M(0) of
+    the design's last accepted one; the path lengths' Jacobian by forward differences
     (one loaded solve per driven tendon, every design in one batch), then kept up to date by
     Broyden's update along each step, and differenced again where no step along it lowers the miss.
     Each step is capped like the unloaded kernel's (1 N + 50 % of the tension) and halved until the
@@ -632,12 +638,14 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     start = _solve_displacement(designs, fractions_out, opts, threads).tension
     tension = np.maximum(np.nan_to_num(np.where(driven, start, designs.tension)), 0.0)
     scale = np.ones((b, n_t))  # s: the path's own stiffness dd_i/dtau_i, from each Jacobian
+    moments = np.full((b, 3), np.nan)  # M(0) of each design's last accepted loaded solve, N m (NaN: none yet)
 
-    def miss_at(tau: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    def miss_at(tau: np.ndarray, rows: np.ndarray, start: np.ndarray) -> np.ndarray:
         """r = c tau + d(tau) - w (len(rows), N_t), m, of designs ``rows`` at tensions ``tau`` (NaN
-        where the loaded solve failed)."""
+        where the loaded solve failed), their shooting started from ``start`` (len(rows), 3), which
+        receives the results' M(0)."""
         sol = _solve_loaded_compiled(designs.take(rows).replace(tension=tau, displacement=None), fractions_out,
-                                     loads.take(rows), opts, threads)
+                                     loads.take(rows), opts, threads, base_moment=start)
         miss = compliance[rows] * tau + sol.displacement - wanted[rows]
         return np.where((sol.status == Status.CONVERGED.value)[:, None], miss, np.nan)
 
@@ -649,7 +657,7 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
         return np.where(np.isfinite(values).all(axis=1), np.abs(values).max(axis=1, initial=0.0), np.inf)
 
     rows = np.arange(b)
-    miss = miss_at(tension, rows)
+    miss = miss_at(tension, rows, moments)
     found = np.zeros(b, dtype=bool)
     stuck = np.zeros(b, dtype=bool)  # no step from here lowers the miss, along a Jacobian differenced here
     jacobians, refresh = np.zeros((b, n_t, n_t)), np.ones(b, dtype=bool)  # dr/dtau (m/N), and where to difference
@@ -682,7 +690,7 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
                 h = LOADED_DISPLACEMENT_DIFF * np.maximum(1.0, tau[stale, j])
                 bumped = tau[stale].copy()
                 bumped[:, j] += h
-                fresh[:, :, j] = (miss_at(bumped, rows[stale]) - miss[stale]) / h[:, None]
+                fresh[:, :, j] = (miss_at(bumped, rows[stale], moments[rows[stale]]) - miss[stale]) / h[:, None]
             jacobians[rows[stale]], refresh[rows[stale]] = fresh, False
         differenced = np.zeros(rows.size, dtype=bool)
         differenced[stale] = True
@@ -701,13 +709,14 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
         pending = np.arange(rows.size)
         for halving in range(LOADED_DISPLACEMENT_HALVINGS + 1):
             trial = np.maximum(tau[pending] + step[pending] / 2.0**halving, 0.0)
-            trial_miss = miss_at(trial, rows[pending])
+            trial_moments = moments[rows[pending]]  # a copy: kept below where the step is
+            trial_miss = miss_at(trial, rows[pending], trial_moments)
             better = worst(phi(trial, trial_miss, rows[pending])) < before[pending]
             if halving == LOADED_DISPLACEMENT_HALVINGS:
                 refresh[rows[pending]] = True  # no step along it lowered the miss: differences next time
                 better = np.isfinite(trial_miss).all(axis=1)  # the last halving is kept where it solved
             keep = pending[better]
-            tau[keep], miss[keep] = trial[better], trial_miss[better]
+            tau[keep], miss[keep], moments[rows[keep]] = trial[better], trial_miss[better], trial_moments[better]
             pending = pending[~better]
             if not pending.size:
                 break
@@ -723,7 +732,7 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
         # steps (every solve is deterministic): such a design is left where it is, to its status
         stuck[rows] = differenced & (moved == 0.0).all(axis=1)
     sol = _solve_loaded_compiled(designs.replace(tension=tension, displacement=None), fractions_out, loads, opts,
-                                 threads)
+                                 threads, base_moment=moments)
     status = sol.status.copy()
     status[(status == Status.CONVERGED.value) & ~found] = Status.DISPLACEMENT_NOT_MET.value
     slack = driven & (tension == 0.0) & (compliance * tension + sol.displacement - wanted > opts.displacement_tol)

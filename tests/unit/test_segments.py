@@ -200,6 +200,27 @@ def test_a_series_spring_in_gravity_pulls_with_k_times_the_pull_in_it_takes_up()
     np.testing.assert_array_equal(sol.tension[:, 3], 0.5)  # tension-driven: as given
 
 
+def test_a_warm_started_loaded_solve_gives_the_cold_answer_in_fewer_passes():
+    """The loaded shooting started from a nearby solve's M(0) (the loaded displacement solve's
+    Newton steps): the answer of the cold first guess to the shooting's tolerance, in no more passes; a
+    NaN start is the cold solve, bit for bit, and every start is overwritten with its result's M(0)."""
+    rng = np.random.default_rng(17)
+    d, loads, opts = two_segments(6, pitch=4.0), _in_gravity(6), SolverOptions()
+    first = np.full((6, 3), np.nan)
+    cold = _solve_loaded_compiled(d, FRACTIONS, loads, opts, 1)
+    unstarted = _solve_loaded_compiled(d, FRACTIONS, loads, opts, 1, base_moment=first)
+    np.testing.assert_array_equal(unstarted.tendons, cold.tendons)
+    np.testing.assert_array_equal(unstarted.iterations, cold.iterations)
+    assert cold.converged.all() and np.isfinite(first).all()
+    nearby = d.replace(tension=d.tension * rng.uniform(0.98, 1.02, d.tension.shape))
+    again = _solve_loaded_compiled(nearby, FRACTIONS, loads, opts, 1)
+    warm = _solve_loaded_compiled(nearby, FRACTIONS, loads, opts, 1, base_moment=first.copy())
+    assert warm.converged.all()
+    assert relative_l2(warm.tendons, again.tendons).max() < 1e-9
+    # (the cold first guess's tendon-only pass, which a warm start skips, is not among the passes counted)
+    assert (warm.iterations <= again.iterations).all() and warm.iterations.sum() < again.iterations.sum()
+
+
 def test_vanishing_loads_give_the_unloaded_displacement_answer():
     """A tip force of 1e-12 N: the loaded displacement solve returns the unloaded one's tensions."""
     rng = np.random.default_rng(5)
