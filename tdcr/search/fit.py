@@ -24,7 +24,7 @@ trust-region reflective with bounds, forward-difference Jacobian):
   cannot turn the base by half a turn.
 
 Under the robot file's loads (gravity, a tip wrench) a replay solves every row on the loaded solver,
-80-120x slower than without, too slow for the least squares' hundreds of replays.  The fit then runs
+60-90x slower than without, too slow for the least squares' hundreds of replays.  The fit then runs
 in rounds (a defect correction, at most :data:`LOADED_ROUNDS`).  The first round is the fit without
 the loads: a loaded replay at the file's values, far from the answer, is the costliest of all (but
 if a row fails under the loads at its values, the start is replayed under them too, and the next
@@ -476,7 +476,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     def shift_at(x: np.ndarray) -> _LoadShift:
         """The loads' shift at ``x``: one loaded replay against the unloaded one."""
         begin = time.perf_counter()
-        bar.set_postfix_str("a replay under the loads", refresh=True)  # one tick, 80-120x a plain replay's time
+        bar.set_postfix_str("a replay under the loads", refresh=True)  # one tick, 60-90x a plain replay's time
         loaded_replay[0] = replay(_apply(robot, layout, x, base_angles), train.commands, workers=workers,
                                   options=REPLAY_OPTIONS)
         solves[0] += 1
