@@ -14,27 +14,46 @@ from tdcr.surrogates.runtime import Surrogate
 
 @pytest.mark.parametrize("name", ["deeponet", "fno_pose"])
 def test_concurrent_requests_get_their_own_rows(tiny_models, name):
+    """Requests that arrive while the model is busy are merged into a few runs, whatever the
+    scheduler does: the first two runs (one inline, one on the worker) are held until the other 28
+    requests are queued, and each request gets exactly its own rows."""
     model = Surrogate.load(tiny_models[1], name)
     batcher = Batcher(model, max_designs=64)
     feats = design_space.sample_designs(40, seed=11).features()
     sigmas = [np.linspace(0, 1, 42), np.array([0.0, 0.3, 1.0])]
     jobs = [(feats[i:i + 1 + i % 3], sigmas[i % 2], i % 4 != 0) for i in range(30)]
     results: dict[int, dict] = {}
-    gate = threading.Barrier(len(jobs))
+    running, release, real_predict = threading.Semaphore(0), threading.Event(), model.predict
+
+    def held(*args, **kwargs):  # the real model, once the queue is full
+        running.release()
+        release.wait(60)
+        return real_predict(*args, **kwargs)
+
+    model.predict = held
 
     def call(i):
         f, s, pose = jobs[i]
-        gate.wait()  # all submit at once, so the worker finds many queued
         results[i] = batcher.predict(f, s, pose=pose)
 
     threads = [threading.Thread(target=call, args=(i,)) for i in range(len(jobs))]
-    for t in threads:
+    for t in threads[:2]:  # the first runs inline, the second on the worker: both held
         t.start()
+        assert running.acquire(timeout=60)
+    for t in threads[2:]:
+        t.start()
+    for _ in range(600):  # nothing takes from the queue while both runs are held
+        if batcher._queue.qsize() == len(jobs) - 2:
+            break
+        threading.Event().wait(0.1)
+    assert batcher._queue.qsize() == len(jobs) - 2
+    release.set()
     for t in threads:
         t.join(timeout=60)
     batcher.close()
+    model.predict = real_predict
     assert len(results) == len(jobs)
-    assert batcher.runs < len(jobs)  # requests were merged
+    assert batcher.runs <= 2 + 4  # the 28 queued: one run per (arclengths, pose) group
     for i, (f, s, pose) in enumerate(jobs):
         alone = model.predict(f, s, pose=pose)
         assert set(results[i]) == set(alone)
