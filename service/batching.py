@@ -47,6 +47,11 @@ class Batcher:
         self._thread.start()
 
     @property
+    def queued(self) -> int:
+        """Requests waiting for the worker (a request that runs inline never waits)."""
+        return self._queue.qsize()
+
+    @property
     def takes_loads(self) -> bool:
         return self.model.takes_loads
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -43,10 +44,10 @@ def test_concurrent_requests_get_their_own_rows(tiny_models, name):
     for t in threads[2:]:
         t.start()
     for _ in range(600):  # nothing takes from the queue while both runs are held
-        if batcher._queue.qsize() == len(jobs) - 2:
+        if batcher.queued == len(jobs) - 2:
             break
-        threading.Event().wait(0.1)
-    assert batcher._queue.qsize() == len(jobs) - 2
+        time.sleep(0.1)
+    assert batcher.queued == len(jobs) - 2
     release.set()
     for t in threads:
         t.join(timeout=60)
