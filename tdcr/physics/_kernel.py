@@ -981,7 +981,7 @@ MAX_DISPLACEMENT_ITERATIONS = 50
 
 
 @njit(cache=True, error_model="numpy")
-def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, known):
+def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, known, carried):
     """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
     (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
     with the ends (:func:`_with_ends`).  A tendon with series elasticity (``compliance`` c_i =
@@ -998,7 +998,11 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
     more than it was pulled in) is slack: tension 0, ``slack[i]`` True.  ``dlen`` (N_t, N_t) holds
     the path lengths' Jacobian, in and out: with ``known[0]`` the one left by the design before in a
     sequence (its first step then a chord step: the commands of neighbouring rows are close), and
-    ``known[0]`` is set once one is computed here.  Returns (converged, iterations)."""
+    ``known[0]`` is set once one is computed here.  ``carried`` (N_t,) m holds the path lengths at the
+    start tensions where ``known[1]`` (the design before in a sequence, the same robot at the same motions,
+    ended at these tensions: its last shooting is this one's first, so it is skipped), and the lengths of
+    the last shooting on return (``known[1]`` then says whether they are the returned tensions').  Returns
+    (converged, shootings)."""
     length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, compliance
     edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
     k0 = edges.shape[0] - 1
@@ -1021,13 +1025,21 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
     # with friction the Jacobian holds the wrap angles fixed: a secant (Broyden) update adds what it misses
     secant = has_friction(capstan)
     misses, miss_before = np.zeros(n_t), np.zeros(n_t)
+    shootings = 0
     for it in range(MAX_DISPLACEMENT_ITERATIONS):
-        xs[:, :] = 0.0
-        xs[0, 2] = 1.0
-        ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
-        if not ok:
-            return False, it + 1
-        _path_lengths_of(sig, act, stretch, rod, lengths)
+        if it == 0 and known[1] and known[0]:
+            lengths[:] = carried
+        else:
+            xs[:, :] = 0.0
+            xs[0, 2] = 1.0
+            shootings += 1
+            ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
+            if not ok:
+                known[1] = False
+                return False, shootings
+            _path_lengths_of(sig, act, stretch, rod, lengths)
+        carried[:] = lengths
+        known[1] = True
         # residual and the free set: driven tendons that pull, or at zero tension but short of their target
         n_free, worst, merit = 0, 0.0, 0.0
         for i in range(n_t):
@@ -1043,18 +1055,20 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
                 merit += miss * miss
             slack[i] = tau[i] == 0.0 and miss > 0.0
         if worst <= tols.displacement_tol:
-            return True, it + 1
+            return True, shootings
         if not (merit < last_merit) and alpha > _MIN_DAMPING:  # the step overshot: half as far along it
             alpha *= 0.5
             for i in range(n_t):
                 tau[i] = max(tau_before[i] + alpha * full_step[i], 0.0)
+            known[1] = False
             continue
         last_merit, alpha = merit, 1.0
         if (it == 0 and not known[0]) or worst > (_SECANT_RATE if secant else _CHORD_RATE) * last_worst:
             # the Jacobian anew (else the last one, or the row before's: a chord step, with friction
             # updated by the secant after each kept step)
             if not _sensitivities(sig, act, xs, rod, sens, gains):
-                return False, it + 1
+                known[1] = False
+                return False, shootings
             _path_lengths(sig, act, xs, rod, sens, lengths, dlen)
             known[0] = True
         elif secant and it > 0:
@@ -1085,7 +1099,8 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
         for p in range(n_free):
             full_step[idx[p]] = reach * step[p]
             tau[idx[p]] = max(tau[idx[p]] + reach * step[p], 0.0)
-    return False, MAX_DISPLACEMENT_ITERATIONS
+        known[1] = False  # the tensions moved past the lengths' shooting
+    return False, shootings
 
 
 @njit(cache=True, error_model="numpy")
@@ -1111,32 +1126,57 @@ def _secant_update(dlen, comp, target, tau, tau_before, misses, miss_before):
             dlen[i, j] -= surprise * (tau[j] - tau_before[j]) / norm
 
 
+@njit(cache=True, error_model="numpy")
+def _same_rod(rods, b, target):
+    """Whether design ``b`` of :class:`Rods` ``rods`` is design ``b - 1`` but for its driven tendons'
+    targets (``target`` (B, N_t), NaN: tension-driven, whose tensions must agree too): a shooting of
+    the one at given tensions is the other's."""
+    for a in range(3):
+        if rods.kse[b, a] != rods.kse[b - 1, a] or rods.kbt[b, a] != rods.kbt[b - 1, a]:
+            return False
+    if rods.radius[b] != rods.radius[b - 1] or rods.length[b] != rods.length[b - 1]:
+        return False
+    for i in range(target.shape[1]):
+        if (rods.offset[b, i] != rods.offset[b - 1, i] or rods.pitch[b, i] != rods.pitch[b - 1, i]
+                or rods.angle[b, i] != rods.angle[b - 1, i] or rods.end[b, i] != rods.end[b - 1, i]
+                or rods.compliance[b, i] != rods.compliance[b - 1, i] or rods.capstan[b, i] != rods.capstan[b - 1, i]):
+            return False
+        if target[b, i] != target[b, i] and not (target[b - 1, i] != target[b - 1, i]
+                                                 and rods.tension[b, i] == rods.tension[b - 1, i]):
+            return False
+    return True
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, sequence):
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
-    targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED.  With
-    ``sequence`` the designs are one robot's commands in order: each driven tendon's Newton starts
-    from the tension found for the design before (a warm start), and with the Jacobian it left; a
-    warm start that fails (a large step of the commands, e.g. a release from 8 mm to 0, can lead
-    Newton away) is followed by one more try from the design's own start, as alone."""
+    targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED,
+    ``iterations`` (B,) the shootings each took.  With ``sequence`` the designs are one robot's
+    commands in order: each driven tendon's Newton starts from the tension found for the design
+    before (a warm start), and with the Jacobian it left; where the design is the one before but for
+    its targets (:func:`_same_rod`: the same motions too), also with that design's last shooting,
+    so it shoots once less (a held row, not at all); a warm start that fails (a large step of the
+    commands, e.g. a release from 8 mm to 0, can lead Newton away) is followed by one more try from
+    the design's own start, as alone."""
     n_t = target.shape[1]
-    dlen, known = np.empty((n_t, n_t)), np.zeros(1, dtype=np.bool_)
+    dlen, known, carried = np.empty((n_t, n_t)), np.zeros(2, dtype=np.bool_), np.empty(n_t)
     cold = np.empty(n_t)
     for b in range(rods.length.shape[0]):
         warm = sequence and b > 0 and status[b - 1] == OK
         known[0] = known[0] and warm
+        known[1] = known[1] and warm and _same_rod(rods, b, target)
         for i in range(n_t):
             cold[i] = rods.tension[b, i]
             if warm and target[b, i] == target[b, i]:
                 rods.tension[b, i] = rods.tension[b - 1, i]
         ok, it = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols, slack[b],
-                               dlen, known)
+                               dlen, known, carried)
         if warm and not ok:
             for i in range(n_t):
                 rods.tension[b, i] = cold[i]
-            known[0] = False
+            known[0], known[1] = False, False
             ok, more = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols,
-                                     slack[b], dlen, known)
+                                     slack[b], dlen, known, carried)
             it += more
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)

@@ -192,6 +192,29 @@ def test_replay_in_sequence_equals_independent_solves():
         np.testing.assert_array_equal(getattr(fold, field.name), getattr(together, field.name)[keep])
 
 
+def test_a_row_like_the_one_before_but_for_its_motion_or_a_tension_is_not_taken_for_it():
+    """In a sequence a row whose robot and motions are the row before's starts from that row's last
+    shooting (its path lengths at the tensions it ended with; ``find_tensions``), without shooting
+    again.  A row that differs in a motion or in a tension-driven tendon's tension must not: the
+    same pull-in reversed (friction) or beside another tension is another equilibrium.  Rows: a
+    pull; the same row again (its answer the row before's); the same pull-in releasing; and then with
+    the tension-driven tendon at 1 N instead of 0.5.  Each must be its row solved alone."""
+    n = 4
+    displacement = np.tile([0.003, np.nan, 0.0, 0.0], (n, 1))  # tendon 1 is tension-driven
+    motion = np.array([[1, 1, 1, 1], [1, 1, 1, 1], [-1, 1, 1, 1], [-1, 1, 1, 1]])
+    designs = _design(n, tension=(0.0, 0.5, 0.0, 0.0), displacement=displacement, motion=motion,
+                      stiffness=np.full((n, 4), 1500.0), friction=np.full((n, 4), 0.3))
+    designs = designs.replace(tension=designs.tension * np.array([[1.0], [1.0], [1.0], [2.0]]))
+    together = solve(designs, np.ones(1), sequence=True)
+    alone = solve(designs, np.ones(1))
+    assert together.converged.all() and alone.converged.all()
+    np.testing.assert_allclose(together.tension, alone.tension, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(together.backbone[:, -1], alone.backbone[:, -1], rtol=0, atol=1e-9)
+    tips = alone.backbone[:, -1]
+    assert np.linalg.norm(tips[2] - tips[1]) > 1e-5 and np.linalg.norm(tips[3] - tips[2]) > 1e-5  # others indeed
+    np.testing.assert_array_equal(together.tension[1], together.tension[0])  # the repeat: nothing moved
+
+
 def test_a_warm_start_lost_at_a_release_is_tried_again_from_the_rows_own_start():
     """A replay starts each row's tensions from the row before.  From a bend at up to 8 mm of pull
     to a release near 0 (the shared train.csv, ``rep1_pair12_same_dir0`` and its hold, with a robot
