@@ -287,6 +287,8 @@ def test_the_cli_replays_and_exits_2_on_bad_input(tmp_path):
     assert run.returncode == 0, run.stderr
     summary = json.loads(run.stdout)
     assert summary["rows"] == len(out.read_text().splitlines()) - 1 and summary["errors"]["rows"] == summary["rows"]
+    # the rate is the replay's own: the first call's load of the compiled kernel is reported apart
+    assert summary["startup_seconds"] > 0 and summary["rows_per_second"] == summary["rows"] / summary["seconds"]
     assert out.read_text().splitlines()[0] == "timestamp,pattern_label,tip_x,tip_y,tip_z,status"
     bad = _write(tmp_path, HEADER + "1,p,0,0,0,0,0,0,0,0,0,1,2,180\n0.5,p,0,0,0,0,0,0,0,0,0,1,2,180\n")
     run = subprocess.run([sys.executable, "-m", "tdcr.cli", "replay", str(EXAMPLE), str(bad), "--out", str(out)],
