@@ -981,7 +981,8 @@ MAX_DISPLACEMENT_ITERATIONS = 50
 
 
 @njit(cache=True, error_model="numpy")
-def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, known, carried):
+def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, known, carried, xs, stretch, gains,
+                  chain):
     """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
     (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
     with the ends (:func:`_with_ends`).  A tendon with series elasticity (``compliance`` c_i =
@@ -1001,8 +1002,10 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
     ``known[0]`` is set once one is computed here.  ``carried`` (N_t,) m holds the path lengths at the
     start tensions where ``known[1]`` (the design before in a sequence, the same robot at the same motions,
     ended at these tensions: its last shooting is this one's first, so it is skipped), and the lengths of
-    the last shooting on return (``known[1]`` then says whether they are the returned tensions').  Returns
-    (converged, shootings)."""
+    the last shooting on return (``known[1]`` then says whether they are the returned tensions').  The
+    last shooting's node strains ``xs`` (M, 6), |g_i| ``stretch`` (M, N_t) and (friction) ``gains``
+    (M, N_t) are left in those arrays (:func:`level0_arrays`), and its convergence, Newton iterations
+    and residual in ``chain`` (3,), for :func:`finish_design`.  Returns (converged, shootings)."""
     length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, compliance
     edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
     k0 = edges.shape[0] - 1
@@ -1010,7 +1013,6 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
     sig = _interleaved(edges)
     act = _node_activity(sig)
     order = np.arange(2 * k0 + 1)
-    xs = np.zeros((2 * k0 + 1, 6))
     sens = np.empty((2 * k0 + 1, 6, n_t))
     lengths = np.empty(n_t)
     l0 = np.empty(n_t)
@@ -1018,8 +1020,6 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
         l0[i] = undeformed_length(length, offset[i], pitch[i], end[i])
         slack[i] = False
     free = np.zeros(n_t, dtype=np.bool_)
-    gains = np.empty((2 * k0 + 1 if has_friction(capstan) else 0, n_t))
-    stretch = np.empty((2 * k0 + 1, n_t))
     last_worst, last_merit, alpha = np.inf, np.inf, 1.0
     tau_before, full_step = np.empty(n_t), np.zeros(n_t)
     # with friction the Jacobian holds the wrap angles fixed: a secant (Broyden) update adds what it misses
@@ -1033,7 +1033,8 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
             xs[:, :] = 0.0
             xs[0, 2] = 1.0
             shootings += 1
-            ok, _, _ = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
+            ok, chain_it, chain_res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
+            chain[0], chain[1], chain[2] = 1.0 if ok else 0.0, chain_it, chain_res
             if not ok:
                 known[1] = False
                 return False, shootings
@@ -1147,8 +1148,20 @@ def _same_rod(rods, b, target):
     return True
 
 
+@njit(cache=True, error_model="numpy")
+def level0_arrays(grid, rod, capstan):
+    """The base grid with the rod's ends (:func:`_with_ends`) as level 0's nodes ``sig`` (M,) and
+    their acting tendons ``act``, and arrays for a shooting there: node strains (M, 6), |g_i| (M, N_t),
+    the friction gains (M or 0, N_t) and the chain's summary (3,)."""
+    edges, _, _ = _with_ends(grid.edges, grid.out_step, rod.end)
+    sig = _interleaved(edges)
+    m, n_t = sig.shape[0], rod.offset.shape[0]
+    return (sig, _node_activity(sig), np.zeros((m, 6)), np.empty((m, n_t)),
+            np.empty((m if has_friction(capstan) else 0, n_t)), np.zeros(3))
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
-def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, sequence):
+def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, sequence, out):
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
     targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED,
     ``iterations`` (B,) the shootings each took.  With ``sequence`` the designs are one robot's
@@ -1157,10 +1170,14 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
     its targets (:func:`_same_rod`: the same motions too), also with that design's last shooting,
     so it shoots once less (a held row, not at all); a warm start that fails (a large step of the
     commands, e.g. a release from 8 mm to 0, can lead Newton away) is followed by one more try from
-    the design's own start, as alone."""
+    the design's own start, as alone.  Then each design's answer at its tensions into the
+    :class:`Shapes` ``out``, as :func:`solve_batch` writes it: where its last shooting (or, a held
+    design, the one before's) was at those tensions, :func:`finish_design` from that shooting (the
+    same chain, so the same bits), else :func:`solve_design`."""
     n_t = target.shape[1]
     dlen, known, carried = np.empty((n_t, n_t)), np.zeros(2, dtype=np.bool_), np.empty(n_t)
     cold = np.empty(n_t)
+    _, _, last_xs, last_stretch, last_gains, last_chain = level0_arrays(grid, _rod(rods, 0), rods.capstan[0])
     for b in range(rods.length.shape[0]):
         warm = sequence and b > 0 and status[b - 1] == OK
         known[0] = known[0] and warm
@@ -1169,17 +1186,28 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
             cold[i] = rods.tension[b, i]
             if warm and target[b, i] == target[b, i]:
                 rods.tension[b, i] = rods.tension[b - 1, i]
-        ok, it = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols, slack[b],
-                               dlen, known, carried)
+        rod, capstan = _rod(rods, b), rods.capstan[b]
+        sig, act, xs, stretch, gains, chain = level0_arrays(grid, rod, capstan)
+        ok, it = find_tensions(rod, rods.compliance[b], capstan, target[b], grid, tols, slack[b], dlen, known,
+                               carried, xs, stretch, gains, chain)
         if warm and not ok:
             for i in range(n_t):
                 rods.tension[b, i] = cold[i]
             known[0], known[1] = False, False
-            ok, more = find_tensions(_rod(rods, b), rods.compliance[b], rods.capstan[b], target[b], grid, tols,
-                                     slack[b], dlen, known, carried)
+            ok, more = find_tensions(rod, rods.compliance[b], capstan, target[b], grid, tols, slack[b], dlen, known,
+                                     carried, xs, stretch, gains, chain)
             it += more
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
+        if it > 0:  # else a held design: the last shooting is the design before's
+            last_xs, last_stretch, last_gains, last_chain = xs, stretch, gains, chain
+        view = _design_shapes(out, b)
+        if known[1] and last_xs.shape[0] == sig.shape[0]:  # the last shooting was at these tensions
+            res = finish_design(rod, capstan, grid, tols, view, sig, act, last_xs, last_stretch, last_gains,
+                                last_chain[0] > 0.0, int(last_chain[1]), last_chain[2])
+        else:
+            res = solve_design(rod, capstan, grid, tols, view)
+        _store_summary(out, b, res)
 
 
 @njit(cache=True, error_model="numpy")
@@ -1350,15 +1378,8 @@ def solve_design(rod, capstan, grid, tols, view):
     rows, level 0's node strains where ``view.nodes`` has rows (read first with ``tols.warm``).
     Returns ``(status, residual N, Newton iterations, level, error estimate)``; with
     ``tols.linearized`` the first-order strains on the base grid (level 0, no estimate)."""
-    length, offset, pitch, angle, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.end
-    fractions_out = grid.fractions
-    edges, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
-    step_tol, max_level = tols.step_tol, tols.max_level
-    n_out = fractions_out.shape[0]
-    n_t = offset.shape[0]
-    ok = True
-    iters = 0
-    worst = 0.0
+    edges, _, _ = _with_ends(grid.edges, grid.out_step, rod.end)
+    n_t = rod.offset.shape[0]
     # level 0: edges and midpoints in order of s, the first from the undeformed strains
     sig = _interleaved(edges)
     act = _node_activity(sig)
@@ -1376,9 +1397,26 @@ def solve_design(rod, capstan, grid, tols, view):
         n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
     if keep:
         view.nodes[:, :] = xs
-    ok = ok and n_ok
-    iters = max(iters, it)
-    worst = max(worst, res) if res == res else res
+    return finish_design(rod, capstan, grid, tols, view, sig, act, xs, stretch, gains, n_ok, it, res)
+
+
+@njit(cache=True, error_model="numpy")
+def finish_design(rod, capstan, grid, tols, view, sig, act, xs, stretch, gains, n_ok, it, res):
+    """:func:`solve_design` from its level 0 on: the node strains ``xs`` (M, 6) at the nodes ``sig``
+    (M,) (acting tendons ``act``) on the base grid with the ends, with each tendon's |g_i| ``stretch``
+    (M, N_t) and (friction) ``gains`` (M, N_t), as the chain left them (converged ``n_ok``, Newton
+    iterations ``it``, residual ``res``): the outputs, the step control's estimate and its finer
+    levels.  ``xs``, ``stretch`` and ``gains`` are read, not written."""
+    length, offset, pitch, angle, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.end
+    fractions_out = grid.fractions
+    edges, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
+    step_tol, max_level = tols.step_tol, tols.max_level
+    n_out = fractions_out.shape[0]
+    n_t = offset.shape[0]
+    friction = has_friction(capstan)
+    ok = n_ok
+    iters = max(0, it)
+    worst = max(0.0, res) if res == res else res
     out_step = out_step0.copy()
     pos_out, rot_out, tendons_out = view.backbone, view.rotation, view.tendons
     _magnus(edges, xs[0::2], xs[1::2], length, out_step, pos_out, rot_out)

@@ -569,14 +569,16 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
                         threads: int, *, sequence: bool = False) -> RodSolution:
     """Displacement actuation: the tensions that pull in the displacement-driven tendons' lengths
     (:func:`tdcr.physics._kernel.find_tensions`: Newton with the exact Jacobian of the path
-    lengths, tau >= 0, slack tendons flagged), then the tendon-only solve at those tensions.  A
+    lengths, tau >= 0, slack tendons flagged), then the tendon-only answer at those tensions, taken on
+    from Newton's last shooting where it was at them (:func:`tdcr.physics._kernel.finish_design`: the
+    same chain as a solve's level 0, so the same bits as solving again).  A
     tendon's pull-in is its displacement minus its drive's ``zero``; with a series ``stiffness``
     k it pulls with k max(0, pull-in - d) (eq. SE), d the length its path shortened.  With
     ``sequence`` the designs are one robot's commands in order, each started from the tensions
     found for the one before (:func:`tdcr.replay`)."""
     edges0 = _base_edges(fractions_out, opts.max_step)
     mat = material(designs)
-    kernel, rods, grid, tols, _ = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
+    kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
     start = np.where(designs.displacement_driven, 0.0, designs.tension)
     rods = rods._replace(tension=_kernel_array(start))  # a new array: the kernel writes the tensions in it
     b, n_t = designs.n_designs, designs.n_tendons
@@ -587,10 +589,11 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     for correction in range(2):
         # the tensions on the base grid; then, once, again for the target moved by what the solve's
         # finer grid (step control) still misses (the grids' lengths differ by O(h^4))
+        # the tensions, and each design's answer at them (from the last shooting where it was there)
         _run_kernel(kernel.find_tensions_batch, threads, b, rods, target, grid, tols, slack, found, iterations,
-                    sequence)
-        sol = _solve_compiled(designs.replace(tension=rods.tension, displacement=None), fractions_out, edges0, opts,
-                              threads)
+                    sequence, out)
+        sol = _tendon_only_answer(designs.replace(tension=rods.tension, displacement=None), mat, fractions_out, edges0,
+                                  out, opts)
         miss = np.where(slack, 0.0, wanted - sol.displacement - designs.compliance * rods.tension)
         if correction or not (np.nan_to_num(np.abs(miss)) > opts.displacement_tol).any():
             break
@@ -746,6 +749,14 @@ def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.
     kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False,
                                                    jacobian=jacobian, warm=warm)
     _run_kernel(kernel.solve_batch, threads, designs.n_designs, rods, grid, tols, out)
+    return _tendon_only_answer(designs, mat, fractions_out, edges0, out, opts, warm=warm)
+
+
+def _tendon_only_answer(designs: DesignBatch, mat: _Material, fractions_out: np.ndarray, edges0: np.ndarray, out,
+                        opts: SolverOptions, *, warm: _WarmStart | None = None) -> RodSolution:
+    """The :class:`RodSolution` of the tendon-only kernel's outputs ``out`` (:class:`~tdcr.physics._kernel.Shapes`,
+    written by ``solve_batch`` or ``find_tensions_batch``): the residual checked against ``opts``,
+    collapsed tendons named, ``warm`` kept up."""
     status = out.status.astype(np.int8)
     if not opts.linearized:  # the linearized model reports its residual but is not an equilibrium
         scale = np.maximum(designs.tension.sum(axis=1), 1.0)

@@ -215,6 +215,28 @@ def test_a_row_like_the_one_before_but_for_its_motion_or_a_tension_is_not_taken_
     np.testing.assert_array_equal(together.tension[1], together.tension[0])  # the repeat: nothing moved
 
 
+@pytest.mark.parametrize(("sequence", "friction"), [(False, 0.2), (True, 0.2), (True, 0.0)])
+def test_the_answer_at_the_found_tensions_is_the_solve_at_them_bit_for_bit(sequence, friction):
+    """A displacement answer is taken on from Newton's last shooting where it was at the found
+    tensions (for a held row, the row before's; ``finish_design``) instead of solving again.  It must
+    be what a tension solve at those tensions gives, every field to the bit: pulls, a hold, a
+    release (friction), a tension-driven tendon, and two tendons that end halfway; without friction
+    a row of the sequence takes one shooting."""
+    n = 7
+    pull = np.array([0.0, 0.001, 0.002, 0.002, 0.0015, 0.001, 0.003])  # row 3 holds, rows 4-5 release
+    displacement = np.stack([pull, np.full(n, np.nan), -0.5 * pull, np.zeros(n)], axis=1)
+    designs = _design(n, tension=(0.0, 0.4, 0.0, 0.0), displacement=displacement, motion=motions(displacement),
+                      stiffness=np.full((n, 4), 2000.0), friction=np.full((n, 4), friction),
+                      end=np.tile([0.2, 0.2, 0.1, 0.1], (n, 1)))
+    fractions = np.linspace(0.0, 1.0, 9)
+    sol = solve(designs, fractions, sequence=sequence)
+    again = solve(designs.replace(tension=sol.tension, displacement=None), fractions)
+    assert sol.converged.all()
+    for field in ("backbone", "rotation", "tendons", "strains", "tension_profile", "displacement", "residual",
+                  "iterations", "error_estimate", "steps", "status"):
+        np.testing.assert_array_equal(getattr(sol, field), getattr(again, field), err_msg=field)
+
+
 def test_a_warm_start_lost_at_a_release_is_tried_again_from_the_rows_own_start():
     """A replay starts each row's tensions from the row before.  From a bend at up to 8 mm of pull
     to a release near 0 (the shared train.csv, ``rep1_pair12_same_dir0`` and its hold, with a robot
