@@ -167,6 +167,22 @@ class Shapes(NamedTuple):
     profile: np.ndarray
 
 
+class Level0(NamedTuple):
+    """Level 0 of one design's tendon-only solve (:func:`level0_arrays`): the nodes ``sig`` (M,) of
+    the base grid with the tendons' ends (:func:`_with_ends`, edges and midpoints in order of s),
+    their acting tendons ``act`` (:func:`_node_activity`), and a chain's results there, written by
+    it: node strains ``xs`` (M, 6), each tendon's |g_i| ``stretch`` (M, N_t), the friction gains
+    ``gains`` (M or 0, N_t) and ``chain`` (3,): converged (1 or 0), Newton iterations, residual N.
+    :func:`find_tensions` shoots into it and :func:`finish_design` goes on from it."""
+
+    sig: np.ndarray
+    act: np.ndarray
+    xs: np.ndarray
+    stretch: np.ndarray
+    gains: np.ndarray
+    chain: np.ndarray
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def _tendon(nu0, nu1, nu2, k0, k1, k2, ox, oy, dx, dy):
     """g_i = nu + kappa x rho_i + rho_i' with rho_i = (ox, oy, 0), rho_i' = (dx, dy, 0)."""
@@ -981,11 +997,10 @@ MAX_DISPLACEMENT_ITERATIONS = 50
 
 
 @njit(cache=True, error_model="numpy")
-def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, known, carried, xs, stretch, gains,
-                  chain):
+def find_tensions(rod, compliance, capstan, target, tols, slack, dlen, known, carried, level):
     """The tensions (in place on ``tau`` (N_t,), N) that pull in the displacements ``target``
-    (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on the base grid
-    with the ends (:func:`_with_ends`).  A tendon with series elasticity (``compliance`` c_i =
+    (N_t,) m of the tendons where it is not NaN (the others keep their tensions), on level 0's nodes
+    of :class:`Level0` ``level`` (the base grid with the ends).  A tendon with series elasticity (``compliance`` c_i =
     1 / k_i) takes up the pull-in u_i = d_i + c_i tau_i (eq. SE: tau_i = k_i max(0, u_i - d_i)).
     The displacement d_i = l0_i - l_i(tau) has the Jacobian -dl/dtau = int A^T J^-1 A ds,
     symmetric positive semi-definite (with friction scaled by each node's gain, the wrap angles
@@ -1003,17 +1018,13 @@ def find_tensions(rod, compliance, capstan, target, grid, tols, slack, dlen, kno
     start tensions where ``known[1]`` (the design before in a sequence, the same robot at the same motions,
     ended at these tensions: its last shooting is this one's first, so it is skipped), and the lengths of
     the last shooting on return (``known[1]`` then says whether they are the returned tensions').  The
-    last shooting's node strains ``xs`` (M, 6), |g_i| ``stretch`` (M, N_t) and (friction) ``gains``
-    (M, N_t) are left in those arrays (:func:`level0_arrays`), and its convergence, Newton iterations
-    and residual in ``chain`` (3,), for :func:`finish_design`.  Returns (converged, shootings)."""
+    last shooting's results are left in ``level``, for :func:`finish_design`.  Returns (converged,
+    shootings)."""
     length, offset, pitch, end, tau, comp = rod.length, rod.offset, rod.pitch, rod.end, rod.tension, compliance
-    edges, _, _ = _with_ends(grid.edges, grid.out_step, end)
-    k0 = edges.shape[0] - 1
+    sig, act, xs, stretch, gains, chain = level
     n_t = offset.shape[0]
-    sig = _interleaved(edges)
-    act = _node_activity(sig)
-    order = np.arange(2 * k0 + 1)
-    sens = np.empty((2 * k0 + 1, 6, n_t))
+    order = np.arange(sig.shape[0])
+    sens = np.empty((sig.shape[0], 6, n_t))
     lengths = np.empty(n_t)
     l0 = np.empty(n_t)
     for i in range(n_t):
@@ -1150,14 +1161,13 @@ def _same_rod(rods, b, target):
 
 @njit(cache=True, error_model="numpy")
 def level0_arrays(grid, rod, capstan):
-    """The base grid with the rod's ends (:func:`_with_ends`) as level 0's nodes ``sig`` (M,) and
-    their acting tendons ``act``, and arrays for a shooting there: node strains (M, 6), |g_i| (M, N_t),
-    the friction gains (M or 0, N_t) and the chain's summary (3,)."""
+    """A :class:`Level0` for :class:`Rod` ``rod`` with its tendons' ``capstan`` on the base
+    :class:`Grid` ``grid``: its nodes, and zeros and empty arrays for a chain's results."""
     edges, _, _ = _with_ends(grid.edges, grid.out_step, rod.end)
     sig = _interleaved(edges)
     m, n_t = sig.shape[0], rod.offset.shape[0]
-    return (sig, _node_activity(sig), np.zeros((m, 6)), np.empty((m, n_t)),
-            np.empty((m if has_friction(capstan) else 0, n_t)), np.zeros(3))
+    return Level0(sig, _node_activity(sig), np.zeros((m, 6)), np.empty((m, n_t)),
+                  np.empty((m if has_friction(capstan) else 0, n_t)), np.zeros(3))
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -1177,7 +1187,9 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
     n_t = target.shape[1]
     dlen, known, carried = np.empty((n_t, n_t)), np.zeros(2, dtype=np.bool_), np.empty(n_t)
     cold = np.empty(n_t)
-    _, _, last_xs, last_stretch, last_gains, last_chain = level0_arrays(grid, _rod(rods, 0), rods.capstan[0])
+    if rods.length.shape[0] == 0:
+        return
+    last = level0_arrays(grid, _rod(rods, 0), rods.capstan[0])  # the last shooting's (none yet: unused)
     for b in range(rods.length.shape[0]):
         warm = sequence and b > 0 and status[b - 1] == OK
         known[0] = known[0] and warm
@@ -1187,24 +1199,23 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
             if warm and target[b, i] == target[b, i]:
                 rods.tension[b, i] = rods.tension[b - 1, i]
         rod, capstan = _rod(rods, b), rods.capstan[b]
-        sig, act, xs, stretch, gains, chain = level0_arrays(grid, rod, capstan)
-        ok, it = find_tensions(rod, rods.compliance[b], capstan, target[b], grid, tols, slack[b], dlen, known,
-                               carried, xs, stretch, gains, chain)
+        level = level0_arrays(grid, rod, capstan)
+        ok, it = find_tensions(rod, rods.compliance[b], capstan, target[b], tols, slack[b], dlen, known, carried,
+                               level)
         if warm and not ok:
             for i in range(n_t):
                 rods.tension[b, i] = cold[i]
             known[0], known[1] = False, False
-            ok, more = find_tensions(rod, rods.compliance[b], capstan, target[b], grid, tols, slack[b], dlen, known,
-                                     carried, xs, stretch, gains, chain)
+            ok, more = find_tensions(rod, rods.compliance[b], capstan, target[b], tols, slack[b], dlen, known,
+                                     carried, level)
             it += more
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
         if it > 0:  # else a held design: the last shooting is the design before's
-            last_xs, last_stretch, last_gains, last_chain = xs, stretch, gains, chain
+            last = level
         view = _design_shapes(out, b)
-        if known[1] and last_xs.shape[0] == sig.shape[0]:  # the last shooting was at these tensions
-            res = finish_design(rod, capstan, grid, tols, view, sig, act, last_xs, last_stretch, last_gains,
-                                last_chain[0] > 0.0, int(last_chain[1]), last_chain[2])
+        if known[1] and last.sig.shape[0] == level.sig.shape[0]:  # the last shooting was at these tensions
+            res = finish_design(rod, capstan, grid, tols, view, last)
         else:
             res = solve_design(rod, capstan, grid, tols, view)
         _store_summary(out, b, res)
@@ -1378,35 +1389,29 @@ def solve_design(rod, capstan, grid, tols, view):
     rows, level 0's node strains where ``view.nodes`` has rows (read first with ``tols.warm``).
     Returns ``(status, residual N, Newton iterations, level, error estimate)``; with
     ``tols.linearized`` the first-order strains on the base grid (level 0, no estimate)."""
-    edges, _, _ = _with_ends(grid.edges, grid.out_step, rod.end)
-    n_t = rod.offset.shape[0]
-    # level 0: edges and midpoints in order of s, the first from the undeformed strains
-    sig = _interleaved(edges)
-    act = _node_activity(sig)
+    # level 0: edges and midpoints in order of s, the first from the undeformed strains; |g_i| at the
+    # nodes (the path lengths) and exp(capstan theta) there (eq. CAP)
+    level = level0_arrays(grid, rod, capstan)
+    sig, act, xs, stretch, gains, chain = level
     order = np.arange(sig.shape[0])
     keep = view.nodes.shape[0] == sig.shape[0]
-    stretch = np.empty((sig.shape[0], n_t))  # |g_i| at the nodes: the path lengths
-    friction = has_friction(capstan)
-    gains = np.empty((sig.shape[0] if friction else 0, n_t))  # exp(capstan theta) at the nodes (eq. CAP)
-    if tols.warm and keep and not friction:  # Newton at every node from the last solve's strains
-        xs = view.nodes.copy()
+    if tols.warm and keep and not has_friction(capstan):  # Newton at every node from the last solve's strains
+        xs[:, :] = view.nodes
         n_ok, it, res = _solve_nodes(sig, act, xs, rod, tols, order, stretch, gains)
     else:
-        xs = np.zeros((sig.shape[0], 6))
         xs[0, 2] = 1.0  # nu = e3, kappa = 0; every later node starts from the one before
         n_ok, it, res = _solve_nodes_chain(sig, act, xs, rod, tols, order, stretch, gains, capstan)
+    chain[0], chain[1], chain[2] = 1.0 if n_ok else 0.0, it, res
     if keep:
         view.nodes[:, :] = xs
-    return finish_design(rod, capstan, grid, tols, view, sig, act, xs, stretch, gains, n_ok, it, res)
+    return finish_design(rod, capstan, grid, tols, view, level)
 
 
 @njit(cache=True, error_model="numpy")
-def finish_design(rod, capstan, grid, tols, view, sig, act, xs, stretch, gains, n_ok, it, res):
-    """:func:`solve_design` from its level 0 on: the node strains ``xs`` (M, 6) at the nodes ``sig``
-    (M,) (acting tendons ``act``) on the base grid with the ends, with each tendon's |g_i| ``stretch``
-    (M, N_t) and (friction) ``gains`` (M, N_t), as the chain left them (converged ``n_ok``, Newton
-    iterations ``it``, residual ``res``): the outputs, the step control's estimate and its finer
-    levels.  ``xs``, ``stretch`` and ``gains`` are read, not written."""
+def finish_design(rod, capstan, grid, tols, view, level):
+    """:func:`solve_design` from its level 0 on, the :class:`Level0` ``level`` as a chain left it (read,
+    not written): the outputs, the step control's estimate and its finer levels."""
+    sig, act, xs, stretch, gains, chain = level
     length, offset, pitch, angle, end = rod.length, rod.offset, rod.pitch, rod.angle, rod.end
     fractions_out = grid.fractions
     edges, out_step0, end_step = _with_ends(grid.edges, grid.out_step, end)
@@ -1414,8 +1419,8 @@ def finish_design(rod, capstan, grid, tols, view, sig, act, xs, stretch, gains, 
     n_out = fractions_out.shape[0]
     n_t = offset.shape[0]
     friction = has_friction(capstan)
-    ok = n_ok
-    iters = max(0, it)
+    ok, res = chain[0] > 0.0, chain[2]
+    iters = max(0, int(chain[1]))
     worst = max(0.0, res) if res == res else res
     out_step = out_step0.copy()
     pos_out, rot_out, tendons_out = view.backbone, view.rotation, view.tendons

@@ -587,9 +587,9 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     wanted = np.where(designs.displacement_driven, designs.displacement - designs.resolved("zero"), np.nan)
     target = _kernel_array(wanted)
     for correction in range(2):
-        # the tensions on the base grid; then, once, again for the target moved by what the solve's
-        # finer grid (step control) still misses (the grids' lengths differ by O(h^4))
-        # the tensions, and each design's answer at them (from the last shooting where it was there)
+        # the tensions on the base grid and each design's answer at them (from the last shooting there);
+        # then, once, again for the target moved by what the answer's finer grid (step control) still
+        # misses (the grids' lengths differ by O(h^4))
         _run_kernel(kernel.find_tensions_batch, threads, b, rods, target, grid, tols, slack, found, iterations,
                     sequence, out)
         sol = _tendon_only_answer(designs.replace(tension=rods.tension, displacement=None), mat, fractions_out, edges0,
