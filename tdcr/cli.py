@@ -571,7 +571,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                               "(default: the shipped models)"}
 
     def command(name: str, help: str) -> argparse.ArgumentParser:
-        return sub.add_parser(name, help=help, description=help, formatter_class=FORMATTER)
+        # argparse %-formats a help string (not a description): a literal % in one must be doubled there
+        return sub.add_parser(name, help=help.replace("%", "%%"), description=help, formatter_class=FORMATTER)
 
     p = command("solve", "exact equilibria of the designs in a request JSON (Cosserat solver)")
     p.add_argument("request", help="request JSON file, or - for stdin")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import signal
@@ -92,6 +93,23 @@ def test_missing_file_and_bad_flags_exit_2(run_tdcr, tmp_path):
     assert run_tdcr("solve", str(tmp_path / "nope.json")).returncode == 2
     assert run_tdcr("generate", "--n", "0", "--out", str(tmp_path / "d")).returncode == 2
     assert run_tdcr("generate", "--n", "ten", "--out", str(tmp_path / "d")).returncode == 2
+
+
+def test_every_help_page_prints(run_tdcr, capsys):
+    """``tdcr --help`` lists every command's help line (argparse %-formats those: a literal % once broke
+    the top-level page with a TypeError) and every command's own page prints too."""
+    from tdcr.cli import build_parser, main
+
+    top = run_tdcr("--help")
+    assert top.returncode == 0, top.stderr
+    assert "99 % error bounds" in top.stdout  # the calibrate line, with its percent sign
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert {"solve", "replay", "fit", "serve", "calibrate"} <= set(commands)
+    for name in commands:
+        with pytest.raises(SystemExit) as exit_:
+            main([name, "--help"])
+        assert exit_.value.code == 0, name
+        assert f"usage: tdcr {name}" in capsys.readouterr().out
 
 
 def _shard_times(out: Path) -> dict[str, int]:
