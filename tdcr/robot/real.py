@@ -324,17 +324,23 @@ def _number(text: str) -> float:
 
 
 def read_recording(path: str | Path, robot: Robot, *, measured: bool | None = True) -> Recording:
-    """A recording of ``robot`` (CSV with a header): its time, command and (with ``measured``; None:
-    where the file has them) measurement columns.  A missing column, a command that is not a finite
-    number, or a time that is not finite or not increasing raises :class:`RobotFileError` naming the
-    column and row; a row without a motion-capture value is kept with NaN (:attr:`Recording.skipped`)."""
+    """A recording of ``robot`` (CSV with a header, UTF-8 with or without a byte-order mark; blank lines
+    are ignored): its time, command and (with ``measured``; None: where the file has them) measurement
+    columns.  A file without data rows, a missing column, a command that is not a finite number, or a
+    time that is not finite or not increasing raises :class:`RobotFileError` naming the column and row
+    (the CSV's data-row number); a row without a motion-capture value is kept with NaN
+    (:attr:`Recording.skipped`)."""
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
             reader = csv.reader(f)
             header = tuple(next(reader, ()))
-            lines = list(reader)
+            numbered = [(row, line) for row, line in enumerate(reader, start=1) if any(c.strip() for c in line)]
     except OSError as exc:
         raise RobotFileError(f"{path}: cannot read ({exc.strerror})") from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise RobotFileError(f"{path}: not a UTF-8 CSV file ({exc})") from None
+    if not any(c.strip() for c in header):
+        raise RobotFileError(f"{path}: empty (a CSV file with a header row of column names is expected)")
     if measured is None:
         measured = all(c in header for c in robot.measurement.columns)
     wanted = [robot.time_column, *robot.actuation.columns] + (list(robot.measurement.columns) if measured else [])
@@ -342,31 +348,37 @@ def read_recording(path: str | Path, robot: Robot, *, measured: bool | None = Tr
     if missing:
         raise RobotFileError(f"{path}: missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
                              f"(the file has {', '.join(header)})")
+    if not numbered:
+        raise RobotFileError(f"{path}: no data rows below the header")
+    rows = np.array([row for row, _ in numbered])
+    lines = [line for _, line in numbered]
     index = {c: header.index(c) for c in header}
 
+    def cell(line: list[str], name: str) -> str:
+        return line[index[name]] if index[name] < len(line) else ""
+
     def column(name: str) -> np.ndarray:
-        return np.array([_number(line[index[name]]) if index[name] < len(line) else math.nan for line in lines])
+        return np.array([_number(cell(line, name)) for line in lines])
 
     time = column(robot.time_column)
-    commands = np.stack([column(c) for c in robot.actuation.columns], axis=1) if lines else np.zeros(
-        (0, robot.n_tendons))
+    commands = np.stack([column(c) for c in robot.actuation.columns], axis=1)
     for name, values in [(robot.time_column, time)] + [(c, commands[:, i]) for i, c in
                                                        enumerate(robot.actuation.columns)]:
         bad = np.nonzero(~np.isfinite(values))[0]
         if bad.size:
-            raise RobotFileError(f"{path}: column {name}, row {bad[0] + 1}: not a finite number "
-                                 f"({lines[bad[0]][index[name]]!r})")
+            raise RobotFileError(f"{path}: column {name}, row {rows[bad[0]]}: not a finite number "
+                                 f"({cell(lines[bad[0]], name)!r})")
     back = np.nonzero(np.diff(time) <= 0)[0]
     if back.size:
-        raise RobotFileError(f"{path}: column {robot.time_column}, row {back[0] + 2}: timestamps must increase "
-                             f"({time[back[0] + 1]!r} after {time[back[0]]!r})")
+        raise RobotFileError(f"{path}: column {robot.time_column}, row {rows[back[0] + 1]}: timestamps must "
+                             f"increase ({time[back[0] + 1]!r} after {time[back[0]]!r})")
     if measured:
         tips = np.stack([column(c) for c in robot.measurement.columns], axis=1) * robot.measurement.scale
     else:
         tips = np.full((len(lines), 3), np.nan)
-    labels = np.array([line[index[robot.label_column]] if robot.label_column in index else "" for line in lines])
+    labels = np.array([cell(line, robot.label_column) if robot.label_column in index else "" for line in lines])
     return Recording(time=time, labels=labels, commands=commands * robot.actuation.scale, measured=tips,
-                     rows=np.arange(1, len(lines) + 1), header=header)
+                     rows=rows, header=header)
 
 
 def robot_schema() -> dict:

@@ -4,6 +4,7 @@ files and recordings, replay and the fit's pieces, against closed forms and the 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from dataclasses import fields, replace
@@ -285,6 +286,27 @@ def test_bad_recordings_name_the_column_and_row(tmp_path):
         read_recording(_write(tmp_path, HEADER + row(1) + row(2) + row(2)), robot)
     rec = read_recording(_write(tmp_path, HEADER + row(1) + "2,p,0,0,0,0,0,0,0,0,0,,,\n" + row(3)), robot)
     assert rec.skipped == 1 and rec.has_measurement.tolist() == [True, False, True]
+    for text, words in [("", "empty"), (HEADER, "no data rows"), (HEADER + row(1) + "2,p,0,0\n",
+                                                                 "column servo_9_mm, row 2: not a finite number ('')")]:
+        with pytest.raises(RobotFileError, match=re.escape(words)):
+            read_recording(_write(tmp_path, text), robot)
+    (tmp_path / "b.csv").write_bytes(b"\x00\xff\xfe")
+    with pytest.raises(RobotFileError, match="not a UTF-8 CSV"):
+        read_recording(tmp_path / "b.csv", robot)
+
+
+def test_a_spreadsheets_csv_reads_as_the_plain_one(tmp_path):
+    """A byte-order mark, Windows line ends and blank lines (a spreadsheet's export) change nothing but
+    the rows' CSV numbers, which count the blank lines."""
+    robot = load_robot(EXAMPLE)
+    row = lambda t, x: f"{t},p,{x},0,0,0,0,0,0,0,0,1,2,180\n"  # noqa: E731
+    plain = read_recording(_write(tmp_path, HEADER + row(1, 0.5) + row(2, 1.0)), robot)
+    (tmp_path / "s.csv").write_bytes(b"\xef\xbb\xbf" + (HEADER + "\n" + row(1, 0.5) + " , \n" + row(2, 1.0) + "\n")
+                                     .replace("\n", "\r\n").encode())
+    sheet = read_recording(tmp_path / "s.csv", robot)
+    for name in ("time", "labels", "commands", "measured"):
+        np.testing.assert_array_equal(getattr(sheet, name), getattr(plain, name))
+    assert plain.rows.tolist() == [1, 2] and sheet.rows.tolist() == [2, 4]
 
 
 def test_bad_robot_files_name_the_key(tmp_path):
