@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import os
 import sys
 from pathlib import Path
 
@@ -13,6 +15,41 @@ from tdcr.robot.design_space import DEFAULT_POINTS, MAX_TENDONS
 
 class UsageError(Exception):
     """Bad input from the user: reported on stderr with exit code 2."""
+
+
+def _at_least(minimum: float, kind: type = int):
+    """An argparse type: a number of ``kind`` that is finite and at least ``minimum`` (else exit 2)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a{'n integer' if kind is int else ' number'}: {text!r}") from None
+        if not (value >= minimum and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {text}")
+        return value
+
+    return parse
+
+
+def _positive_seconds(text: str) -> float:
+    """An argparse type: a time budget, s, finite and above 0."""
+    value = _at_least(0.0, float)(text)
+    if value == 0.0:
+        raise argparse.ArgumentTypeError("must be above 0 s")
+    return value
+
+
+def _output_file(text: str) -> str:
+    """An argparse type: a file the command can write at its end, checked before any work is done."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory")
+    folder = path.parent
+    if not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"no folder {folder} to write {path.name} in")
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise argparse.ArgumentTypeError(f"cannot write {text} (permission denied)")
+    return text
 
 
 def _read_text(path: str) -> str:
@@ -581,8 +618,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("replay", "a real robot's tip for every command row of a CSV (series-elastic tendons, friction)")
     p.add_argument("robot", help="robot file (JSON; see tdcr/robot/real.py and openapi/robot.schema.json)")
     p.add_argument("commands", help="CSV with the robot's time and actuation columns (in order of time)")
-    p.add_argument("--out", required=True, help="predicted tips: CSV in the measurement's columns and unit")
-    p.add_argument("--workers", type=int, default=0, help="kernel threads (default 0: one per core)")
+    p.add_argument("--out", required=True, type=_output_file,
+                   help="predicted tips: CSV in the measurement's columns and unit")
+    p.add_argument("--workers", type=_at_least(0), default=0, help="kernel threads (default 0: one per core)")
     p.add_argument("--quiet", action="store_true", help="the summary on one line")
     p.set_defaults(func=_cmd_replay)
 
@@ -592,22 +630,25 @@ def build_parser() -> argparse.ArgumentParser:
                    "tdcr/search/fit.py)")
     p.add_argument("train", help="CSV of commands and measured tips to fit")
     p.add_argument("--validate", default=None, help="CSV only scored, by the fitted robot")
-    p.add_argument("--out", required=True, help="the fitted robot file (replay, solve and the service take it)")
-    p.add_argument("--plot", default=None, help="PNG of measured vs predicted tips and the error over time")
+    p.add_argument("--out", required=True, type=_output_file,
+                   help="the fitted robot file (replay, solve and the service take it)")
+    p.add_argument("--plot", default=None, type=_output_file,
+                   help="PNG of measured vs predicted tips and the error over time")
     p.add_argument("--fit", default=None,
                    help=f"comma-separated parameter groups, of {', '.join(FIT_GROUPS)} (tdcr/search/fit.py; "
                         f"default: {','.join(FIT_DEFAULT_GROUPS)}, without {', '.join(FIT_DISPLACEMENT_ONLY)} "
                         "for drives that command tensions)")
-    p.add_argument("--max-iterations", type=int, default=FIT_MAX_ITERATIONS, help="least-squares iterations at most")
-    p.add_argument("--budget", type=float, default=FIT_BUDGET, help="seconds of search at most (then the best point); "
-                   "under loads the loaded replays come on top")
+    p.add_argument("--max-iterations", type=_at_least(1), default=FIT_MAX_ITERATIONS,
+                   help="least-squares iterations at most")
+    p.add_argument("--budget", type=_positive_seconds, default=FIT_BUDGET,
+                   help="seconds of search at most (then the best point); under loads the loaded replays come on top")
     p.add_argument("--prior", default=format_prior(FIT_PRIOR),
                    help="Gaussian prior around the robot file's values: GROUP=WIDTH[,GROUP=WIDTH...] in the "
                         "search's units (0.1 rad of a turn, 1 mm of a zero, 10 %% of E ...), or none")
     p.add_argument("--loss", choices=FIT_LOSSES, default=FIT_LOSS, help="loss on the point errors")
     p.add_argument("--f-scale", type=float, default=FIT_F_SCALE,
                    help="the loss's scale, mm: where soft_l1 turns linear; the prior's widths are against it")
-    p.add_argument("--workers", type=int, default=0, help="kernel threads (default 0: one per core)")
+    p.add_argument("--workers", type=_at_least(0), default=0, help="kernel threads (default 0: one per core)")
     p.add_argument("--quiet", action="store_true", help="no progress bar; the report on one line")
     p.set_defaults(func=_cmd_fit)
 

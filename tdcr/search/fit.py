@@ -38,9 +38,9 @@ errors leave out how the loads' effect changes with the values: along a directio
 loads' effect tells apart the rounds move slowly.
 
 A segment is the tendons that end together.  Every parameter is reported with its standard error
-from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p)), taken in the span of the
-directions that move the robot: with ``base_rotation`` fitted, a common turn of every tendon is the
-base's, so the turns are reported with zero mean.  Errors are the RMS of the
+from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p); none where m <= p), taken in
+the span of the directions that move the robot: with ``base_rotation`` fitted, a common turn of every
+tendon is the base's, so the turns are reported with zero mean.  Errors are the RMS of the
 3-D point error over the rows with a measurement, mm: "plain", and "aligned" after removing the
 mean error over the file (the metric of the public opencr-mujoco calibration).
 """
@@ -578,6 +578,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     # identified: its variance is unbounded, not the 0 the pseudo-inverse gives its null direction
     column = np.linalg.norm(jac, axis=0)
     stderr[column <= 1e-9 * max(float(column.max()), 1e-300)] = np.inf
+    if m <= q:  # no more residuals than free directions: no residual variance to scale them by
+        stderr[:] = np.inf
     params = []
     for name, g, v, se in zip(layout.names, layout.groups, x, stderr, strict=True):
         value = math.exp(v) if g in _LOG else v
@@ -630,16 +632,27 @@ def _prior_widths(prior: float | Mapping[str, float] | None, groups: Sequence[st
 def register(robot: Robot, answer: Replay, recording: Recording) -> Robot:
     """The robot with the base pose (``base_position``, ``base_rotation``) that best aligns the
     replay's points with the recording's measured ones: the rigid motion of least squares between
-    the two point sets (Kabsch's, by ``scipy.spatial.transform.Rotation.align_vectors``)."""
+    the two point sets (Kabsch's, by ``scipy.spatial.transform.Rotation.align_vectors``).  Points on one
+    line (e.g. fewer than three rows) do not fix a rotation: then the robot is returned as it is."""
     from scipy.spatial.transform import Rotation
 
     m = robot.measurement
     local = answer.tip_position + np.einsum("tij,j->ti", answer.tip_rotation, m.marker)  # (T, 3) base frame
     keep = recording.has_measurement & np.all(np.isfinite(local), axis=1)
     measured, predicted = recording.measured[keep], local[keep]
+    if min(_spread_rank(measured), _spread_rank(predicted)) < 2:
+        return robot
     rotation, _ = Rotation.align_vectors(measured - measured.mean(axis=0), predicted - predicted.mean(axis=0))
     position = measured.mean(axis=0) - rotation.apply(predicted.mean(axis=0))
     return replace(robot, measurement=replace(m, base_position=position, base_rotation=rotation.as_rotvec()))
+
+
+def _spread_rank(points: np.ndarray) -> int:
+    """How many directions the points ``(T, 3)`` m span about their mean (0 to 3; 1e-9 m below the largest)."""
+    if len(points) < 2:
+        return 0
+    spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return int((spread > 1e-9 * max(spread[0], 1e-12)).sum())
 
 
 def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:

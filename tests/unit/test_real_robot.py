@@ -594,6 +594,31 @@ def test_register_finds_a_base_turned_by_half_a_turn_and_the_fit_starts_there():
     assert result.initial.rmse > 50.0 and result.train.rmse < 1e-3  # mm
 
 
+def test_the_cli_checks_where_it_will_write_before_it_works(tmp_path):
+    """An --out in no folder, or one that is a folder, exits 2 at once (a fit would lose its work at the end)."""
+    for command, extra in [("replay", []), ("fit", ["--max-iterations", "1"])]:
+        for out, words in [(tmp_path / "none" / "o.csv", "no folder"), (tmp_path, "is a directory")]:
+            run = subprocess.run([sys.executable, "-m", "tdcr.cli", command, str(EXAMPLE), str(SAMPLE), *extra,
+                                  "--out", str(out)], capture_output=True, text=True, timeout=60)
+            assert run.returncode == 2 and "argument --out: " in run.stderr, run.stderr
+            assert words in run.stderr and "Traceback" not in run.stderr
+
+
+def test_a_fit_on_fewer_residuals_than_parameters_reports_no_standard_errors():
+    """One measured row (3 coordinates) cannot fix a base rotation (the registration keeps the file's)
+    nor a residual variance: the fit still runs and every standard error is unbounded (null)."""
+    from tdcr.search.fit import fit, register
+
+    robot = load_robot(EXAMPLE)
+    rec = read_recording(SAMPLE, robot)
+    one = rec.take(np.arange(len(rec.time)) == 3)
+    answer = replay(robot, one.commands)
+    assert register(robot, answer, one) is robot
+    result = fit(robot, one, groups=("E", "marker", "base_position"), max_iterations=2, budget=60)
+    assert len(result.parameters) == 7 and all(p.stderr == np.inf for p in result.parameters)
+    assert all(p["stderr"] is None for p in result.report()["parameters"])
+
+
 def test_a_parameter_the_data_do_not_move_is_reported_as_not_identified():
     """A lag of 2 ms under samples 0.5-11 s apart moves no measured point (exp(-250) = 0): its
     standard error is unbounded (inf, null in the report), not the pseudo-inverse's 0, while the
@@ -734,7 +759,13 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
                             (["--prior", "marker=0"], "--prior: a width must be > 0"),
                             (["--prior", "marker"], "expected GROUP=WIDTH"),
                             (["--f-scale", "0"], "--f-scale: must be a number of mm > 0"),
-                            (["--loss", "cauchy"], "invalid choice: 'cauchy'")]:
+                            (["--loss", "cauchy"], "invalid choice: 'cauchy'"),
+                            (["--max-iterations", "0"], "--max-iterations: must be at least 1, got 0"),
+                            (["--budget", "nan"], "--budget: must be at least 0.0, got nan"),
+                            (["--budget", "0"], "--budget: must be above 0 s"),
+                            (["--workers", "-1"], "--workers: must be at least 0, got -1"),
+                            (["--plot", str(tmp_path / "none" / "fit.png")], f"no folder {tmp_path / 'none'}"),
+                            (["--validate", str(_write(tmp_path, HEADER, "header_only.csv"))], "no data rows")]:
         run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(SAMPLE), *options,
                               "--out", str(tmp_path / "no.json")], capture_output=True, text=True, timeout=300)
         assert run.returncode == 2 and words in run.stderr and "Traceback" not in run.stderr, run.stderr
