@@ -52,6 +52,11 @@ def _output_file(text: str) -> str:
     return text
 
 
+def _output_file_or_stdout(text: str) -> str:
+    """An argparse type: ``-`` (standard output) or an :func:`_output_file`."""
+    return text if text == "-" else _output_file(text)
+
+
 def _read_text(path: str) -> str:
     try:
         return sys.stdin.read() if path == "-" else Path(path).read_text()
@@ -748,8 +753,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "conformal, Mondrian bins; the 'train' extra) and write them into the manifest")
     p.add_argument("--models-dir", **models_dir)
     p.add_argument("--models", nargs="*", default=None, help="operators (default: every one with a measured score)")
-    p.add_argument("--designs", type=int, default=CALIBRATION_DESIGNS,
-                   help="calibration designs per group (load-free, loaded)")
+    p.add_argument("--designs", type=_at_least(1), default=CALIBRATION_DESIGNS,
+                   help="calibration designs per group (load-free, loaded); a 99 %% bound needs 99 in a bin")
     p.add_argument("--seed", type=int, default=CALIBRATION_SEED, help="seed of the calibration designs and loads")
     p.set_defaults(func=_cmd_calibrate)
 
@@ -809,7 +814,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_loadtest)
 
     p = command("openapi", "write the service's OpenAPI document")
-    p.add_argument("--out", default="openapi/openapi.json", help="file to write, or - for stdout")
+    p.add_argument("--out", default="openapi/openapi.json", type=_output_file_or_stdout,
+                   help="file to write, or - for stdout")
     p.set_defaults(func=_cmd_openapi)
     return parser
 

@@ -93,6 +93,10 @@ def test_missing_file_and_bad_flags_exit_2(run_tdcr, tmp_path):
     assert run_tdcr("solve", str(tmp_path / "nope.json")).returncode == 2
     assert run_tdcr("generate", "--n", "0", "--out", str(tmp_path / "d")).returncode == 2
     assert run_tdcr("generate", "--n", "ten", "--out", str(tmp_path / "d")).returncode == 2
+    for args, words in [(("openapi", "--out", str(tmp_path / "none" / "o.json")), "no folder"),
+                        (("calibrate", "--designs", "0"), "--designs: must be at least 1")]:
+        out = run_tdcr(*args)
+        assert out.returncode == 2 and words in out.stderr and "Traceback" not in out.stderr, out.stderr
 
 
 def test_every_help_page_prints(run_tdcr, capsys):
