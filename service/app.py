@@ -30,6 +30,7 @@ from service.routers import design_space, exact, health, inverse, models, predic
 from service.settings import Settings
 from service.state import ServiceState, start
 from tdcr.api.schemas import ExactRequest, InverseRequest, PredictRequest
+from tdcr.robot.real import robot_schema
 
 log = logging.getLogger("tdcr.service")
 
@@ -243,9 +244,14 @@ def _openapi(app: FastAPI) -> dict:
         return app.openapi_schema
     schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
     components = schema.setdefault("components", {}).setdefault("schemas", {})
+    ref_template = "#/components/schemas/{model}"
     for body in (PredictRequest, ExactRequest, InverseRequest, InferenceRequest):
-        js = body.model_json_schema(ref_template="#/components/schemas/{model}")
+        js = body.model_json_schema(ref_template=ref_template)
         components.update(js.pop("$defs", {}))
         components[body.__name__] = js
+    robot = robot_schema(ref_template=ref_template)  # /exact also takes a robot file: its design
+    del robot["$schema"], robot["$defs"]
+    robot["properties"]["design"] = {"$ref": ref_template.format(model="Design")}  # ExactRequest's, as above
+    components["RobotFile"] = robot
     app.openapi_schema = schema
     return schema

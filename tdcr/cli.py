@@ -77,15 +77,8 @@ def _cmd_solve(args) -> int:
     from tdcr.api.validation import InvalidRequest, validate_json
     from tdcr.physics.exact import solve_request
 
-    text = _read_text(args.request)
-    try:
-        body = json.loads(text)
-    except json.JSONDecodeError:
-        body = text  # the validation path names the JSON error
-    if isinstance(body, dict) and "actuation" in body and "design" in body:  # a robot file: its design, straight
-        body = {"designs": [body["design"]], "points": DEFAULT_POINTS}
-    try:
-        request = validate_json(body, target="solver", limits=_unlimited())
+    try:  # a request, or a robot file (its design): the service's one validation path
+        request = validate_json(_read_text(args.request), target="solver", limits=_unlimited())
     except InvalidRequest as exc:
         raise _invalid(args.request, exc) from None
     json.dump({"format_version": RESPONSE_FORMAT_VERSION, "results": solve_request(request).results()}, sys.stdout)

@@ -27,8 +27,10 @@ ROUTE = "/exact"
                415: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
                503: {"model": ErrorResponse},
                504: {"model": ErrorResponse}},
-    openapi_extra={"requestBody": {"required": True, "content": {
-        "application/json": {"schema": {"$ref": "#/components/schemas/ExactRequest"}}}}},
+    description="A request (ExactRequest), or a robot file (RobotFile, e.g. what `tdcr fit` writes): its design "
+                "at the default arclengths.",
+    openapi_extra={"requestBody": {"required": True, "content": {"application/json": {"schema": {"anyOf": [
+        {"$ref": "#/components/schemas/ExactRequest"}, {"$ref": "#/components/schemas/RobotFile"}]}}}}},
 )
 async def exact(request: Request, state: State) -> Response:
     return await json_route.answer(request, state, ExactCodec(), kind="solver", endpoint=ROUTE)

@@ -15,6 +15,7 @@ Problems name the field as ``designs[3].tendons[1].tension`` and say why.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property, lru_cache
@@ -312,6 +313,9 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     try:
         request = (schema.model_validate(body) if isinstance(body, dict) else schema.model_validate_json(body))
     except ValidationError as exc:
+        design = robot_file_design(body) if target == "solver" else None
+        if design is not None:
+            return _robot_file_request(design, limits=limits, outputs=outputs)
         raise InvalidRequest(_what_to_do(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"]), target)
                              for e in exc.errors(include_input=False, include_url=False)) from None
     fractions, problems = _fractions(request.points, request.s, limits, arclength=request.arclength,
@@ -327,6 +331,29 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     return _checked(groups, fractions, problems, model=getattr(request, "model", None),
                     outputs=wanted, jacobian=request.jacobian, tolerance=getattr(request, "tolerance", None),
                     target=target, termination=getattr(request, "termination", "exact"))
+
+
+def robot_file_design(body: bytes | str | dict):
+    """The design of a robot file (``tdcr/robot/real.py``: an object with a ``design`` object and an
+    ``actuation``; ``tdcr fit`` writes one), or None for any other body."""
+    if not isinstance(body, dict):
+        try:
+            body = json.loads(body)
+        except (ValueError, TypeError):  # not JSON (UnicodeDecodeError is a ValueError)
+            return None
+    if isinstance(body, dict) and isinstance(body.get("design"), dict) and "actuation" in body:
+        return body["design"]
+    return None
+
+
+def _robot_file_request(design: dict, *, limits: Limits, outputs: Iterable[str] | None) -> ShapeRequest:
+    """A robot file asked of the solver: its design at the default arclengths (its actuation and
+    measurement describe a recording: ``tdcr replay``).  Problems are named under ``design``."""
+    try:
+        return validate_json({"designs": [design]}, target="solver", limits=limits, outputs=outputs)
+    except InvalidRequest as exc:
+        raise InvalidRequest((p._replace(loc=("design", *p.loc[2:])) if p.loc[:2] == ("designs", 0) else p
+                              for p in exc.problems), too_large=exc.too_large) from None
 
 
 def _what_to_do(problem: Problem, target: Target) -> Problem:

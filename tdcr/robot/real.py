@@ -381,12 +381,13 @@ def read_recording(path: str | Path, robot: Robot, *, measured: bool | None = Tr
                      rows=rows, header=header)
 
 
-def robot_schema() -> dict:
+def robot_schema(*, ref_template: str = "#/$defs/{model}") -> dict:
     """The robot file's JSON Schema (``openapi/robot.schema.json``); its ``design`` is the solver's
-    request design (``tdcr.api.schemas.Design``)."""
+    request design (``tdcr.api.schemas.Design``), its definitions under ``$defs`` referred to by
+    ``ref_template`` (the OpenAPI document's components: ``#/components/schemas/{model}``)."""
     from tdcr.api.schemas import Design
 
-    design = Design.model_json_schema(ref_template="#/$defs/{model}")
+    design = Design.model_json_schema(ref_template=ref_template)
     defs = design.pop("$defs", {})
     vector = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
     columns = {"type": "array", "items": {"type": "string", "minLength": 1}}

@@ -14,6 +14,7 @@ import pytest
 from tdcr import design_space
 from tdcr.metrics import relative_l2
 from tdcr.physics import solve
+from tdcr.robot.design_space import DEFAULT_POINTS
 from tdcr.robot.designs import DesignBatch, ExternalLoads
 from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
@@ -193,6 +194,26 @@ def test_exact_json_takes_a_real_robot_file_design_and_answers_tension_profiles(
     shortcut = {"points": 11, "designs": [design], "termination": "rucker_webster"}
     answer = httpx.post(server.url + "/exact", json=shortcut)  # friction covers consistent termination only
     assert answer.status_code == 422 and "designs[0].tendons[0].friction" in answer.text
+
+
+def test_exact_json_takes_a_fitted_robot_file_as_tdcr_solve_does(server, root):
+    """The file `tdcr fit` writes, posted as it is: /exact answers its design at the default points, the
+    same bits as `tdcr solve FITTED.json`; a bad value is named under ``design`` as `tdcr replay` names it."""
+    fitted = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())  # as tdcr fit wrote it
+    answer = httpx.post(server.url + "/exact", json=fitted)
+    assert answer.status_code == 200, answer.text
+    (result,) = answer.json()["results"]
+    robot_file = str(root / "examples" / "ftdcr_v4_fitted.json")
+    solved = subprocess.run([sys.executable, "-m", "tdcr.cli", "solve", robot_file], capture_output=True, text=True,
+                            timeout=300)
+    assert solved.returncode == 0, solved.stderr
+    assert result == json.loads(solved.stdout)["results"][0] and result["status"] == "converged"
+    assert len(result["s"]) == DEFAULT_POINTS and np.array(result["tendons"]).shape == (DEFAULT_POINTS, 9, 3)
+    fitted["design"]["tendons"][2]["friction"] = 3.0
+    answer = httpx.post(server.url + "/exact", json=fitted)
+    assert answer.status_code == 422
+    assert answer.json()["detail"][0]["loc"] == ["body", "design", "tendons", 2, "friction"], answer.text
+    assert "must be in [0, 2], got 3" in answer.json()["message"]
 
 
 @pytest.mark.parametrize("protocol", ["http", "grpc"])
