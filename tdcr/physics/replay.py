@@ -20,7 +20,7 @@ import numpy as np
 
 from tdcr.physics.cosserat import SolverOptions, solve
 from tdcr.physics.status import STATUS
-from tdcr.robot.real import Recording, Robot, motions
+from tdcr.robot.real import Recording, Robot
 
 #: The solver's settings for replays, far below motion capture's error: a base step of L / 20, the
 #: step control at 1e-5 relative and the pull-ins met to 10 nm (defaults: L / 41, 3e-7 and 0.1 nm).
@@ -69,8 +69,13 @@ def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None
         options: the solver's settings.
     """
     commands = np.asarray(commands, dtype=np.float64)
-    motion = motions(commands, robot.actuation.deadband) if motion is None else motion
-    sol = solve(robot.designs(commands, motion), np.ones(1), loads=robot.row_loads(len(commands)),
+    designs = robot.designs(commands, motion)  # checks the commands and motions
+    if time is not None:
+        time = np.asarray(time, dtype=np.float64)
+        if time.shape != (len(commands),) or not np.isfinite(time).all() or (np.diff(time) <= 0).any():
+            raise ValueError(f"time: must be ({len(commands)},) finite seconds that increase, one per command row")
+    motion = designs.motion
+    sol = solve(designs, np.ones(1), loads=robot.row_loads(len(commands)),
                 options=options, workers=workers, sequence=True)
     position, rotation = sol.backbone[:, -1], sol.rotation[:, -1]
     return Replay(points=robot.measurement.points(position, rotation, time), tip_position=position,

@@ -183,8 +183,19 @@ class Robot:
     def designs(self, commands: np.ndarray, motion: np.ndarray | None = None) -> DesignBatch:
         """One design per command row: ``commands`` ``(T, N_t)`` SI (m of displacement or N of
         tension, by the actuation's kind) and each tendon's ``motion`` ``(T, N_t)`` (1 pull, -1
-        release; default :func:`motions` of the commands)."""
+        release; default :func:`motions` of the commands).  Commands of another shape, or one that is
+        not a finite number, raise ``ValueError`` naming it (NaN is not "no command")."""
         commands = np.asarray(commands, dtype=np.float64)
+        if commands.ndim != 2 or commands.shape[1] != self.n_tendons or not len(commands):
+            raise ValueError(f"commands: must be (T, N_t) = (T >= 1, {self.n_tendons}) for this robot's "
+                             f"{self.n_tendons} tendons, got shape {commands.shape}")
+        bad = np.argwhere(~np.isfinite(commands))
+        if bad.size:
+            raise ValueError(f"commands[{bad[0][0]}, {bad[0][1]}] (row, tendon): not a finite number, "
+                             f"got {commands[tuple(bad[0])]}")
+        if motion is not None and (np.shape(motion) != commands.shape
+                                   or not np.isin(motion, list(MOTIONS.values())).all()):
+            raise ValueError(f"motion: must be {commands.shape} of {MOTIONS} (pull, release)")
         rows = self.design.take(np.zeros(len(commands), dtype=np.int64))
         motion = motions(commands, self.actuation.deadband) if motion is None else motion
         if self.actuation.kind == "tension":

@@ -295,6 +295,27 @@ def test_bad_recordings_name_the_column_and_row(tmp_path):
         read_recording(tmp_path / "b.csv", robot)
 
 
+def test_replay_names_bad_commands_times_and_motions():
+    """The Python API refuses what the CSV reader refuses: a NaN command once replayed silently as a
+    tension-driven tendon at 0 N (NaN marks a field "not given" inside a design)."""
+    robot = load_robot(EXAMPLE)
+    good = np.zeros((3, robot.n_tendons))
+    nan = good.copy()
+    nan[2, 4] = np.nan
+    for kwargs, words in [({"commands": np.zeros(robot.n_tendons)}, "got shape (9,)"),
+                          ({"commands": np.zeros((3, 5))}, "got shape (3, 5)"),
+                          ({"commands": np.zeros((0, robot.n_tendons))}, "got shape (0, 9)"),
+                          ({"commands": nan}, "commands[2, 4] (row, tendon): not a finite number"),
+                          ({"time": np.array([0.0, 1.0, 1.0])}, "time: must be (3,) finite seconds that increase"),
+                          ({"time": np.array([0.0, 1.0])}, "time: must be (3,)"),
+                          ({"motion": np.zeros_like(good)}, "motion: must be (3, 9)")]:
+        with pytest.raises(ValueError, match=re.escape(words)):
+            replay(robot, **({"commands": good} | kwargs))
+    motion = np.ones_like(good)
+    motion[1:, 0] = -1.0
+    assert (replay(robot, good, time=np.arange(3.0), motion=motion).motion == motion).all()
+
+
 def test_a_spreadsheets_csv_reads_as_the_plain_one(tmp_path):
     """A byte-order mark, Windows line ends and blank lines (a spreadsheet's export) change nothing but
     the rows' CSV numbers, which count the blank lines."""
