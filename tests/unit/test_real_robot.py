@@ -782,7 +782,7 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
                             (["--f-scale", "0"], "--f-scale: must be a number of mm > 0"),
                             (["--loss", "cauchy"], "invalid choice: 'cauchy'"),
                             (["--max-iterations", "0"], "--max-iterations: must be at least 1, got 0"),
-                            (["--budget", "nan"], "--budget: must be at least 0.0, got nan"),
+                            (["--budget", "nan"], "--budget: must be a finite number, got nan"),
                             (["--budget", "0"], "--budget: must be above 0 s"),
                             (["--workers", "-1"], "--workers: must be at least 0, got -1"),
                             (["--plot", str(tmp_path / "none" / "fit.png")], f"no folder {tmp_path / 'none'}"),
