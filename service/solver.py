@@ -20,10 +20,10 @@ from starlette.concurrency import run_in_threadpool
 from service.model import InferenceError, InferenceRequest, InferenceResponse, InverseAnswer, Model, ModelSpec
 from service.oip import EXACT_INPUTS, EXACT_OUTPUTS, INVERSE_INPUTS, INVERSE_OUTPUTS, INVERSE_STATUS
 from service.settings import Settings
-from service.solver_pool import SolverPool, WorkerDied
+from service.solver_pool import SolverPool, WorkerDied, cold_paths
 from tdcr.api.schemas import EXACT_MODEL
 from tdcr.api.validation import InvalidRequest, ShapeRequest
-from tdcr.physics.exact import ExactAnswer, TooMuchWork, WorkBudget, admit, solve_request
+from tdcr.physics.exact import ExactAnswer, TooMuchWork, WorkBudget, admit, paths_of, solve_request
 from tdcr.search.inverse import answer_exact, finish
 
 log = logging.getLogger("tdcr.service")
@@ -35,9 +35,21 @@ STARTING = "starting: the solver processes are starting (a machine's first start
 EXPECTED = (InvalidRequest, TooMuchWork, InferenceError)
 
 
+def _refuse_cold(request) -> None:
+    """In a solver process that still compiles a path the request needs (a machine's first start):
+    "unavailable" (503, retry) at once, not a wait for the compiler that the deadline would cut."""
+    if not isinstance(request, ShapeRequest):
+        return
+    cold = cold_paths(paths_of(request))
+    if cold:
+        raise InferenceError("unavailable", f"starting: the solver compiles its {' and '.join(cold)} path "
+                             "(a machine's first start, about two minutes on 2 cores); retry shortly")
+
+
 def exact_job(codec, payload, spec: ModelSpec, budget: WorkBudget) -> tuple[object, int]:
     """The exact model's whole work on one request, in a solver process: decode, admit, solve, encode."""
     decoded = codec.decode(payload, spec)
+    _refuse_cold(decoded.task)
     admit(decoded.task, budget)
     solved = solve_request(decoded.task)
     return codec.encode(decoded, solved), solved.n_designs
@@ -46,6 +58,7 @@ def exact_job(codec, payload, spec: ModelSpec, budget: WorkBudget) -> tuple[obje
 def solve_job(request: ShapeRequest, budget: WorkBudget) -> ExactAnswer:
     """A validated request's exact answer, in a solver process: admit, solve (the designs a
     surrogate's tolerance sends to the solver)."""
+    _refuse_cold(request)
     admit(request, budget)
     return solve_request(request)
 

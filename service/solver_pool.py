@@ -61,6 +61,8 @@ def _serve(conn: Connection, parent: int) -> None:
     from tdcr.physics.exact import DEFAULT_PATHS, PATHS, warm_up
 
     warm_up(DEFAULT_PATHS)  # ready once the default path answers; the others compile meanwhile
+    global _WARM
+    _WARM = set(DEFAULT_PATHS)
     conn.send((True, "ready"))
     rest = tuple(p for p in PATHS if p not in DEFAULT_PATHS)
     threading.Thread(target=_warm_up_rest, args=(rest,), daemon=True, name="tdcr-warm-up").start()
@@ -77,15 +79,28 @@ def _serve(conn: Connection, parent: int) -> None:
             conn.send((False, RuntimeError(f"{exc.__class__.__name__}: {exc}")))
 
 
+#: In a solver process: the solver paths compiled (or loaded) so far; None elsewhere (no check).
+_WARM: set[str] | None = None
+
+
+def cold_paths(paths) -> list[str]:
+    """Those of ``paths`` that this solver process is still compiling (none outside the solver processes)."""
+    return [] if _WARM is None else sorted(set(paths) - _WARM)
+
+
 def _warm_up_rest(paths: tuple[str, ...]) -> None:
-    """Compile (or load) the solver's other paths after the worker said ready: a request on one of
-    them meanwhile waits for its compilation (numba's compiler lock), one on the default path does not."""
+    """Compile (or load) the solver's other paths, one by one, after the worker said ready.  A request
+    on one of them meanwhile would wait for its compilation (numba's compiler lock) until the deadline
+    killed the process, and its compilation with it: it is answered "starting" instead
+    (:func:`cold_paths`)."""
     from tdcr.physics.exact import warm_up
 
-    try:
-        warm_up(paths)
-    except Exception:  # noqa: BLE001 - a request on that path compiles it itself, and reports what fails
-        log.exception("warming up the solver paths %s failed", paths)
+    for path in paths:
+        try:
+            warm_up((path,))
+        except Exception:  # noqa: BLE001 - a request on that path compiles it itself, and reports what fails
+            log.exception("warming up the solver path %s failed", path)
+        _WARM.add(path)
 
 
 class _Worker:

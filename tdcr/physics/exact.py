@@ -194,6 +194,18 @@ PATHS = ("tendon", "loaded", "displacement")
 DEFAULT_PATHS = ("tendon",)
 
 
+def paths_of(request: ShapeRequest) -> frozenset[str]:
+    """The compiled paths (:data:`PATHS`) that solving ``request`` runs: ``loaded`` for external loads
+    or the rucker_webster rule, ``displacement`` for displacement actuation, else ``tendon``."""
+    paths = set()
+    for group in request.groups:
+        if group.loads is not None and not group.loads.is_zero() or request.termination != "exact":
+            paths.add("loaded")
+        if group.designs.displacement_driven.any():
+            paths.add("displacement")
+    return frozenset(paths or {"tendon"})
+
+
 def warm_up(paths: tuple[str, ...] = PATHS) -> bool:
     """Run the solver once on each of ``paths`` (:data:`PATHS`): compiles the numba kernels into
     their cache on first use (a cold cache: about a minute and a half each on 2 cores), loads them

@@ -300,3 +300,27 @@ def test_solver_workers_outlive_the_thread_that_started_the_pool():
         assert all(w.process.is_alive() for w in pool.workers)
     finally:
         pool.close()
+
+
+def test_a_request_on_a_path_still_compiling_is_answered_starting_at_once(root, monkeypatch):
+    """In a solver process that has compiled only the default path (a machine's first start), a request
+    that needs another path is refused as "unavailable" (503, retry) at once: waiting for numba's
+    compiler, it ran into the 30 s deadline, whose kill threw the compilation away (a robot file's
+    design, displacement-driven, got 504 on a cold start).  Outside the solver processes nothing is
+    refused."""
+    from service import solver, solver_pool
+    from service.model import InferenceError
+    from tdcr.api.validation import validate_json
+    from tdcr.physics.exact import paths_of
+
+    requests = {name: validate_json((root / "examples" / name).read_text(), target="solver")
+                for name in ("request.json", "request_loaded.json", "ftdcr_v4_fitted.json")}
+    assert [sorted(paths_of(r)) for r in requests.values()] == [["tendon"], ["loaded"], ["displacement"]]
+    for request in requests.values():  # not a solver process: no check
+        solver._refuse_cold(request)
+    monkeypatch.setattr(solver_pool, "_WARM", {"tendon", "loaded"})
+    solver._refuse_cold(requests["request.json"])
+    solver._refuse_cold(requests["request_loaded.json"])
+    with pytest.raises(InferenceError) as refused:
+        solver.solve_job(requests["ftdcr_v4_fitted.json"], None)
+    assert refused.value.kind == "unavailable" and "compiles its displacement path" in str(refused.value)
