@@ -353,8 +353,7 @@ def solve(
     if termination not in TERMINATIONS:
         raise ValueError(f"termination must be one of {list(TERMINATIONS)}, got {termination!r}")
     fractions_out = np.asarray(fractions, dtype=np.float64) if validated else check_inputs(designs, fractions, loads)
-    loaded = loads is not None and not loads.is_zero()
-    shortcut = termination == "rucker_webster" and bool(designs.segmented.any())
+    loaded, shortcut = loaded_kernel(designs, loads, termination)
     if (designs.capstan != 0.0).any() and (shortcut or jacobian or opts.linearized):
         raise ValueError("friction covers consistent termination (no Jacobian, not linearized)")
     if designs.displacement_driven.any():
@@ -371,6 +370,13 @@ def solve(
         return _solve_loaded_compiled(designs, fractions_out, loads or ExternalLoads(), opts, workers,
                                       shortcut=termination == "rucker_webster")
     return _solve_tendon_only(designs, fractions_out, opts, jacobian=jacobian, threads=workers)
+
+
+def loaded_kernel(designs: DesignBatch, loads: ExternalLoads | None, termination: str) -> tuple[bool, bool]:
+    """Whether :func:`solve` runs the loaded kernel: for external loads that are not zero (``loaded``),
+    and for the rucker_webster rule on segmented designs (``shortcut``)."""
+    return (loads is not None and not loads.is_zero(),
+            termination == "rucker_webster" and bool(designs.segmented.any()))
 
 
 def check_inputs(designs: DesignBatch, fractions: np.ndarray, loads: ExternalLoads | None) -> np.ndarray:

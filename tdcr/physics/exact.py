@@ -11,6 +11,7 @@ import numpy as np
 
 from tdcr.api.validation import ShapeRequest
 from tdcr.physics import STATUS, RodSolution, SolverOptions, Status, solve
+from tdcr.physics.cosserat import loaded_kernel
 from tdcr.robot.design_space import DEFAULT_POINTS
 
 
@@ -195,11 +196,12 @@ DEFAULT_PATHS = ("tendon",)
 
 
 def paths_of(request: ShapeRequest) -> frozenset[str]:
-    """The compiled paths (:data:`PATHS`) that solving ``request`` runs: ``loaded`` for external loads
-    or the rucker_webster rule, ``displacement`` for displacement actuation, else ``tendon``."""
+    """The compiled paths (:data:`PATHS`) that solving ``request`` runs: ``loaded`` where :func:`solve`
+    runs the loaded kernel (:func:`~tdcr.physics.cosserat.loaded_kernel`), ``displacement`` for
+    displacement actuation, else ``tendon``."""
     paths = set()
     for group in request.groups:
-        if group.loads is not None and not group.loads.is_zero() or request.termination != "exact":
+        if any(loaded_kernel(group.designs, group.loads, request.termination)):
             paths.add("loaded")
         if group.designs.displacement_driven.any():
             paths.add("displacement")
