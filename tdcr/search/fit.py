@@ -648,11 +648,9 @@ def register(robot: Robot, answer: Replay, recording: Recording) -> Robot:
 
 
 def _spread_rank(points: np.ndarray) -> int:
-    """How many directions the points ``(T, 3)`` m span about their mean (0 to 3; 1e-9 m below the largest)."""
-    if len(points) < 2:
-        return 0
-    spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
-    return int((spread > 1e-9 * max(spread[0], 1e-12)).sum())
+    """How many directions the points ``(T, 3)`` m span about their mean (0 to 3; a direction whose
+    spread is below 1e-9 of the largest does not count)."""
+    return int(np.linalg.matrix_rank(points - points.mean(axis=0), rtol=1e-9)) if len(points) > 1 else 0
 
 
 def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
