@@ -111,6 +111,7 @@ def replay_in_gravity(n: int) -> None:
     for tendon in data["design"]["tendons"]:
         tendon["friction"] = 0.0
     fitted = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())
+    fitted["actuation"]["creep_rate"] = 0.0  # creeping tendons replay without loads: both ways without creep
     weight = {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
     robots = {"the robot file, friction 0": data, "the fitted robot, with friction": fitted}
     val = root.parent / "shared" / "real_robot" / "ftdcr_v4" / "val.csv"

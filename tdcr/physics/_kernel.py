@@ -1171,10 +1171,14 @@ def level0_arrays(grid, rod, capstan):
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, sequence, out):
+def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, sequence, creep, crept, out):
     """:func:`find_tensions` for every design of :class:`Rods` ``rods`` (tensions in place) with
     targets ``target`` (B, N_t) (NaN: tension-driven); ``status`` (B,) 0 or NEWTON_FAILED,
-    ``iterations`` (B,) the shootings each took.  With ``sequence`` the designs are one robot's
+    ``iterations`` (B,) the shootings each took.  ``creep`` (B, N_t) m/N: how far each driven tendon
+    lengthens per newton of its drive's tension after its design (eq. CREEP, explicit in time: the
+    creep of design b is crept_b = sum_{j<b} creep_j tau_j, and its target is the command minus it);
+    ``crept`` (B, N_t) m receives each design's.  All zeros: each design alone (the designs may be
+    split in any chunks); else they are one chain in this order.  With ``sequence`` the designs are one robot's
     commands in order: each driven tendon's Newton starts from the tension found for the design
     before (a warm start), and with the Jacobian it left; where the design is the one before but for
     its targets (:func:`_same_rod`: the same motions too), also with that design's last shooting,
@@ -1186,7 +1190,7 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
     same chain, so the same bits), else :func:`solve_design`."""
     n_t = target.shape[1]
     dlen, known, carried = np.empty((n_t, n_t)), np.zeros(2, dtype=np.bool_), np.empty(n_t)
-    cold = np.empty(n_t)
+    cold, so_far, row_target = np.empty(n_t), np.zeros(n_t), np.empty(n_t)
     if rods.length.shape[0] == 0:
         return
     last = level0_arrays(grid, _rod(rods, 0), rods.capstan[0])  # the last shooting's (none yet: unused)
@@ -1198,17 +1202,23 @@ def find_tensions_batch(rods, target, grid, tols, slack, status, iterations, seq
             cold[i] = rods.tension[b, i]
             if warm and target[b, i] == target[b, i]:
                 rods.tension[b, i] = rods.tension[b - 1, i]
+        for i in range(n_t):  # eq. CREEP: the tendon's pull-in less what it crept so far (NaN stays NaN)
+            crept[b, i] = so_far[i]
+            row_target[i] = target[b, i] - so_far[i]
         rod, capstan = _rod(rods, b), rods.capstan[b]
         level = level0_arrays(grid, rod, capstan)
-        ok, it = find_tensions(rod, rods.compliance[b], capstan, target[b], tols, slack[b], dlen, known, carried,
+        ok, it = find_tensions(rod, rods.compliance[b], capstan, row_target, tols, slack[b], dlen, known, carried,
                                level)
         if warm and not ok:
             for i in range(n_t):
                 rods.tension[b, i] = cold[i]
             known[0], known[1] = False, False
-            ok, more = find_tensions(rod, rods.compliance[b], capstan, target[b], tols, slack[b], dlen, known,
+            ok, more = find_tensions(rod, rods.compliance[b], capstan, row_target, tols, slack[b], dlen, known,
                                      carried, level)
             it += more
+        for i in range(n_t):
+            if target[b, i] == target[b, i] and np.isfinite(rods.tension[b, i]):
+                so_far[i] += creep[b, i] * rods.tension[b, i]
         _store(status, b, OK if ok else NEWTON_FAILED)
         _store(iterations, b, it)
         if it > 0:  # else a held design: the last shooting is the design before's

@@ -36,6 +36,12 @@ the tendon and its drive) and a drive zero z_i pulls with
     tau_i = k_i max(0, u_i - z_i - d_i),   d_i = l0_i - l_i                (eq. SE)
 
 (u_i the drive's reading, d_i the length its path shortened; k_i = inf: the rigid u_i - z_i = d_i).
+Along a sequence of commands (a replay) a tendon may creep: a dashpot in series with its spring,
+which lengthens the tendon by r tau_i / k_i per second (r the creep rate, 1/s; the spring's stretch
+relaxes at rate r) and never recovers.  Explicit in time, the pull-in of command b falls short by
+
+    e_i(b) = sum_{j<b} r tau_i(j) (t_{j+1} - t_j) / k_i,   u_i -> u_i - e_i(b)       (eq. CREEP)
+
 Capstan friction between a tendon and its guides makes its tension vary along the path,
 
     d tau_i / ds = c_i tau_i |d t_i / ds|,  tau_i(s) = tau_i(0) exp(c_i theta_i(s))   (eq. CAP)
@@ -154,6 +160,8 @@ class RodSolution:
         tension_profile: every tendon's tension at the arclengths, N, ``(B, n, N_t)``: ``tension``
             where it acts without friction, tension exp(-/+ mu theta(s)) with friction (eq. CAP),
             0 beyond its end.
+        crept: with ``solve(..., creep=)``, how far each tendon had crept when its design was
+            solved (eq. CREEP), m, ``(B, N_t)``: its pull-in fell short by this much; else ``None``.
         section: the section stiffnesses the solve used (:func:`material`).
     """
 
@@ -173,6 +181,7 @@ class RodSolution:
     slack: np.ndarray | None = None
     strains: np.ndarray | None = None
     tension_profile: np.ndarray | None = None
+    crept: np.ndarray | None = None
     section: _Material | None = dataclasses.field(default=None, repr=False)
 
     @functools.cached_property
@@ -316,6 +325,7 @@ def solve(
     jacobian: bool = False,
     termination: str = "exact",
     sequence: bool = False,
+    creep: np.ndarray | None = None,
     validated: bool = False,
 ) -> RodSolution:
     """Equilibrium shapes of a batch of designs.
@@ -341,6 +351,11 @@ def solve(
         sequence: the designs are one robot's commands in order (:func:`tdcr.replay`): with
             displacement actuation each design's tensions start from those found for the one
             before (the answers equal those of independent solves to the solver's tolerances).
+        creep: with ``sequence`` and displacement actuation without loads, ``(B, N_t)`` m/N: how far
+            each displacement-driven tendon lengthens per newton of its tension after its design
+            (r (t_{b+1} - t_b) / k_i, eq. CREEP; :meth:`tdcr.robot.real.Robot.creep`).  Each design's
+            pull-ins then fall short by the creep of the designs before it, so the designs are solved
+            as one chain (on one thread); ``RodSolution.crept`` says by how much.  None or zeros: none.
         validated: the designs, loads and fractions come from the one validation path
             (:mod:`tdcr.api.validation`, as :func:`tdcr.physics.exact.solve_request`'s do): its
             checks are not run a second time.
@@ -356,12 +371,20 @@ def solve(
     loaded, shortcut = loaded_kernel(designs, loads, termination)
     if (designs.capstan != 0.0).any() and (shortcut or jacobian or opts.linearized):
         raise ValueError("friction covers consistent termination (no Jacobian, not linearized)")
+    if creep is not None:
+        creep = np.asarray(creep, dtype=np.float64)
+        if creep.shape != designs.tension.shape or not (np.isfinite(creep) & (creep >= 0.0)).all():
+            raise ValueError(f"creep: must be {designs.tension.shape} (B, N_t) finite m/N >= 0")
+        if not creep.any():
+            creep = None
+        elif not sequence or loaded or not designs.displacement_driven.any():
+            raise ValueError("creep covers a sequence of displacement commands without loads")
     if designs.displacement_driven.any():
         if shortcut or jacobian or opts.linearized:
             raise ValueError("displacement actuation covers consistent termination (no Jacobian, not linearized)")
         if loaded:
             return _solve_displacement_loaded(designs, fractions_out, loads, opts, workers, sequence=sequence)
-        return _solve_displacement(designs, fractions_out, opts, workers, sequence=sequence)
+        return _solve_displacement(designs, fractions_out, opts, workers, sequence=sequence, creep=creep)
     if (loaded or shortcut) and opts.linearized:
         raise ValueError("the linearized model covers tendon loads only, with consistent termination")
     if jacobian and (loaded or opts.linearized or shortcut):
@@ -572,7 +595,7 @@ def _solve_loaded_compiled(designs: DesignBatch, fractions_out: np.ndarray, load
 
 
 def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: SolverOptions,
-                        threads: int, *, sequence: bool = False) -> RodSolution:
+                        threads: int, *, sequence: bool = False, creep: np.ndarray | None = None) -> RodSolution:
     """Displacement actuation: the tensions that pull in the displacement-driven tendons' lengths
     (:func:`tdcr.physics._kernel.find_tensions`: Newton with the exact Jacobian of the path
     lengths, tau >= 0, slack tendons flagged), then the tendon-only answer at those tensions, taken on
@@ -581,7 +604,8 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     tendon's pull-in is its displacement minus its drive's ``zero``; with a series ``stiffness``
     k it pulls with k max(0, pull-in - d) (eq. SE), d the length its path shortened.  With
     ``sequence`` the designs are one robot's commands in order, each started from the tensions
-    found for the one before (:func:`tdcr.replay`)."""
+    found for the one before (:func:`tdcr.replay`); with ``creep`` ``(B, N_t)`` m/N they are one chain,
+    each pull-in short by what its tendon crept before it (eq. CREEP)."""
     edges0 = _base_edges(fractions_out, opts.max_step)
     mat = material(designs)
     kernel, rods, grid, tols, out = _kernel_inputs(designs, mat, edges0, fractions_out, opts, loaded=False)
@@ -592,21 +616,26 @@ def _solve_displacement(designs: DesignBatch, fractions_out: np.ndarray, opts: S
     iterations = np.empty(b, dtype=np.int64)
     wanted = np.where(designs.displacement_driven, designs.displacement - designs.resolved("zero"), np.nan)
     target = _kernel_array(wanted)
+    steps = _kernel_array(np.zeros((b, n_t)) if creep is None else creep)
+    crept = np.zeros((b, n_t))
+    if creep is not None:
+        threads = 1  # each design's creep is the designs' before: one chain
     for correction in range(2):
         # the tensions on the base grid and each design's answer at them (from the last shooting there);
         # then, once, again for the target moved by what the answer's finer grid (step control) still
         # misses (the grids' lengths differ by O(h^4))
         _run_kernel(kernel.find_tensions_batch, threads, b, rods, target, grid, tols, slack, found, iterations,
-                    sequence, out)
+                    sequence, steps, crept, out)
         sol = _tendon_only_answer(designs.replace(tension=rods.tension, displacement=None), mat, fractions_out, edges0,
                                   out, opts)
-        miss = np.where(slack, 0.0, wanted - sol.displacement - designs.compliance * rods.tension)
+        miss = np.where(slack, 0.0, wanted - crept - sol.displacement - designs.compliance * rods.tension)
         if correction or not (np.nan_to_num(np.abs(miss)) > opts.displacement_tol).any():
             break
         target = _kernel_array(target + np.nan_to_num(miss))
     status = sol.status.copy()
     status[(status == Status.CONVERGED.value) & (found != 0)] = Status.DISPLACEMENT_NOT_MET.value
-    return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
+    return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack,
+                               crept=None if creep is None else crept)
 
 
 #: Displacement actuation under loads: Newton iterations at most, and step halvings per iteration.

@@ -7,7 +7,9 @@ independent equilibria, so they are solved side by side on every core, each run 
 with warm starts (``solve(..., sequence=True)``; under the robot file's loads, the loaded
 displacement solve, its Jacobians shared along the sequence); the measured point of each tip follows from the
 robot's marker and base pose, seen through its lag in time when the rows' times are given
-(:meth:`tdcr.robot.real.Measurement.points`, eq. LAG).
+(:meth:`tdcr.robot.real.Measurement.points`, eq. LAG).  With the rows' times, a robot whose tendons
+creep (``actuation.creep_rate``) is one chain in time instead: each row's pull-ins fall short by what
+its tendons crept in the rows before (eq. CREEP), so its rows are solved in order on one thread.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ class Replay:
     measured points (measurement frame); ``tip_position`` ``(T, 3)`` m and ``tip_rotation``
     ``(T, 3, 3)``, the tip poses in the base frame; ``tension`` ``(T, N_t)`` N at the drives;
     ``motion`` ``(T, N_t)`` (1 pull, -1 release); ``status`` ``(T,)`` (indices into
-    :data:`tdcr.physics.STATUS`)."""
+    :data:`tdcr.physics.STATUS`); ``crept`` ``(T, N_t)`` m, how far each tendon had crept by its
+    row (eq. CREEP; zeros without creep)."""
 
     points: np.ndarray
     tip_position: np.ndarray
@@ -43,6 +46,7 @@ class Replay:
     tension: np.ndarray
     motion: np.ndarray
     status: np.ndarray
+    crept: np.ndarray
 
     @property
     def converged(self) -> np.ndarray:
@@ -62,7 +66,9 @@ def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None
         commands: ``(T, N_t)`` SI (m of displacement or N of tension, by ``robot.actuation.kind``),
             in the order they were sent.
         time: the rows' times ``(T,)`` s: the measured points follow the equilibria with the
-            measurement's ``time_constant`` (eq. LAG); ``None``: each row's equilibrium as it is.
+            measurement's ``time_constant`` (eq. LAG), and the tendons creep at the actuation's
+            ``creep_rate`` (eq. CREEP); ``None``: each row's equilibrium as it is (no clock: no lag,
+            no creep).
         motion: each tendon's motion per row ``(T, N_t)`` (default: from the command history,
             :func:`tdcr.robot.real.motions`).
         workers: kernel threads (0: one per core).
@@ -75,11 +81,13 @@ def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None
         if time.shape != (len(commands),) or not np.isfinite(time).all() or (np.diff(time) <= 0).any():
             raise ValueError(f"time: must be ({len(commands)},) finite seconds that increase, one per command row")
     motion = designs.motion
+    creep = robot.creep(time) if time is not None and robot.creeps else None
     sol = solve(designs, np.ones(1), loads=robot.row_loads(len(commands)),
-                options=options, workers=workers, sequence=True)
+                options=options, workers=workers, sequence=True, creep=creep)
     position, rotation = sol.backbone[:, -1], sol.rotation[:, -1]
     return Replay(points=robot.measurement.points(position, rotation, time), tip_position=position,
-                  tip_rotation=rotation, tension=sol.tension, motion=motion, status=sol.status.astype(np.int32))
+                  tip_rotation=rotation, tension=sol.tension, motion=motion, status=sol.status.astype(np.int32),
+                  crept=np.zeros(commands.shape) if sol.crept is None else sol.crept)
 
 
 def write_predictions(path: str | Path, robot: Robot, recording: Recording, answer: Replay) -> None:

@@ -9,7 +9,9 @@ A robot file (JSON Schema: ``openapi/robot.schema.json``, :data:`ROBOT_SCHEMA`):
                 with density (kg/m^3), tip_force and tip_moment, in the base frame, for every row},
      "actuation": {"columns": [one CSV column per tendon, in tendon order], "unit": "mm" | "m" | "N",
                    "kind": "displacement" | "tension", "deadband": the least command change that moves
-                   a tendon (the actuation's unit; default 0): below it the tendon holds its motion},
+                   a tendon (the actuation's unit; default 0): below it the tendon holds its motion,
+                   "creep_rate": 1/s, how fast each tendon's series spring relaxes by creeping
+                   (eq. CREEP; default 0: it does not)},
      "measurement": {"columns": ["tip_x", "tip_y", "tip_z"], "unit": "mm",
                      "marker": [x, y, z] m in the tip frame,
                      "base_position": [x, y, z] m and "base_rotation": [x, y, z] rad (a rotation
@@ -23,7 +25,9 @@ A command row is a design: the robot's design with each tendon's displacement (o
 row, and its ``motion`` (pull or release, the sign of its friction, eq. CAP) from the command
 history (:func:`motions`).  The measured point is base_position + Rot(base_rotation) (p(L) + R(L)
 marker) (:meth:`Measurement.points`), seen through a first-order lag in time (:func:`settle`, eq. LAG)
-when the robot has a ``time_constant``.
+when the robot has a ``time_constant``.  A robot whose tendons creep (``creep_rate``) replays its rows
+as one chain in time: each pull-in falls short by what the tendon crept under its tension in the rows
+before (eq. CREEP, :mod:`tdcr.physics.cosserat`; :meth:`Robot.creep`).
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,13 +72,16 @@ def rotation_matrix(vector: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class Actuation:
     """How the drives are commanded: one CSV ``columns`` entry per tendon (tendon order), their
-    ``unit`` (:data:`UNITS`), ``kind`` (:data:`KINDS`) and ``deadband`` (SI, m or N): a command
-    change below it keeps the tendon's motion."""
+    ``unit`` (:data:`UNITS`), ``kind`` (:data:`KINDS`), ``deadband`` (SI, m or N): a command
+    change below it keeps the tendon's motion, and ``creep_rate`` r (1/s): each displacement-driven
+    tendon with a series stiffness k lengthens by r tau / k per second under its tension tau
+    (eq. CREEP; 0: it does not creep)."""
 
     columns: tuple[str, ...]
     unit: str
     kind: str
     deadband: float = 0.0
+    creep_rate: float = 0.0
 
     @property
     def scale(self) -> float:
@@ -168,7 +175,7 @@ class Robot:
                        if value is not None and np.any(value)}
         out = {"name": self.name, "design": design,
                "actuation": {"columns": list(a.columns), "unit": a.unit, "kind": a.kind,
-                             "deadband": a.deadband / a.scale},
+                             "deadband": a.deadband / a.scale, "creep_rate": a.creep_rate},
                "measurement": {"columns": list(m.columns), "unit": m.unit, "marker": m.marker.tolist(),
                                "base_position": m.base_position.tolist(),
                                "base_rotation": m.base_rotation.tolist(), "time_constant": m.time_constant},
@@ -179,6 +186,24 @@ class Robot:
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
+
+    @property
+    def creeps(self) -> bool:
+        """Whether a replay with the rows' times carries the tendons' creep (eq. CREEP)."""
+        return self.actuation.kind == "displacement" and self.actuation.creep_rate > 0.0
+
+    def creep(self, time: np.ndarray) -> np.ndarray:
+        """How far each tendon lengthens per newton of its tension after each row at ``time`` ``(T,)``
+        s, ``(T, N_t)`` m/N: r (t_{k+1} - t_k) / k_i (eq. CREEP; a rigid tendon does not creep, and the
+        last row's creep comes after the recording)."""
+        interval = np.append(np.diff(np.asarray(time, dtype=np.float64)), 0.0)  # (T,) s to the next row
+        return self.actuation.creep_rate * interval[:, None] * self.design.compliance[0][None, :]
+
+    def after(self, crept: np.ndarray) -> Robot:
+        """The robot once its tendons crept by ``crept`` ``(N_t,)`` m: each drive's zero moved by it
+        (a crept tendon needs that much more pull-in to be taut), the state a later recording starts
+        from."""
+        return replace(self, design=self.design.replace(zero=self.design.resolved("zero") + crept[None, :]))
 
     def designs(self, commands: np.ndarray, motion: np.ndarray | None = None) -> DesignBatch:
         """One design per command row: ``commands`` ``(T, N_t)`` SI (m of displacement or N of
@@ -280,7 +305,11 @@ def load_robot(source: str | Path | dict) -> Robot:
     kind = _choice(a, "kind", "actuation", KINDS, "displacement")
     unit = _choice(a, "unit", "actuation", KINDS[kind])
     actuation = Actuation(columns=_columns(a, "actuation", design.n_tendons), unit=unit, kind=kind,
-                          deadband=_nonnegative(a, "deadband", "actuation") * UNITS[unit])
+                          deadband=_nonnegative(a, "deadband", "actuation") * UNITS[unit],
+                          creep_rate=_nonnegative(a, "creep_rate", "actuation"))
+    if actuation.creep_rate > 0.0 and loads is not None:
+        raise RobotFileError("actuation.creep_rate: creeping tendons replay without loads (the design has "
+                             "gravity or a tip wrench); give one or the other")
     measurement = Measurement(columns=_columns(m, "measurement", 3), unit=_choice(m, "unit", "measurement",
                                                                                    LENGTH_UNITS),
                               time_constant=_nonnegative(m, "time_constant", "measurement"),
@@ -415,7 +444,11 @@ def robot_schema(*, ref_template: str = "#/$defs/{model}") -> dict:
                 "unit": {"enum": list(UNITS)}, "kind": {"enum": list(KINDS), "default": "displacement"},
                 "deadband": {"type": "number", "minimum": 0, "default": 0,
                              "description": "the least command change (the actuation's unit) that moves a tendon; "
-                                            "below it the tendon keeps its motion (pull or release)"}}},
+                                            "below it the tendon keeps its motion (pull or release)"},
+                "creep_rate": {"type": "number", "minimum": 0, "default": 0,
+                               "description": "1/s: each displacement-driven tendon of series stiffness k "
+                                              "lengthens by creep_rate * tension / k per second and never "
+                                              "recovers (a replay with times; 0: no creep)"}}},
             "measurement": {"type": "object", "required": ["columns", "unit"], "properties": {
                 "columns": columns | {"minItems": 3, "maxItems": 3}, "unit": {"enum": list(LENGTH_UNITS)},
                 "marker": vector | {"description": "the measured point in the tip frame, m"},

@@ -11,6 +11,10 @@ trust-region reflective with bounds, forward-difference Jacobian):
   1 / k_i = c0 + end_i / EA: the drive compliance c0 (m/N) and the tendons' axial stiffness EA (N);
 * ``stiffness``: instead, a series stiffness per segment's tendons, N/m;
 * ``friction``: each segment's Capstan coefficient;
+* ``creep``: the rate at which the tendons creep (``actuation.creep_rate``, 1/s, eq. CREEP).  The
+  creep at the end of train is the state the fitted robot file starts from: its drive zeros are the
+  fitted ones (reported as ``zero[i]``, the state at train's start) moved by it (:meth:`Robot.after`),
+  so that a recording made after train (``--validate``, ``tdcr replay FITTED.json``) goes on from there;
 * ``offset``: each segment's tendon offset, m; or ``tendon_offset``: each tendon's (holes drilled off
   their nominal radius);
 * ``angle``: a rotation of each segment's tendon angles, rad (rough routing angles); or
@@ -48,9 +52,12 @@ mean error over the file (the metric of the public opencr-mujoco calibration).
 from __future__ import annotations
 
 import math
+import os
 import re
+import threading
 import time
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
@@ -60,33 +67,34 @@ from tdcr.physics.replay import REPLAY_OPTIONS, Replay, replay
 from tdcr.robot.real import Measurement, Recording, Robot
 
 #: The parameter groups :func:`fit` can identify, in order.
-GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "offset", "tendon_offset", "angle",
+GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "creep", "offset", "tendon_offset", "angle",
           "tendon_angle", "marker", "base_position", "base_rotation", "time_constant")
 #: Those :func:`fit` identifies unless told otherwise (each tendon's angle turned from the robot file's: on
 #: the shared recording's single-tendon sweeps the bend's direction was 1-8 degrees off, docs/real_robot.md).
-DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "offset", "tendon_angle", "marker", "base_position",
-                  "base_rotation", "time_constant")
+DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "creep", "offset", "tendon_angle", "marker",
+                  "base_position", "base_rotation", "time_constant")
 #: Groups that act only where the drives command displacements (a drive's zero and the tendons' series
 #: compliance turn a pull-in into a tension, eq. SE); a robot commanded in tensions fits without them.
-DISPLACEMENT_ONLY = ("zero", "elasticity", "stiffness")
+DISPLACEMENT_ONLY = ("zero", "elasticity", "stiffness", "creep")
 #: Groups that set the same values: at most one of each.
 EXCLUSIVE = (("elasticity", "stiffness"), ("offset", "tendon_offset"), ("angle", "tendon_angle"))
 #: Those of the measurement (changing them needs no new solve).
 REGISTRATION = ("marker", "base_position", "base_rotation", "time_constant")
 #: Each group's unit of the search (one unit of the optimiser's variable).
-_SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction": 0.1, "offset": 0.05,
+_SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction": 0.1, "creep": 1.0, "offset": 0.05,
           "tendon_offset": 0.05, "angle": 0.1, "tendon_angle": 0.1,
           "marker": 1e-3, "base_position": 1e-3, "base_rotation": 0.01, "time_constant": 0.1}
 #: Searched as logarithms (positive, relative steps).
-_LOG = ("E", "elasticity", "stiffness", "friction", "offset", "tendon_offset", "time_constant")
+_LOG = ("E", "elasticity", "stiffness", "friction", "creep", "offset", "tendon_offset", "time_constant")
 #: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons,
 #: no lag: at 0 s the lag's gradient vanishes).
-_LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10, "time_constant": 0.2}
+_LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10, "time_constant": 0.2, "creep": 1e-3}
 #: The search's bounds of each group's value (logs for :data:`_LOG`): physical ranges, and the
 #: admissible ranges of the design fields.
 _BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffness": (math.log(50.0), math.log(1e7)),
            "drive_compliance": (math.log(1e-9), math.log(0.1)), "tendon_EA": (math.log(1.0), math.log(1e9)),
-           "friction": (math.log(1e-3), math.log(1.0)), "offset": (math.log(1e-4), math.log(0.1)),
+           "friction": (math.log(1e-3), math.log(1.0)), "creep": (math.log(1e-6), math.log(1.0)),
+           "offset": (math.log(1e-4), math.log(0.1)),
            "tendon_offset": (math.log(1e-4), math.log(0.1)),
            "angle": (-0.5, 0.5), "tendon_angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
            "base_position": (-0.25, 0.25), "base_rotation": (-4.0, 4.0),
@@ -179,7 +187,7 @@ class _Layout:
 def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
     n_seg = len(segments(robot))
     n_t = robot.n_tendons
-    counts = {"E": 1, "zero": n_t, "elasticity": 2, "stiffness": n_seg, "friction": n_seg, "offset": n_seg,
+    counts = {"E": 1, "zero": n_t, "elasticity": 2, "stiffness": n_seg, "friction": n_seg, "creep": 1, "offset": n_seg,
               "tendon_offset": n_t, "angle": n_seg, "tendon_angle": n_t, "marker": 3, "base_position": 3,
               "base_rotation": 3, "time_constant": 1}
     names, gs, index = [], [], []
@@ -213,6 +221,9 @@ def _values(robot: Robot, layout: _Layout) -> np.ndarray:
             out.append(0.0)
         elif g == "time_constant":
             out.append(math.log(m.time_constant if m.time_constant > 0 else _LOG_START[g]))
+        elif g == "creep":
+            rate = robot.actuation.creep_rate
+            out.append(math.log(rate if rate > 0 else _LOG_START[g]))
         else:
             out.append(getattr(m, g)[i])
     return np.array(out)
@@ -258,6 +269,7 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
     fields = {"zero": d.resolved("zero").copy(), "stiffness": d.resolved("stiffness").copy(),
               "friction": d.resolved("friction").copy(), "offset": d.offset.copy(), "angle": base_angles.copy()}
     E = d.E.copy()
+    actuation = robot.actuation
     elastic = [np.nan, np.nan]  # the drive's compliance c0 (m/N) and the tendons' axial stiffness EA (N)
     m = robot.measurement
     reg = {"marker": m.marker.copy(), "base_position": m.base_position.copy(),
@@ -279,12 +291,14 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
             fields["angle"][0, i] = base_angles[0, i] + v
         elif g == "time_constant":
             reg[g] = math.exp(v)
+        elif g == "creep":
+            actuation = replace(actuation, creep_rate=math.exp(v))
         else:
             reg[g][i] = v
     if not np.isnan(elastic).any():  # eq. SE's k of a tendon of length end: 1 / k = c0 + end / EA
         fields["stiffness"] = 1.0 / (elastic[0] + d.ends / elastic[1])
     measurement = replace(m, **reg)
-    return replace(robot, design=d.replace(E=E, **fields), measurement=measurement)
+    return replace(robot, design=d.replace(E=E, **fields), actuation=actuation, measurement=measurement)
 
 
 @dataclass(frozen=True)
@@ -326,17 +340,17 @@ class FitResult:
 #: The parameters of a group that are not alike: their own names (and units).
 _NAMES = {"elasticity": ("drive_compliance", "tendon_EA")}
 _NAME_UNITS = {"drive_compliance": "m/N", "tendon_EA": "N"}
-_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "offset": "m", "tendon_offset": "m",
-          "angle": "rad", "tendon_angle": "rad", "marker": "m", "base_position": "m", "base_rotation": "rad",
-          "time_constant": "s"}
+_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "creep": "1/s", "offset": "m",
+          "tendon_offset": "m", "angle": "rad", "tendon_angle": "rad", "marker": "m", "base_position": "m",
+          "base_rotation": "rad", "time_constant": "s"}
 
 
 def default_groups(robot: Robot) -> tuple[str, ...]:
     """The groups :func:`fit` identifies unless told otherwise: :data:`DEFAULT_GROUPS`, less
-    :data:`DISPLACEMENT_ONLY` for a robot commanded in tensions."""
-    if robot.actuation.kind == "displacement":
-        return DEFAULT_GROUPS
-    return tuple(g for g in DEFAULT_GROUPS if g not in DISPLACEMENT_ONLY)
+    :data:`DISPLACEMENT_ONLY` for a robot commanded in tensions, and less ``creep`` under loads."""
+    left_out = (DISPLACEMENT_ONLY if robot.actuation.kind != "displacement" else ()) + (
+        ("creep",) if robot.loads is not None else ())
+    return tuple(g for g in DEFAULT_GROUPS if g not in left_out)
 
 
 def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | None:
@@ -348,6 +362,8 @@ def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | Non
     for pair in EXCLUSIVE:
         if set(pair) <= set(groups):
             return f"{pair[0]} and {pair[1]} set the same values: give one of them"
+    if robot is not None and robot.loads is not None and "creep" in groups:
+        return "creep: creeping tendons replay without loads, and this robot's design has gravity or a tip wrench"
     inert = [g for g in groups if g in DISPLACEMENT_ONLY]
     if robot is not None and robot.actuation.kind != "displacement" and inert:
         verb = "acts" if len(inert) == 1 else "act"
@@ -448,7 +464,11 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     base_angles = robot.design.angles.copy()
     scored = train.has_measurement
     physics = layout.physics
+    threads = workers or os.cpu_count() or 1
+    # a creeping robot's replay is one chain on one thread: the Jacobian's columns then run side by side
+    columns_apart = (robot.creeps or "creep" in groups) and threads > 1
     cache: dict[bytes, Replay] = {}
+    lock = threading.Lock()  # the cache and counters, with the Jacobian's columns on threads
     bar = tqdm(desc="fit: replays", unit="replay", disable=not progress, leave=False)
     solves = [0]
     best = {"cost": np.inf, "z": np.zeros(len(x0))}
@@ -460,14 +480,19 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     def unloaded_replay(x: np.ndarray) -> Replay:
         """The replay at ``x`` without loads (cached)."""
         key = np.round(x[physics], 14).tobytes()
-        if key not in cache:
+        with lock:
+            if key in cache:
+                return cache[key]
+        # the rows' times: a creeping robot's replay carries its creep (the lag is applied by the caller)
+        answer = replay(_apply(unloaded, layout, x, base_angles), train.commands, time=train.time,
+                        workers=1 if columns_apart else workers, options=REPLAY_OPTIONS)
+        with lock:
             if len(cache) > 64:
                 cache.clear()
-            cache[key] = replay(_apply(unloaded, layout, x, base_angles), train.commands, workers=workers,
-                                options=REPLAY_OPTIONS)
+            cache[key] = answer
             solves[0] += 1
             bar.update(1)
-        return cache[key]
+        return answer
 
     def solved(x: np.ndarray) -> Replay:
         """The replay at ``x``: without loads, moved by the loads' ``shift`` (if any)."""
@@ -497,10 +522,29 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         r = (err[scored] * 1e3).ravel()  # mm
         if held.any():
             r = np.concatenate([r, z[held] * (f_scale / width[held])])
-        cost = _robust_cost(r, loss, f_scale)
-        if track and cost < best["cost"]:
-            best["cost"], best["z"] = cost, z.copy()
+        if track:
+            keep_best(z, r)
         return r
+
+    def keep_best(z: np.ndarray, r: np.ndarray) -> None:
+        cost = _robust_cost(r, loss, f_scale)
+        if cost < best["cost"]:
+            best["cost"], best["z"] = cost, z.copy()
+
+    def jacobian_apart(z: np.ndarray) -> np.ndarray:
+        """``least_squares``' forward-difference Jacobian (its steps: DIFF_STEP max(1, |z|), away from
+        a bound it would cross) with the columns' replays side by side, one thread each."""
+        if time.perf_counter() - start - loaded_seconds[0] > budget:
+            raise _OutOfTime
+        r0 = residual(z, track=False)
+        h = DIFF_STEP * np.maximum(1.0, np.abs(z)) * np.where(z >= 0.0, 1.0, -1.0)
+        h = np.where((z + h > upper_z) | (z + h < lower_z), -h, h)
+        moved = [z + h[j] * np.eye(len(z))[j] for j in range(len(z))]
+        with ThreadPoolExecutor(threads) as pool:
+            rows = list(pool.map(lambda v: residual(v, track=False), moved))
+        for v, r in zip(moved, rows, strict=True):
+            keep_best(v, r)
+        return np.stack([(r - r0) / h[j] for j, r in enumerate(rows)], axis=1)
 
     initial_robot = _apply(robot, layout, x0, base_angles)
     initial = errors(_replay_points(initial_robot, solved(x0), train.time), train)
@@ -523,13 +567,14 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         shift[0] = shift_at(x0 + z * scale)
         return _robust_cost(residual(z, track=False), loss, f_scale)
 
+    lower_z, upper_z = (lower - x0) / scale, (upper - x0) / scale  # the search's bounds, from the start
     cost = np.inf  # under loads: the loaded cost after the last round kept (none before the first)
     for _ in range(LOADED_ROUNDS if robot.loads is not None else 1):
         z_start, best["cost"] = best["z"].copy(), np.inf
         try:
-            least_squares(residual, z_start, bounds=((lower - x0) / scale, (upper - x0) / scale),
-                          diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf", x_scale=1.0, loss=loss,
-                          f_scale=f_scale)
+            least_squares(residual, z_start, jac=jacobian_apart if columns_apart else "2-point",
+                          bounds=(lower_z, upper_z), diff_step=DIFF_STEP, max_nfev=max_iterations, method="trf",
+                          x_scale=1.0, loss=loss, f_scale=f_scale)
             spent = False
         except _OutOfTime:
             spent = True
@@ -587,6 +632,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                                 unit=_NAME_UNITS.get(name) or _UNITS[g]))
     # under loads the last loaded replay, at these values (the shift's): its own tensions and statuses
     train_replay = _replay_points(fitted, solved(x) if loaded_replay[0] is None else loaded_replay[0], train.time)
+    fitted = fitted.after(train_replay.crept[-1])  # as train left it: what a later recording starts from
     val_replay = None if validate is None else replay(fitted, validate.commands, time=validate.time,
                                                       workers=workers, options=REPLAY_OPTIONS)
     seconds = time.perf_counter() - start
