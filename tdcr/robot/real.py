@@ -307,6 +307,9 @@ def load_robot(source: str | Path | dict) -> Robot:
     actuation = Actuation(columns=_columns(a, "actuation", design.n_tendons), unit=unit, kind=kind,
                           deadband=_nonnegative(a, "deadband", "actuation") * UNITS[unit],
                           creep_rate=_nonnegative(a, "creep_rate", "actuation"))
+    if actuation.creep_rate > 0.0 and kind != "displacement":
+        raise RobotFileError("actuation.creep_rate: creep moves a displacement-driven tendon's pull-in; this "
+                             f"robot's drives command {kind}s (actuation.kind), which creep does not change")
     if actuation.creep_rate > 0.0 and loads is not None:
         raise RobotFileError("actuation.creep_rate: creeping tendons replay without loads (the design has "
                              "gravity or a tip wrench); give one or the other")

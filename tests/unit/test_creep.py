@@ -97,6 +97,25 @@ def test_a_robot_file_creeps_in_a_replay_with_times_and_names_a_bad_rate(tmp_pat
     loaded["design"] = loaded["design"] | {"gravity": [0.0, 0.0, -9.81], "density": 7800.0}
     with pytest.raises(RobotFileError, match=r"actuation\.creep_rate: creeping tendons replay without loads"):
         load_robot(loaded)
+    pulled = _creeping() | {}
+    pulled["actuation"] = pulled["actuation"] | {"kind": "tension", "unit": "N"}
+    with pytest.raises(RobotFileError, match=r"actuation\.creep_rate: creep moves a displacement-driven"):
+        load_robot(pulled)
+
+
+def test_creep_is_fitted_without_loads_only():
+    """A robot with loads fits without ``creep`` by default, and ``creep`` named for it is refused
+    before any work, as the CLI's exit 2 says."""
+    from tdcr.search.fit import check_groups, default_groups, fit
+
+    data = _creeping(0.0)
+    data["design"] = data["design"] | {"gravity": [0.0, 0.0, -9.81], "density": 7800.0}
+    robot = load_robot(data)
+    assert "creep" in default_groups(load_robot(_creeping(0.0))) and "creep" not in default_groups(robot)
+    assert "without loads" in check_groups(("E", "creep"), robot)
+    rec = read_recording(SAMPLE, robot)
+    with pytest.raises(ValueError, match="groups: creep: creeping tendons replay without loads"):
+        fit(robot, rec, groups=("creep",))
 
 
 def test_fit_finds_a_known_creep_rate_and_the_fitted_file_goes_on_from_trains_end(tmp_path):
