@@ -3,12 +3,15 @@
     python benchmarks/real_robot_holdout.py                         # tendon_angle, the shared FTDCR v4 train.csv
     python benchmarks/real_robot_holdout.py --group tendon_offset --robot R.json --train T.csv
     python benchmarks/real_robot_holdout.py --split halves
+    python benchmarks/real_robot_holdout.py --group creep --split time   # the first half fitted, the second scored
     python benchmarks/real_robot_holdout.py --prior tendon_angle=0.5   # a prior judged instead of a group
 
 Two folds: ``--split patterns`` deals the patterns (labels, a ``_hold`` row with its pattern)
 alternately into them, so a pattern is either fitted or scored (but a single-tendon sweep then
 informs only one fold); ``--split halves`` puts each pattern's first half of rows in one and its
-second half in the other (every pattern in both, neighbouring rows apart).  Each fold is fitted
+second half in the other (every pattern in both, neighbouring rows apart); ``--split time`` fits the
+recording's first half in time and scores its second half only, which goes on from the state the first
+left (the tendons' creep, eq. CREEP, as a later recording goes on from train's).  Each fold is fitted
 with the default groups with and without ``--group`` (with it added when it is not a default) and
 scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).  With
 ``--prior GROUP=WIDTH[,...]`` the two fits are the default groups without any prior and with that
@@ -54,7 +57,8 @@ def main() -> None:
     parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
     parser.add_argument("--train", default=str(SHARED / "train.csv"))
     parser.add_argument("--group", default="tendon_angle", help="the group judged")
-    parser.add_argument("--split", choices=("patterns", "halves"), default="patterns", help="how the folds are made")
+    parser.add_argument("--split", choices=("patterns", "halves", "time"), default="patterns",
+                        help="how the folds are made")
     parser.add_argument("--prior", type=_prior, default=None,
                         help="judge a prior instead: GROUP=WIDTH[,GROUP=WIDTH...]")
     args = parser.parse_args()
@@ -65,6 +69,8 @@ def main() -> None:
     if args.split == "patterns":
         fold_of = {p: k % 2 for k, p in enumerate(dict.fromkeys(patterns))}
         fold = np.array([fold_of[p] for p in patterns])
+    elif args.split == "time":
+        fold = (np.arange(len(patterns)) >= len(patterns) // 2).astype(int)
     else:
         fold = np.zeros(len(patterns), dtype=int)
         for p in dict.fromkeys(patterns):
@@ -79,7 +85,7 @@ def main() -> None:
         choices = ((f"without {args.group}", without, PRIOR), (f"with {args.group}", without + (args.group,), PRIOR))
     print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
           "| held-out plain, mm | fit, s |\n|---|---|---|---|---|---|---|")
-    for k in (0, 1):
+    for k in (0,) if args.split == "time" else (0, 1):  # in time: the later half is never fitted
         fitted, held_out = recording.take(fold == k), recording.take(fold != k)
         for name, groups, prior in choices:
             start = time.perf_counter()
