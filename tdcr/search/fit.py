@@ -466,7 +466,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     physics = layout.physics
     threads = workers or os.cpu_count() or 1
     # a creeping robot's replay is one chain on one thread: the Jacobian's columns then run side by side
-    columns_apart = (robot.creeps or "creep" in groups) and threads > 1
+    creeping = robot.creeps or "creep" in groups
+    columns_apart = creeping and threads > 1
     cache: dict[bytes, Replay] = {}
     lock = threading.Lock()  # the cache and counters, with the Jacobian's columns on threads
     bar = tqdm(desc="fit: replays", unit="replay", disable=not progress, leave=False)
@@ -483,9 +484,10 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         with lock:
             if key in cache:
                 return cache[key]
-        # the rows' times: a creeping robot's replay carries its creep (the lag is applied by the caller)
-        answer = replay(_apply(unloaded, layout, x, base_angles), train.commands, time=train.time,
-                        workers=1 if columns_apart else workers, options=REPLAY_OPTIONS)
+        # the rows' times where the robot creeps (its replay carries the creep; the caller applies the lag)
+        answer = replay(_apply(unloaded, layout, x, base_angles), train.commands,
+                        time=train.time if creeping else None, workers=1 if columns_apart else workers,
+                        options=REPLAY_OPTIONS)
         with lock:
             if len(cache) > 64:
                 cache.clear()
@@ -522,29 +524,17 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         r = (err[scored] * 1e3).ravel()  # mm
         if held.any():
             r = np.concatenate([r, z[held] * (f_scale / width[held])])
-        if track:
-            keep_best(z, r)
-        return r
-
-    def keep_best(z: np.ndarray, r: np.ndarray) -> None:
         cost = _robust_cost(r, loss, f_scale)
-        if cost < best["cost"]:
-            best["cost"], best["z"] = cost, z.copy()
+        with lock:  # the Jacobian's columns may run on threads
+            if track and cost < best["cost"]:
+                best["cost"], best["z"] = cost, z.copy()
+        return r
 
     def jacobian_apart(z: np.ndarray) -> np.ndarray:
         """``least_squares``' forward-difference Jacobian (its steps: DIFF_STEP max(1, |z|), away from
         a bound it would cross) with the columns' replays side by side, one thread each."""
-        if time.perf_counter() - start - loaded_seconds[0] > budget:
-            raise _OutOfTime
-        r0 = residual(z, track=False)
         h = DIFF_STEP * np.maximum(1.0, np.abs(z)) * np.where(z >= 0.0, 1.0, -1.0)
-        h = np.where((z + h > upper_z) | (z + h < lower_z), -h, h)
-        moved = [z + h[j] * np.eye(len(z))[j] for j in range(len(z))]
-        with ThreadPoolExecutor(threads) as pool:
-            rows = list(pool.map(lambda v: residual(v, track=False), moved))
-        for v, r in zip(moved, rows, strict=True):
-            keep_best(v, r)
-        return np.stack([(r - r0) / h[j] for j, r in enumerate(rows)], axis=1)
+        return _jacobian(residual, z, np.where((z + h > upper_z) | (z + h < lower_z), -h, h), threads=threads)
 
     initial_robot = _apply(robot, layout, x0, base_angles)
     initial = errors(_replay_points(initial_robot, solved(x0), train.time), train)
@@ -609,7 +599,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
             break
         cost = new_cost
     z = best["z"]
-    jac = _jacobian(lambda v: residual(v, track=False), z)
+    jac = _jacobian(lambda v: residual(v, track=False), z, np.full(len(z), DIFF_STEP),
+                    threads=threads if columns_apart else 1)
     bar.close()
     x = _without_common_turn(layout, x0 + z * scale)  # the values applied, as reported
     fitted = _apply(robot, layout, x, base_angles)
@@ -710,15 +701,17 @@ class _OutOfTime(Exception):
     """The fit's time budget is spent."""
 
 
-def _jacobian(residual, z: np.ndarray) -> np.ndarray:
-    """Forward differences of ``residual`` at ``z`` with the step :data:`DIFF_STEP` ``(m, p)``."""
+def _jacobian(residual, z: np.ndarray, steps: np.ndarray, *, threads: int = 1) -> np.ndarray:
+    """Forward differences ``(m, p)`` of ``residual`` at ``z`` ``(p,)`` with ``steps`` ``(p,)`` (search
+    units), the columns' evaluations on ``threads`` threads."""
     r0 = residual(z)
-    jac = np.empty((r0.size, z.size))
-    for j in range(z.size):
-        step = z.copy()
-        step[j] += DIFF_STEP
-        jac[:, j] = (residual(step) - r0) / DIFF_STEP
-    return jac
+    moved = list(z + np.diag(steps))
+    if threads > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            shifted = list(pool.map(residual, moved))
+    else:
+        shifted = [residual(v) for v in moved]
+    return np.stack([(r - r0) / h for r, h in zip(shifted, steps, strict=True)], axis=1)
 
 
 def _replay_points(robot: Robot, answer: Replay, time: np.ndarray) -> Replay:
