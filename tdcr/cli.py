@@ -388,7 +388,7 @@ def _cmd_workspace(args) -> int:
 
 def _cmd_calibrate(args) -> int:
     from tdcr.surrogates.runtime import ManifestError, load_manifest
-    from training.operators.calibrate import SCORES, calibrate
+    from training.operators.calibrate import SCORES, TooFewDesigns, calibrate
     from training.operators.export import update_manifest
 
     try:
@@ -402,7 +402,10 @@ def _cmd_calibrate(args) -> int:
     missing = sorted({c for n in names if (c := SCORES[n].companion) and c not in manifest["models"]})
     if missing:
         raise UsageError(f"the scores need the companion operators {missing}, not in the manifest")
-    records = calibrate(args.models_dir, manifest, names, designs=args.designs, seed=args.seed)
+    try:  # every record is computed before the manifest is written
+        records = calibrate(args.models_dir, manifest, names, designs=args.designs, seed=args.seed)
+    except TooFewDesigns as exc:
+        raise UsageError(str(exc)) from None
     for name, record in records.items():
         update_manifest(Path(args.models_dir), manifest["models"][name] | {"calibration": record})
         q = record["quantiles"]
@@ -602,7 +605,8 @@ def build_parser() -> argparse.ArgumentParser:
     from tdcr.surrogates.bounds import CALIBRATION_DESIGNS, CALIBRATION_SEED
     from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
-    parser = argparse.ArgumentParser(prog="tdcr", description=__doc__, formatter_class=FORMATTER)
+    parser = argparse.ArgumentParser(prog="tdcr", description=__doc__.replace("``", ""),  # rst literals, as text
+                                     formatter_class=FORMATTER)
     sub = parser.add_subparsers(dest="command", required=True)
     models_dir = {"default": str(DEFAULT_MODELS_DIR), "help": "directory with manifest.json and the ONNX models "
                                                               "(default: the shipped models)"}
@@ -749,7 +753,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models-dir", **models_dir)
     p.add_argument("--models", nargs="*", default=None, help="operators (default: every one with a measured score)")
     p.add_argument("--designs", type=_at_least(1), default=CALIBRATION_DESIGNS,
-                   help="calibration designs per group (load-free, loaded); a 99 %% bound needs 99 in a bin")
+                   help="calibration designs per group (load-free, loaded); too few for a finite bound in "
+                        "every bending-angle bin exits 2")
     p.add_argument("--seed", type=int, default=CALIBRATION_SEED, help="seed of the calibration designs and loads")
     p.set_defaults(func=_cmd_calibrate)
 

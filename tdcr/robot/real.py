@@ -267,6 +267,14 @@ def _nonnegative(section: dict, key: str, where: str) -> float:
     return float(value)
 
 
+def _name(data: dict, key: str, default: str | None) -> str | None:
+    """``data[key]``, a column's name: a non-empty string (``default`` when absent)."""
+    value = data.get(key, default)
+    if value is not None and not (isinstance(value, str) and value):
+        raise RobotFileError(f"{key}: must be a column's name (a non-empty string), got {value!r}")
+    return value
+
+
 def _columns(section: dict, where: str, count: int) -> tuple[str, ...]:
     cols = section.get("columns")
     if not isinstance(cols, list) or len(cols) != count or not all(isinstance(c, str) and c for c in cols):
@@ -320,7 +328,7 @@ def load_robot(source: str | Path | dict) -> Robot:
                                  for k in ("marker", "base_position", "base_rotation")})
     known = {"name", "design", "actuation", "measurement", "time_column", "label_column"}
     return Robot(name=str(data.get("name", "robot")), design=design, actuation=actuation, measurement=measurement,
-                 time_column=str(data.get("time_column", "timestamp")), label_column=data.get("label_column"),
+                 time_column=_name(data, "time_column", "timestamp"), label_column=_name(data, "label_column", None),
                  extra={k: v for k, v in data.items() if k not in known}, loads=loads)
 
 

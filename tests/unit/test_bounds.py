@@ -82,7 +82,7 @@ def test_fit_gives_the_split_conformal_quantile_of_each_bin():
     pytest.importorskip("crepes")
     from scipy.stats import beta
 
-    from training.operators.calibrate import conformal_rank, fit
+    from training.operators.calibrate import TooFewDesigns, conformal_rank, fit, least_bin
 
     rng = np.random.default_rng(0)
     theta = rng.uniform(0, 10, 4000)
@@ -102,6 +102,24 @@ def test_fit_gives_the_split_conformal_quantile_of_each_bin():
     k = conformal_rank(n, 0.99, 0.1)  # coverage >= 0.99 with probability 0.9 over calibration sets
     assert beta.sf(0.99, k, n + 1 - k) >= 0.9 > beta.sf(0.99, k - 1, n + 2 - k)
     assert conformal_rank(50, 0.99, None) == 51  # too few designs for a 99 % bound: none
+    # the fewest designs per bin with a finite bound: 99 (ceil(100 * 0.99)); with delta 0.1, the least n
+    # with 1 - 0.99^n >= 0.9 (the n-th of n ratios covers 0.99 with probability 1 - 0.99^n): 230
+    assert (least_bin(0.99, None), least_bin(0.99, 0.1)) == (99, 230)
+    with pytest.raises(TooFewDesigns, match="a bending-angle bin holds 98 converged designs of 392; a 0.99 bound "
+                                            r"\(delta None\) needs at least 99 in each of the 4 bins"):
+        fit(error[:392], score[:392], theta[:392], level=0.99, delta=None, n_bins=4)
+
+
+def test_calibrate_with_too_few_designs_exits_2_and_leaves_the_manifest(root, tmp_path):
+    pytest.importorskip("crepes")
+    models = tmp_path / "models"
+    shutil.copytree(DEFAULT_MODELS_DIR, models)
+    before = (models / "manifest.json").read_bytes()
+    out = subprocess.run([sys.executable, "-m", "tdcr.cli", "calibrate", "--models-dir", str(models), "--models",
+                          "deeponet", "--designs", "300"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "--designs: a bending-angle bin holds" in out.stderr and "needs at least 230" in out.stderr
+    assert (models / "manifest.json").read_bytes() == before
 
 
 def test_guard_replaces_the_rows_over_the_tolerance_in_order():

@@ -107,6 +107,7 @@ def test_every_help_page_prints(run_tdcr, capsys):
     top = run_tdcr("--help")
     assert top.returncode == 0, top.stderr
     assert "99 % error bounds" in top.stdout  # the calibrate line, with its percent sign
+    assert "The tdcr command line" in top.stdout and "``" not in top.stdout  # no rst markup on the page
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
     assert {"solve", "replay", "fit", "serve", "calibrate"} <= set(commands)
     for name in commands:

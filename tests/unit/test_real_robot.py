@@ -338,6 +338,8 @@ def test_bad_robot_files_name_the_key(tmp_path):
                           (lambda d: d["design"]["tendons"][0].update(motion="push"), "design.tendons[0].motion"),
                           (lambda d: d["measurement"].update(marker=[0, 0]), "measurement.marker"),
                           (lambda d: d["measurement"].update(time_constant=-0.1), "measurement.time_constant: must"),
+                          (lambda d: d.update(time_column=7), "time_column: must be a column's name"),
+                          (lambda d: d.update(label_column=""), "label_column: must be a column's name"),
                           (lambda d: d.pop("measurement"), "measurement: missing")]:
         data = json.loads(json.dumps(good))
         change(data)

@@ -117,17 +117,34 @@ def conformal_rank(n: int, level: float, delta: float | None) -> int:
     return k
 
 
+class TooFewDesigns(ValueError):
+    """A bin holds too few calibration designs for a finite bound at the level and delta."""
+
+
+def least_bin(level: float = LEVEL, delta: float | None = DELTA) -> int:
+    """The fewest calibration ratios n of a bin whose :func:`conformal_rank` is finite (at most n)."""
+    n = 1
+    while conformal_rank(n, level, delta) > n:
+        n += 1
+    return n
+
+
 def fit(error: np.ndarray, score: np.ndarray | None, theta: np.ndarray, *, level: float = LEVEL,
         delta: float | None = DELTA, n_bins: int = N_BINS) -> tuple[np.ndarray, np.ndarray]:
     """Mondrian split-conformal quantiles: bin ``edges`` ``(n_bins + 1,)`` of the bending angles
     ``theta`` ``(B,)`` (their quantiles, outermost min and max) and per bin the quantile
     ``(n_bins,)`` of error / (score + floor) at the rank of :func:`conformal_rank`, by
     ``crepes.ConformalRegressor`` (residuals >= 0, so its interval's upper end is the bound; its
-    confidence (k - 1/2) / (n + 1) selects the k-th smallest ratio)."""
+    confidence (k - 1/2) / (n + 1) selects the k-th smallest ratio).  Raises :class:`TooFewDesigns`
+    when a bin holds fewer than :func:`least_bin` designs (its bound would be infinite)."""
     from crepes import ConformalRegressor
 
     edges = np.quantile(theta, np.linspace(0.0, 1.0, n_bins + 1))
     bins = np.clip(np.searchsorted(edges, theta, side="right") - 1, 0, n_bins - 1)
+    counts, least = np.bincount(bins, minlength=n_bins), least_bin(level, delta)
+    if counts.min() < least:
+        raise TooFewDesigns(f"--designs: a bending-angle bin holds {counts.min()} converged designs of {len(theta)}; "
+                            f"a {level:g} bound (delta {delta}) needs at least {least} in each of the {n_bins} bins")
     sigmas = np.ones_like(error) if score is None else score + SCORE_FLOOR
     regressor = ConformalRegressor().fit(residuals=error, sigmas=sigmas, bins=bins)
     upper = np.empty(n_bins)
