@@ -10,7 +10,11 @@ iterations, default 40, against :func:`~tdcr.search.fit.fit`'s 15):
 - on the validation file alone, and scores it there (in-sample: the model's floor on val, up to the
   search's local minimum);
 - on train and val together (val's rows after train's, its times shifted to follow them), and
-  scores each part: the best one robot does on both files.
+  scores each part: the best one robot does on both files;
+- on train alone (:func:`~tdcr.search.fit.fit` as ``tdcr fit`` runs it, without the time budget),
+  and then puts each group of the train fit's values into the joint fit (and each of the joint fit's
+  into the train fit's), every robot replayed from train's start over train and val in time order
+  (:func:`tdcr.search.fit.at_start`): which of the train fit's values cost val the most.
 
 It then lists the pairs of rows of each file whose commands agree (every drive within ``--same``
 mm) but that lie more than 3 rows apart, with the distance between their measured tips and between
@@ -37,8 +41,9 @@ sys.path.insert(0, str(ROOT))
 
 from real_robot import add_load_arguments, robot_under  # noqa: E402  (this folder's)
 
+from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import Recording, read_recording  # noqa: E402
-from tdcr.search.fit import errors, fit  # noqa: E402
+from tdcr.search.fit import FitResult, Parameter, at_start, errors, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 GAP = 1.0  # s between train's last row and val's first in the joint recording
@@ -52,6 +57,18 @@ def joined(first: Recording, second: Recording) -> Recording:
                      commands=np.concatenate([first.commands, second.commands]),
                      measured=np.concatenate([first.measured, second.measured]),
                      rows=np.concatenate([first.rows, second.rows]), header=first.header)
+
+
+def trading(on_train: FitResult, joint: FitResult) -> list[tuple[str, list[Parameter]]]:
+    """The joint fit's parameters, the train fit's, and for each group the one with that group's
+    values taken from the other (two fits of the same groups): (name, parameters)."""
+    pairs = list(zip(on_train.parameters, joint.parameters, strict=True))
+    out = [("the joint fit", list(joint.parameters)), ("the train fit", list(on_train.parameters))]
+    for group in joint.groups:
+        out.append((f"the joint fit, train's {group}", [t if j.group == group else j for t, j in pairs]))
+    for group in joint.groups:
+        out.append((f"the train fit, the joint's {group}", [j if j.group == group else t for t, j in pairs]))
+    return out
 
 
 def repeated_commands(recording: Recording, tolerance: float, min_apart: int = 3) -> list[tuple[int, int]]:
@@ -130,6 +147,17 @@ def main() -> None:
     for name, e in (("train", joint_train), ("val", joint_val)):
         print(f"| train + val | {name} | {e.aligned:.2f} | {e.rmse:.2f} | {e.max:.2f} | {e.failed} | "
               f"{both_seconds:.0f} |")
+
+    start = time.perf_counter()
+    on_train = fit(robot, train, budget=budget)
+    train_seconds = time.perf_counter() - start
+    print(f"\nthe train fit ({train_seconds:.0f} s) and the joint fit with one group of the other's values, "
+          "replayed from train's start over train and val; aligned / plain RMSE, mm:")
+    print("\n| robot | train | val |\n|---|---|---|")
+    for name, parameters in trading(on_train, on_both):
+        answer = replay(at_start(robot, on_both, parameters), both.commands, time=both.time)
+        scores = [errors(answer.take(mask), both.take(mask)) for mask in (in_train, in_val)]
+        print(f"| {name} | " + " | ".join(f"{e.aligned:.2f} / {e.rmse:.2f}" for e in scores) + " |", flush=True)
 
     print(f"\nrows with the same commands (every drive within {args.same} mm), more than 3 rows apart; tip "
           "distance, mm, measured and predicted by the joint fit:")

@@ -123,12 +123,13 @@ FAILED_ERROR = 0.05
 @dataclass(frozen=True)
 class Parameter:
     """One identified value: ``name`` (e.g. ``zero[3]``), ``value`` and ``stderr`` in ``unit`` (SI;
-    ``inf`` where the data do not move it: not identified, ``null`` in the report)."""
+    ``inf`` where the data do not move it: not identified, ``null`` in the report), and its ``group``."""
 
     name: str
     value: float
     stderr: float
     unit: str
+    group: str = ""
 
 
 @dataclass(frozen=True)
@@ -330,7 +331,8 @@ class FitResult:
         """The fit as JSON (the robot file's ``fitted``)."""
         rounds = {"load_rounds": [e.as_dict() for e in self.load_rounds]} if self.load_rounds else {}
         return rounds | {"parameters": [{"name": p.name, "value": p.value,
-                                "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit}
+                                "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit,
+                                                  "group": p.group}
                                for p in self.parameters],
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves,
@@ -620,7 +622,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     for name, g, v, se in zip(layout.names, layout.groups, x, stderr, strict=True):
         value = math.exp(v) if g in _LOG else v
         params.append(Parameter(name=name, value=float(value), stderr=float(value * se if g in _LOG else se),
-                                unit=_NAME_UNITS.get(name) or _UNITS[g]))
+                                unit=_NAME_UNITS.get(name) or _UNITS[g], group=g))
     # under loads the last loaded replay, at these values (the shift's): its own tensions and statuses
     train_replay = _replay_points(fitted, solved(x) if loaded_replay[0] is None else loaded_replay[0], train.time)
     fitted = fitted.after(train_replay.crept[-1])  # as train left it: what a later recording starts from
@@ -634,6 +636,19 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                     groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale,
                     load_rounds=tuple(rounds))
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
+
+
+def at_start(robot: Robot, result: FitResult, parameters: Sequence[Parameter] | None = None) -> Robot:
+    """The robot file's ``robot`` (the fit's start) with ``result``'s parameters applied, or with
+    ``parameters`` (the same names in the same order, e.g. another fit's values for some groups): the
+    fitted robot as the fitted recording found it (``result.robot`` is as the recording left it, its
+    drive zeros moved by what the tendons crept, :meth:`Robot.after`)."""
+    layout = _layout(robot, result.groups)
+    parameters = result.parameters if parameters is None else parameters
+    if tuple(p.name for p in parameters) != layout.names:
+        raise ValueError(f"parameters: must be {list(layout.names)} in this order (the fit's groups)")
+    x = np.array([math.log(p.value) if g in _LOG else p.value for p, g in zip(parameters, layout.groups, strict=True)])
+    return _apply(robot, layout, x, robot.design.angles.copy())
 
 
 @dataclass(frozen=True)
@@ -747,4 +762,4 @@ def plot(result: FitResult, train: Recording, validate: Recording | None, path: 
     plt.close(fig)
 
 
-__all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "errors", "fit", "plot", "segments"]
+__all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "at_start", "errors", "fit", "plot", "segments"]

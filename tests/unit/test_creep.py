@@ -123,7 +123,7 @@ def test_fit_finds_a_known_creep_rate_and_the_fitted_file_goes_on_from_trains_en
     (group ``creep``, the Jacobian's columns side by side) give the rate again; the fitted file's zeros
     are the drives' as train left them, so its replay of the last 10 rows (recorded after train) is the
     creeping robot's, and the same rows replayed from the start's zeros are not."""
-    from tdcr.search.fit import fit
+    from tdcr.search.fit import at_start, fit
 
     truth = load_robot(_creeping(memory=False))
     rec = read_recording(SAMPLE, truth)
@@ -145,3 +145,13 @@ def test_fit_finds_a_known_creep_rate_and_the_fitted_file_goes_on_from_trains_en
     np.testing.assert_allclose(again.points, result.validate_replay.points, rtol=0, atol=1e-12)
     afresh = replay(replace(fitted, design=start.design), later.commands, time=later.time)
     assert np.linalg.norm(afresh.points - later.measured, axis=1).max() > 4 * result.validate.max * 1e-3
+    # the fit's values applied to its start: the robot as train found it, whose replay of train is the fit's
+    found_it = at_start(start, result)
+    np.testing.assert_array_equal(found_it.design.resolved("zero"), start.design.resolved("zero"))
+    assert found_it.actuation.creep_rate == fitted.actuation.creep_rate
+    np.testing.assert_allclose(replay(found_it, train.commands, time=train.time).points, result.train_replay.points,
+                               rtol=0, atol=1e-12)
+    slower = at_start(start, result, [replace(found, value=RATE / 2)])
+    assert slower.actuation.creep_rate == pytest.approx(RATE / 2)
+    with pytest.raises(ValueError, match=r"parameters: must be \['creep'\]"):
+        at_start(start, result, [replace(found, name="E")])
