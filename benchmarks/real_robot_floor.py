@@ -59,15 +59,28 @@ def joined(first: Recording, second: Recording) -> Recording:
                      rows=np.concatenate([first.rows, second.rows]), header=first.header)
 
 
+#: Groups traded together: E and the tendons' compliance lie on one ridge (without loads only their
+#: product sets the shapes), so one of them alone from another fit is off it.
+TRADED_TOGETHER = ({"E", "elasticity", "stiffness"},)
+
+
 def trading(on_train: FitResult, joint: FitResult) -> list[tuple[str, list[Parameter]]]:
-    """The joint fit's parameters, the train fit's, and for each group the one with that group's
-    values taken from the other (two fits of the same groups): (name, parameters)."""
+    """The joint fit's parameters, the train fit's, and for each group (:data:`TRADED_TOGETHER` as
+    one) the one with that group's values taken from the other (two fits of the same groups):
+    (name, parameters)."""
     pairs = list(zip(on_train.parameters, joint.parameters, strict=True))
+    units = []
+    for group in joint.groups:
+        unit = next((set(joint.groups) & together for together in TRADED_TOGETHER if group in together), {group})
+        if unit not in units:
+            units.append(unit)
     out = [("the joint fit", list(joint.parameters)), ("the train fit", list(on_train.parameters))]
-    for group in joint.groups:
-        out.append((f"the joint fit, train's {group}", [t if j.group == group else j for t, j in pairs]))
-    for group in joint.groups:
-        out.append((f"the train fit, the joint's {group}", [j if j.group == group else t for t, j in pairs]))
+    for unit in units:
+        name = " and ".join(g for g in joint.groups if g in unit)
+        out.append((f"the joint fit, train's {name}", [t if j.group in unit else j for t, j in pairs]))
+    for unit in units:
+        name = " and ".join(g for g in joint.groups if g in unit)
+        out.append((f"the train fit, the joint's {name}", [j if j.group in unit else t for t, j in pairs]))
     return out
 
 
