@@ -331,9 +331,9 @@ class FitResult:
         """The fit as JSON (the robot file's ``fitted``)."""
         rounds = {"load_rounds": [e.as_dict() for e in self.load_rounds]} if self.load_rounds else {}
         return rounds | {"parameters": [{"name": p.name, "value": p.value,
-                                "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit,
-                                                  "group": p.group}
-                               for p in self.parameters],
+                                         "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit,
+                                         "group": p.group}
+                                        for p in self.parameters],
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves,
                 "prior": self.prior, "groups": list(self.groups), "loss": self.loss, "f_scale_mm": self.f_scale}
