@@ -770,6 +770,7 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
     fitted = load_robot(out)
     report = fitted.extra["fitted"]
     assert [p["name"] for p in report["parameters"]] == ["marker[0]", "marker[1]", "marker[2]", "time_constant"]
+    assert [p["group"] for p in report["parameters"]] == ["marker"] * 3 + ["time_constant"]
     # the report says how it was searched: the groups, the loss and the prior given
     assert report["groups"] == ["marker", "time_constant"] and report["loss"] == "linear"
     assert report["prior"] == {"marker": 0.5}
