@@ -469,8 +469,8 @@ def robot_schema(*, ref_template: str = "#/$defs/{model}") -> dict:
                 "time_constant": {"type": "number", "minimum": 0, "default": 0,
                                   "description": "s: the measured tip follows each row's equilibrium with this "
                                                  "first-order lag (0: at once)"}}},
-            "time_column": {"type": "string", "default": "timestamp"},
-            "label_column": {"type": "string"},
+            "time_column": columns["items"] | {"default": "timestamp"},  # a column's name, as load_robot checks
+            "label_column": columns["items"],
             "fitted": {"type": "object", "description": "what tdcr fit found: parameters with standard errors, "
                                                         "train and validation errors (informative)"}},
         "$defs": defs}
