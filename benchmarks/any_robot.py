@@ -98,9 +98,10 @@ def loaded_displacement(n: int) -> None:
 
 def replay_in_gravity(n: int) -> None:
     """The shared FTDCR v4 robot file (9 tendons) without friction, and the fitted one
-    (``examples/ftdcr_v4_fitted.json``, with friction), each without loads and in gravity: ``n`` rows
-    of its val.csv replayed in order (``tdcr.replay``: the loaded displacement solve, Jacobians shared
-    along the sequence), rows/s of the best of 2, and how far gravity moved the tips."""
+    (``examples/ftdcr_v4_fitted.json``, with friction; without and with its creep), each without loads
+    and in gravity: ``n`` rows of its val.csv replayed in order with their times (``tdcr.replay``: the
+    loaded displacement solve, Jacobians shared along the sequence; a creeping robot's chain in gravity
+    in sweeps, eq. CREEP), rows/s of the best of 2, and how far gravity moved the tips."""
     from pathlib import Path
 
     from tdcr.physics.replay import replay
@@ -110,10 +111,11 @@ def replay_in_gravity(n: int) -> None:
     data = json.loads((root / "examples" / "ftdcr_v4.json").read_text())
     for tendon in data["design"]["tendons"]:
         tendon["friction"] = 0.0
-    fitted = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())
-    fitted["actuation"]["creep_rate"] = 0.0  # creeping tendons replay without loads: both ways without creep
+    creeping = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())
+    fitted = creeping | {"actuation": creeping["actuation"] | {"creep_rate": 0.0}}
     weight = {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
-    robots = {"the robot file, friction 0": data, "the fitted robot, with friction": fitted}
+    robots = {"the robot file, friction 0": data, "the fitted robot, with friction": fitted,
+              "the fitted robot, with friction and its creep": creeping}
     val = root.parent / "shared" / "real_robot" / "ftdcr_v4" / "val.csv"
     print(f"\n### Replay in gravity: the FTDCR v4 robot files, {n} val rows, g = (0, 3, -9.81) m/s^2, 7,800 kg/m^3\n")
     print("| robot | loads | rows converged | rows/s | tip moved by gravity, max mm |\n|---|---|---:|---:|---:|")

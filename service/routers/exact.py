@@ -28,7 +28,7 @@ ROUTE = "/exact"
                503: {"model": ErrorResponse},
                504: {"model": ErrorResponse}},
     description="A request (ExactRequest), or a robot file (RobotFile, e.g. what `tdcr fit` writes): its design "
-                "at the default arclengths.",
+                "at the default arclengths, once the whole file passes the checks of `tdcr replay`.",
     openapi_extra={"requestBody": {"required": True, "content": {"application/json": {"schema": {"anyOf": [
         {"$ref": "#/components/schemas/ExactRequest"}, {"$ref": "#/components/schemas/RobotFile"}]}}}}},
 )

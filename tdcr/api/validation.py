@@ -313,9 +313,9 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
     try:
         request = (schema.model_validate(body) if isinstance(body, dict) else schema.model_validate_json(body))
     except ValidationError as exc:
-        design = robot_file_design(body) if target == "solver" else None
-        if design is not None:
-            return _robot_file_request(design, limits=limits, outputs=outputs)
+        robot = robot_file(body) if target == "solver" else None
+        if robot is not None:
+            return _robot_file_request(robot, limits=limits, outputs=outputs)
         raise InvalidRequest(_what_to_do(Problem(tuple(_short(part) for part in e["loc"]), e["msg"], e["type"]), target)
                              for e in exc.errors(include_input=False, include_url=False)) from None
     fractions, problems = _fractions(request.points, request.s, limits, arclength=request.arclength,
@@ -333,8 +333,8 @@ def validate_json(body: bytes | str | dict, *, target: Target, limits: Limits = 
                     target=target, termination=getattr(request, "termination", "exact"))
 
 
-def robot_file_design(body: bytes | str | dict):
-    """The design of a robot file (``tdcr/robot/real.py``: an object with a ``design`` object and an
+def robot_file(body: bytes | str | dict) -> dict | None:
+    """A robot file, parsed (``tdcr/robot/real.py``: an object with a ``design`` object and an
     ``actuation``; ``tdcr fit`` writes one), or None for any other body."""
     if not isinstance(body, dict):
         try:
@@ -342,18 +342,30 @@ def robot_file_design(body: bytes | str | dict):
         except (ValueError, TypeError):  # not JSON (UnicodeDecodeError is a ValueError)
             return None
     if isinstance(body, dict) and isinstance(body.get("design"), dict) and "actuation" in body:
-        return body["design"]
+        return body
     return None
 
 
-def _robot_file_request(design: dict, *, limits: Limits, outputs: Iterable[str] | None) -> ShapeRequest:
+def _robot_file_request(robot: dict, *, limits: Limits, outputs: Iterable[str] | None) -> ShapeRequest:
     """A robot file asked of the solver: its design at the default arclengths (its actuation and
-    measurement describe a recording: ``tdcr replay``).  Problems are named under ``design``."""
+    measurement describe a recording: ``tdcr replay``).  Problems of the design are named under
+    ``design``; the rest of the file passes the robot file's own checks
+    (:func:`tdcr.robot.real.load_robot`, as ``tdcr replay`` and ``tdcr fit`` run them), so a file
+    they refuse is refused here too, its problem named by its key (e.g. ``actuation.columns``)."""
+    from tdcr.robot.real import RobotFileError, load_robot
+
     try:
-        return validate_json({"designs": [design]}, target="solver", limits=limits, outputs=outputs)
+        request = validate_json({"designs": [robot["design"]]}, target="solver", limits=limits, outputs=outputs)
     except InvalidRequest as exc:
         raise InvalidRequest((p._replace(loc=("design", *p.loc[2:])) if p.loc[:2] == ("designs", 0) else p
                               for p in exc.problems), too_large=exc.too_large) from None
+    try:
+        load_robot(robot)
+    except RobotFileError as exc:
+        key, _, reason = str(exc).partition(": ")
+        raise InvalidRequest([Problem(tuple(key.split(".")), reason, "robot_file") if reason
+                              else Problem((), str(exc), "robot_file")]) from None
+    return request
 
 
 def _what_to_do(problem: Problem, target: Target) -> Problem:

@@ -351,11 +351,12 @@ def solve(
         sequence: the designs are one robot's commands in order (:func:`tdcr.replay`): with
             displacement actuation each design's tensions start from those found for the one
             before (the answers equal those of independent solves to the solver's tolerances).
-        creep: with ``sequence`` and displacement actuation without loads, ``(B, N_t)`` m/N: how far
-            each displacement-driven tendon lengthens per newton of its tension after its design
+        creep: with ``sequence`` and displacement actuation, ``(B, N_t)`` m/N: how far each
+            displacement-driven tendon lengthens per newton of its tension after its design
             (r (t_{b+1} - t_b) / k_i, eq. CREEP; :meth:`tdcr.robot.real.Robot.creep`).  Each design's
             pull-ins then fall short by the creep of the designs before it, so the designs are solved
-            as one chain (on one thread); ``RodSolution.crept`` says by how much.  None or zeros: none.
+            as one chain (on one thread; under loads, sweeps of the whole chain: :func:`crept_by`);
+            ``RodSolution.crept`` says by how much.  None or zeros: none.
         validated: the designs, loads and fractions come from the one validation path
             (:mod:`tdcr.api.validation`, as :func:`tdcr.physics.exact.solve_request`'s do): its
             checks are not run a second time.
@@ -377,12 +378,14 @@ def solve(
             raise ValueError(f"creep: must be {designs.tension.shape} (B, N_t) finite m/N >= 0")
         if not creep.any():
             creep = None
-        elif not sequence or loaded or not designs.displacement_driven.any():
-            raise ValueError("creep covers a sequence of displacement commands without loads")
+        elif not sequence or not designs.displacement_driven.any():
+            raise ValueError("creep covers a sequence of displacement commands")
     if designs.displacement_driven.any():
         if shortcut or jacobian or opts.linearized:
             raise ValueError("displacement actuation covers consistent termination (no Jacobian, not linearized)")
         if loaded:
+            if creep is not None:
+                return _solve_creeping_loaded(designs, fractions_out, loads, opts, workers, creep)
             return _solve_displacement_loaded(designs, fractions_out, loads, opts, workers, sequence=sequence)
         return _solve_displacement(designs, fractions_out, opts, workers, sequence=sequence, creep=creep)
     if (loaded or shortcut) and opts.linearized:
@@ -651,7 +654,8 @@ LOADED_DISPLACEMENT_MARGIN = 0.01
 
 
 def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
-                               opts: SolverOptions, threads: int, *, sequence: bool = False) -> RodSolution:
+                               opts: SolverOptions, threads: int, *, sequence: bool = False,
+                               crept: np.ndarray | None = None, start: np.ndarray | None = None) -> RodSolution:
     """Displacement actuation in gravity and under tip loads: the tensions ``tau`` (B, N_t) at which
     every displacement-driven tendon i meets min(s_i tau_i, c_i tau_i + d_i(tau) - w_i) = 0 (eq. SE
     with its slack branch: w_i its pull-in minus its drive's ``zero``, c_i its compliance 1 /
@@ -668,12 +672,16 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     commands in order, :func:`tdcr.replay`) only every :data:`LOADED_DISPLACEMENT_SHARED`-th design
     (a leader) differences its Jacobian at the start, and the designs after it start from its
     Jacobian.  Friction acts as in the unloaded solve (eq. CAP, each tendon's ``motion``): the
-    loaded kernel carries it."""
+    loaded kernel carries it.  ``crept`` ``(B, N_t)`` m: each pull-in falls short by this much (eq.
+    CREEP, held); ``start`` ``(B, N_t)`` N: Newton's first tensions (default: the unloaded solve's)."""
     driven = designs.displacement_driven
     wanted = np.where(driven, designs.displacement - designs.resolved("zero"), 0.0)  # w (B, N_t), m
+    if crept is not None:
+        wanted = wanted - np.where(driven, crept, 0.0)
     compliance = designs.compliance
     b, n_t = designs.n_designs, designs.n_tendons
-    start = _solve_displacement(designs, fractions_out, opts, threads).tension
+    if start is None:
+        start = _solve_displacement(designs, fractions_out, opts, threads).tension
     tension = np.maximum(np.nan_to_num(np.where(driven, start, designs.tension)), 0.0)
     scale = np.ones((b, n_t))  # s: the path's own stiffness dd_i/dtau_i, from each Jacobian
     moments = np.full((b, 3), np.nan)  # M(0) of each design's last accepted loaded solve, N m (NaN: none yet)
@@ -775,6 +783,49 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     status[(status == Status.CONVERGED.value) & ~found] = Status.DISPLACEMENT_NOT_MET.value
     slack = driven & (tension == 0.0) & (compliance * tension + sol.displacement - wanted > opts.displacement_tol)
     return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
+
+
+def crept_by(creep: np.ndarray, tension: np.ndarray, driven: np.ndarray) -> np.ndarray:
+    """Eq. CREEP's sum over a chain of ``B`` designs: how far each tendon had crept by its design,
+    e(b) = sum_{j<b} creep_j tau_j, ``(B, N_t)`` m, from ``creep`` ``(B, N_t)`` m/N, the tensions
+    ``tension`` ``(B, N_t)`` N and which tendons are ``driven`` ``(B, N_t)`` (the others, and a
+    tension that is not finite, add nothing).  The unloaded kernel sums the same as it goes
+    (``find_tensions_batch``); the loaded chain's sweeps take it whole."""
+    step = np.where(driven & np.isfinite(tension), creep * tension, 0.0)
+    return np.concatenate([np.zeros((1, step.shape[1])), np.cumsum(step, axis=0)[:-1]])
+
+
+#: Creep under loads: sweeps of the whole chain at most (each one loaded displacement solve of every
+#: design, its pull-ins short by the last sweep's creep).  The creep is a Volterra sum (each design's
+#: from the designs before), so sweep m leaves an error of order (r t)^m / m! of the creep, r t the
+#: creep rate times the chain's duration (about 1 on the shared recordings).
+CREEP_SWEEPS = 16
+
+
+def _solve_creeping_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
+                           opts: SolverOptions, threads: int, creep: np.ndarray) -> RodSolution:
+    """A creeping chain of displacement-driven designs under loads (eq. CREEP with eq. SE under the
+    loads): each design's pull-ins short by e(b) = sum_{j<b} creep_j tau_j (:func:`crept_by`) of
+    the answer's own tensions.  Fixed-point sweeps: the unloaded chain gives the first creep, then
+    every design is solved under the loads at once (:func:`_solve_displacement_loaded`, started
+    from the last sweep's tensions) with its pull-ins short by the creep so far, and the creep is
+    summed again from those tensions, until it moves by at most ``displacement_tol`` (a design whose
+    creep still moves more after :data:`CREEP_SWEEPS` is flagged ``displacement_not_met``).
+    ``crept`` is the creep its answer was solved at."""
+    driven = designs.displacement_driven
+    unloaded = _solve_displacement(designs, fractions_out, opts, threads, sequence=True, creep=creep)
+    crept, tension = unloaded.crept, unloaded.tension
+    for sweep in range(CREEP_SWEEPS):
+        sol = _solve_displacement_loaded(designs, fractions_out, loads, opts, threads, sequence=True, crept=crept,
+                                         start=np.nan_to_num(tension))
+        summed = crept_by(creep, sol.tension, driven)
+        moved = np.abs(summed - crept).max(axis=1)
+        if (moved <= opts.displacement_tol).all() or sweep == CREEP_SWEEPS - 1:
+            break
+        crept, tension = summed, sol.tension
+    status = sol.status.copy()
+    status[(status == Status.CONVERGED.value) & (moved > opts.displacement_tol)] = Status.DISPLACEMENT_NOT_MET.value
+    return dataclasses.replace(sol, status=status, converged=status == 0, crept=crept)
 
 
 def _solve_compiled(designs: DesignBatch, fractions_out: np.ndarray, edges0: np.ndarray, opts: SolverOptions,

@@ -9,7 +9,8 @@ displacement solve, its Jacobians shared along the sequence); the measured point
 robot's marker and base pose, seen through its lag in time when the rows' times are given
 (:meth:`tdcr.robot.real.Measurement.points`, eq. LAG).  With the rows' times, a robot whose tendons
 creep (``actuation.creep_rate``) is one chain in time instead: each row's pull-ins fall short by what
-its tendons crept in the rows before (eq. CREEP), so its rows are solved in order on one thread.
+its tendons crept in the rows before (eq. CREEP), so its rows are solved in order on one thread (under
+loads, in sweeps of the whole chain, each on every core: :func:`tdcr.physics.cosserat.crept_by`).
 """
 
 from __future__ import annotations

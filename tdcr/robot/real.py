@@ -246,7 +246,8 @@ def motions(commands: np.ndarray, deadband: float = 0.0) -> np.ndarray:
 
 
 def _vector(value, where: str) -> np.ndarray:
-    v = np.asarray(value, dtype=np.float64) if isinstance(value, list) else None
+    numbers = isinstance(value, list) and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
+    v = np.asarray(value, dtype=np.float64) if numbers else None
     if v is None or v.shape != (3,) or not np.isfinite(v).all():
         raise RobotFileError(f"{where}: must be a list of 3 finite numbers, got {value!r}")
     return v
@@ -254,7 +255,7 @@ def _vector(value, where: str) -> np.ndarray:
 
 def _choice(section: dict, key: str, where: str, allowed, default=None):
     value = section.get(key, default)
-    if value not in allowed:
+    if not isinstance(value, str) or value not in allowed:
         raise RobotFileError(f"{where}.{key}: must be one of {list(allowed)}, got {value!r}")
     return value
 
@@ -318,9 +319,6 @@ def load_robot(source: str | Path | dict) -> Robot:
     if actuation.creep_rate > 0.0 and kind != "displacement":
         raise RobotFileError("actuation.creep_rate: creep moves a displacement-driven tendon's pull-in; this "
                              f"robot's drives command {kind}s (actuation.kind), which creep does not change")
-    if actuation.creep_rate > 0.0 and loads is not None:
-        raise RobotFileError("actuation.creep_rate: creeping tendons replay without loads (the design has "
-                             "gravity or a tip wrench); give one or the other")
     measurement = Measurement(columns=_columns(m, "measurement", 3), unit=_choice(m, "unit", "measurement",
                                                                                    LENGTH_UNITS),
                               time_constant=_nonnegative(m, "time_constant", "measurement"),

@@ -349,9 +349,8 @@ _UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "creep": "
 
 def default_groups(robot: Robot) -> tuple[str, ...]:
     """The groups :func:`fit` identifies unless told otherwise: :data:`DEFAULT_GROUPS`, less
-    :data:`DISPLACEMENT_ONLY` for a robot commanded in tensions, and less ``creep`` under loads."""
-    left_out = (DISPLACEMENT_ONLY if robot.actuation.kind != "displacement" else ()) + (
-        ("creep",) if robot.loads is not None else ())
+    :data:`DISPLACEMENT_ONLY` for a robot commanded in tensions."""
+    left_out = DISPLACEMENT_ONLY if robot.actuation.kind != "displacement" else ()
     return tuple(g for g in DEFAULT_GROUPS if g not in left_out)
 
 
@@ -364,8 +363,6 @@ def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | Non
     for pair in EXCLUSIVE:
         if set(pair) <= set(groups):
             return f"{pair[0]} and {pair[1]} set the same values: give one of them"
-    if robot is not None and robot.loads is not None and "creep" in groups:
-        return "creep: creeping tendons replay without loads, and this robot's design has gravity or a tip wrench"
     inert = [g for g in groups if g in DISPLACEMENT_ONLY]
     if robot is not None and robot.actuation.kind != "displacement" and inert:
         verb = "acts" if len(inert) == 1 else "act"
@@ -506,8 +503,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         """The loads' shift at ``x``: one loaded replay against the unloaded one."""
         begin = time.perf_counter()
         bar.set_postfix_str("a replay under the loads", refresh=True)  # one tick, 60-90x a plain replay's time
-        loaded_replay[0] = replay(_apply(robot, layout, x, base_angles), train.commands, workers=workers,
-                                  options=REPLAY_OPTIONS)
+        loaded_replay[0] = replay(_apply(robot, layout, x, base_angles), train.commands,
+                                  time=train.time if creeping else None, workers=workers, options=REPLAY_OPTIONS)
         solves[0] += 1
         bar.set_postfix_str("", refresh=False)
         bar.update(1)

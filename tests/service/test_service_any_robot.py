@@ -198,7 +198,8 @@ def test_exact_json_takes_a_real_robot_file_design_and_answers_tension_profiles(
 
 def test_exact_json_takes_a_fitted_robot_file_as_tdcr_solve_does(server, root):
     """The file `tdcr fit` writes, posted as it is: /exact answers its design at the default points, the
-    same bits as `tdcr solve FITTED.json`; a bad value is named under ``design`` as `tdcr replay` names it."""
+    same bits as `tdcr solve FITTED.json`; a bad value is named under ``design`` as `tdcr replay` names it,
+    and a bad actuation or measurement (which the answer does not use) by its key, as `tdcr replay` refuses it."""
     fitted = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())  # as tdcr fit wrote it
     answer = httpx.post(server.url + "/exact", json=fitted)
     assert answer.status_code == 200, answer.text
@@ -214,6 +215,15 @@ def test_exact_json_takes_a_fitted_robot_file_as_tdcr_solve_does(server, root):
     assert answer.status_code == 422
     assert answer.json()["detail"][0]["loc"] == ["body", "design", "tendons", 2, "friction"], answer.text
     assert "must be in [0, 2], got 3" in answer.json()["message"]
+    # the rest of the file passes the same checks as `tdcr replay`'s: a file they refuse is refused here
+    for key, bad, reason in [(("time_column",), 7, "must be a column's name"),
+                             (("actuation", "columns"), ["servo_1_mm"], "must be a list of 9 column names"),
+                             (("measurement", "unit"), "inch", "must be one of")]:
+        broken = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())
+        (broken if len(key) == 1 else broken[key[0]])[key[-1]] = bad
+        answer = httpx.post(server.url + "/exact", json=broken)
+        assert answer.status_code == 422, answer.text
+        assert answer.json()["detail"][0]["loc"] == ["body", *key] and reason in answer.json()["message"]
 
 
 @pytest.mark.parametrize("protocol", ["http", "grpc"])

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tdcr.physics.cosserat import solve
+from tdcr.physics.cosserat import crept_by, solve
 from tdcr.physics.replay import replay
-from tdcr.robot.designs import DesignBatch
+from tdcr.robot.designs import DesignBatch, ExternalLoads
 from tdcr.robot.real import RobotFileError, load_robot, read_recording
 
 pytestmark = pytest.mark.unit
@@ -62,7 +62,7 @@ def test_no_creep_is_todays_answer_bit_for_bit_and_bad_creep_is_named():
     for bad, words in [(creep[:, :2], "creep: must be"), (-creep, "creep: must be"), (creep * np.nan, "creep: must")]:
         with pytest.raises(ValueError, match=words):
             solve(designs, np.ones(1), sequence=True, creep=bad)
-    with pytest.raises(ValueError, match="sequence of displacement commands without loads"):
+    with pytest.raises(ValueError, match="creep covers a sequence of displacement commands"):
         solve(designs, np.ones(1), creep=creep)
 
 
@@ -95,27 +95,85 @@ def test_a_robot_file_creeps_in_a_replay_with_times_and_names_a_bad_rate(tmp_pat
             load_robot(_creeping(rate))
     loaded = _creeping() | {}
     loaded["design"] = loaded["design"] | {"gravity": [0.0, 0.0, -9.81], "density": 7800.0}
-    with pytest.raises(RobotFileError, match=r"actuation\.creep_rate: creeping tendons replay without loads"):
-        load_robot(loaded)
+    assert load_robot(loaded).creeps and load_robot(loaded).loads is not None  # creep in gravity: below
     pulled = _creeping() | {}
     pulled["actuation"] = pulled["actuation"] | {"kind": "tension", "unit": "N"}
     with pytest.raises(RobotFileError, match=r"actuation\.creep_rate: creep moves a displacement-driven"):
         load_robot(pulled)
 
 
-def test_creep_is_fitted_without_loads_only():
-    """A robot with loads fits without ``creep`` by default, and ``creep`` named for it is refused
-    before any work, as the CLI's exit 2 says."""
+def _row_by_row(designs: DesignBatch, creep: np.ndarray, loads: ExternalLoads):
+    """The reference for a creeping chain under loads: each design solved alone under its loads, in
+    order, its pull-ins short by e(b) = sum_{j<b} creep_j tau_j of the tensions found before it
+    (eq. CREEP, as its drive zeros moved by e(b)).  Returns (the tensions (B, N_t), the creep
+    (B, N_t), the tips (B, 3))."""
+    so_far, tension, crept, tips = np.zeros(designs.n_tendons), [], [], []
+    for b in range(designs.n_designs):
+        row = designs.take(np.array([b]))
+        row = row.replace(zero=row.resolved("zero") + so_far)
+        sol = solve(row, np.ones(1), loads=loads.take(np.array([b])))
+        assert sol.converged.all()
+        crept.append(so_far.copy())
+        tension.append(sol.tension[0])
+        tips.append(sol.backbone[0, -1])
+        so_far = so_far + creep[b] * sol.tension[0]
+    return np.array(tension), np.array(crept), np.array(tips)
+
+
+def test_under_loads_a_creeping_chain_is_its_rows_solved_one_by_one_in_order():
+    """eq. CREEP in gravity: the chain's answer (sweeps of the whole chain, each every row's loaded
+    solve at once) is each row solved alone, in order, its pull-ins short by the creep of the tensions
+    found before it (to the displacement tolerance's effect: 1e-9 m of creep, 1e-6 N); its creep is
+    the sum of its own tensions and every row meets eq. SE at the crept pull-in.  The weight moves
+    the tips and the creep against the unloaded chain."""
+    rows = 8
+    designs, creep = _held(rows, rate=RATE)
+    loads = ExternalLoads(gravity=np.tile([9.81, 0.0, 0.0], (rows, 1)), density=np.full(rows, 7800.0))
+    sol = solve(designs, np.ones(1), sequence=True, creep=creep, loads=loads)
+    tension, crept, tips = _row_by_row(designs, creep, loads)
+    assert sol.converged.all() and crept[-1, 0] > 3e-5  # m
+    np.testing.assert_allclose(sol.crept, crept, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sol.tension, tension, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(sol.backbone[:, -1], tips, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(sol.crept, crept_by(creep, sol.tension, designs.displacement_driven), rtol=0,
+                               atol=1e-10)
+    np.testing.assert_allclose(sol.tension[:, 0], 2000.0 * (0.003 - sol.crept[:, 0] - sol.displacement[:, 0]),
+                               rtol=0, atol=1e-9 * 2000.0)
+    unloaded = solve(designs, np.ones(1), sequence=True, creep=creep)
+    assert np.abs(unloaded.backbone[:, -1] - tips).max() > 1e-3 and np.abs(unloaded.crept - crept).max() > 1e-6
+
+
+def test_the_kernels_running_creep_is_the_chains_sum():
+    """The unloaded kernel sums eq. CREEP as it goes; :func:`crept_by` takes the same sum whole."""
+    designs, creep = _held(6, rate=RATE)
+    sol = solve(designs, np.ones(1), sequence=True, creep=creep)
+    np.testing.assert_allclose(sol.crept, crept_by(creep, sol.tension, designs.displacement_driven), rtol=0,
+                               atol=1e-15)
+    assert not crept_by(creep, sol.tension, np.zeros_like(designs.displacement_driven)).any()
+
+
+def test_a_creeping_robot_file_replays_and_fits_in_gravity():
+    """A robot file with both a creep rate and loads: its replay with times is the chain under the
+    loads (the creep falls short of the unloaded chain's by what the weight changed in the tensions),
+    ``creep`` is a default group there, and the fit under the loads finds a known creep rate again."""
     from tdcr.search.fit import check_groups, default_groups, fit
 
-    data = _creeping(0.0)
-    data["design"] = data["design"] | {"gravity": [0.0, 0.0, -9.81], "density": 7800.0}
-    robot = load_robot(data)
-    assert "creep" in default_groups(load_robot(_creeping(0.0))) and "creep" not in default_groups(robot)
-    assert "without loads" in check_groups(("E", "creep"), robot)
-    rec = read_recording(SAMPLE, robot)
-    with pytest.raises(ValueError, match="groups: creep: creeping tendons replay without loads"):
-        fit(robot, rec, groups=("creep",))
+    data = _creeping(memory=False)
+    data["design"] = data["design"] | {"gravity": [9.81, 0.0, 0.0], "density": 40_000.0}  # lying on its side
+    truth = load_robot(data)
+    assert "creep" in default_groups(truth) and check_groups(("E", "creep"), truth) is None
+    rec = read_recording(SAMPLE, truth)
+    rec = rec.take(np.arange(len(rec.time)) < 12)
+    made = replay(truth, rec.commands, time=rec.time)
+    unloaded = replay(replace(truth, loads=None), rec.commands, time=rec.time)
+    assert made.converged.all() and (made.crept[-1] > 1e-6).any()
+    assert np.abs(made.tip_position - unloaded.tip_position).max() > 1e-3  # m: the weight acts
+    start = load_robot(_creeping(RATE / 4, memory=False) | {"design": data["design"]})
+    result = fit(start, replace(rec, measured=made.points), groups=("creep",), prior=None, max_iterations=15,
+                 budget=300, workers=2)
+    (found,) = result.parameters
+    assert result.train_replay.converged.all() and found.value == pytest.approx(RATE, rel=0.03)
+    assert result.initial.rmse > 0.05 and result.train.rmse < 0.01  # mm
 
 
 def test_fit_finds_a_known_creep_rate_and_the_fitted_file_goes_on_from_trains_end(tmp_path):

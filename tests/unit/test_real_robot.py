@@ -337,6 +337,9 @@ def test_bad_robot_files_name_the_key(tmp_path):
                           (lambda d: d["design"]["tendons"][2].update(friction=-1), "design.tendons[2].friction"),
                           (lambda d: d["design"]["tendons"][0].update(motion="push"), "design.tendons[0].motion"),
                           (lambda d: d["measurement"].update(marker=[0, 0]), "measurement.marker"),
+                          (lambda d: d["measurement"].update(marker=[0, 0, "1"]), "measurement.marker: must be a list"),
+                          (lambda d: d["measurement"].update(base_position=[[0], 0, 0]), "measurement.base_position"),
+                          (lambda d: d["actuation"].update(kind=["tension"]), "actuation.kind: must be one of"),
                           (lambda d: d["measurement"].update(time_constant=-0.1), "measurement.time_constant: must"),
                           (lambda d: d.update(time_column=7), "time_column: must be a column's name"),
                           (lambda d: d.update(label_column=""), "label_column: must be a column's name"),
@@ -436,7 +439,7 @@ def test_a_fitted_robot_with_friction_replays_in_gravity():
     answer is its own loaded solve with friction, and friction still moves the tips there."""
     fitted = json.loads((ROOT / "examples" / "ftdcr_v4_fitted.json").read_text())
     fitted["design"] |= {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
-    fitted["actuation"]["creep_rate"] = 0.0  # creeping tendons replay without loads
+    fitted["actuation"]["creep_rate"] = 0.0  # each row its own loaded solve (creep in gravity: test_creep.py)
     robot = load_robot(fitted)
     assert (robot.design.resolved("friction") > 0).any()
     answer, commands, time = _replay_in_gravity(robot)
