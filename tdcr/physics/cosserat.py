@@ -655,7 +655,8 @@ LOADED_DISPLACEMENT_MARGIN = 0.01
 
 def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
                                opts: SolverOptions, threads: int, *, sequence: bool = False,
-                               crept: np.ndarray | None = None, start: np.ndarray | None = None) -> RodSolution:
+                               crept: np.ndarray | None = None, start: np.ndarray | None = None,
+                               tension_rate: np.ndarray | None = None) -> RodSolution:
     """Displacement actuation in gravity and under tip loads: the tensions ``tau`` (B, N_t) at which
     every displacement-driven tendon i meets min(s_i tau_i, c_i tau_i + d_i(tau) - w_i) = 0 (eq. SE
     with its slack branch: w_i its pull-in minus its drive's ``zero``, c_i its compliance 1 /
@@ -673,7 +674,10 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     (a leader) differences its Jacobian at the start, and the designs after it start from its
     Jacobian.  Friction acts as in the unloaded solve (eq. CAP, each tendon's ``motion``): the
     loaded kernel carries it.  ``crept`` ``(B, N_t)`` m: each pull-in falls short by this much (eq.
-    CREEP, held); ``start`` ``(B, N_t)`` N: Newton's first tensions (default: the unloaded solve's)."""
+    CREEP, held); ``start`` ``(B, N_t)`` N: Newton's first tensions (default: the unloaded solve's);
+    ``tension_rate`` ``(B, N_t, N_t)`` N/m receives d tau / d w at the answer, the inverse of the last
+    Jacobian of the misses over the taut tendons (Broyden's or differenced; zeros where none was
+    formed or it is singular)."""
     driven = designs.displacement_driven
     wanted = np.where(driven, designs.displacement - designs.resolved("zero"), 0.0)  # w (B, N_t), m
     if crept is not None:
@@ -782,6 +786,14 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     status = sol.status.copy()
     status[(status == Status.CONVERGED.value) & ~found] = Status.DISPLACEMENT_NOT_MET.value
     slack = driven & (tension == 0.0) & (compliance * tension + sol.displacement - wanted > opts.displacement_tol)
+    if tension_rate is not None:
+        taut = driven & (tension > 0.0)
+        both = taut[:, :, None] & taut[:, None, :]
+        block = np.where(both, jacobians, np.eye(n_t))  # the taut tendons' Jacobian, the identity elsewhere
+        with np.errstate(all="ignore"):
+            formed = np.isfinite(block).all(axis=(1, 2)) & (np.abs(np.linalg.det(block)) > 0.0)
+        tension_rate[...] = 0.0
+        tension_rate[formed] = np.where(both[formed], np.linalg.inv(block[formed]), 0.0)
     return dataclasses.replace(sol, status=status, converged=status == 0, slack=slack)
 
 
@@ -796,33 +808,51 @@ def crept_by(creep: np.ndarray, tension: np.ndarray, driven: np.ndarray) -> np.n
 
 
 #: Creep under loads: sweeps of the whole chain at most (each one loaded displacement solve of every
-#: design, its pull-ins short by the last sweep's creep).  The creep is a Volterra sum (each design's
-#: from the designs before), so sweep m leaves an error of order (r t)^m / m! of the creep, r t the
-#: creep rate times the chain's duration (about 1 on the shared recordings).
+#: design, its pull-ins short by the creep the last sweep predicts: :func:`_creep_newton`).
 CREEP_SWEEPS = 16
+
+
+def _creep_newton(creep: np.ndarray, tension: np.ndarray, tension_rate: np.ndarray, crept: np.ndarray,
+                  driven: np.ndarray) -> np.ndarray:
+    """Newton's step for the creep of a chain under loads, ``(B, N_t)`` m: eq. CREEP's sum taken row
+    by row with each design's tensions linearised about the last sweep's answer ``tension`` ``(B,
+    N_t)`` N, solved at the creep ``crept`` ``(B, N_t)`` m: tau_b(e) = max(0, tau_b - R_b (e -
+    crept_b)), R_b = d tau / d w ``tension_rate`` ``(B, N_t, N_t)`` N/m (a pull-in short by e is w -
+    e).  A tendon's own relaxation (more creep, less tension, less creep) is then in the step, so the
+    sweeps do not overshoot as the plain sum of the last tensions (:func:`crept_by`) does once the
+    chain lasts longer than the tendons' relaxation time (r t > 1)."""
+    tension = np.where(driven & np.isfinite(tension), tension, 0.0)
+    out, so_far = np.empty_like(crept), np.zeros(crept.shape[1])
+    for b in range(crept.shape[0]):
+        out[b] = so_far
+        now = np.maximum(tension[b] - tension_rate[b] @ (so_far - crept[b]), 0.0)
+        so_far = so_far + np.where(driven[b], creep[b] * now, 0.0)
+    return out
 
 
 def _solve_creeping_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
                            opts: SolverOptions, threads: int, creep: np.ndarray) -> RodSolution:
     """A creeping chain of displacement-driven designs under loads (eq. CREEP with eq. SE under the
     loads): each design's pull-ins short by e(b) = sum_{j<b} creep_j tau_j (:func:`crept_by`) of
-    the answer's own tensions.  Fixed-point sweeps: the unloaded chain gives the first creep, then
+    the answer's own tensions.  Newton's sweeps: the unloaded chain gives the first creep, then
     every design is solved under the loads at once (:func:`_solve_displacement_loaded`, started
-    from the last sweep's tensions) with its pull-ins short by the creep so far, and the creep is
-    summed again from those tensions, until it moves by at most ``displacement_tol`` (a design whose
-    creep still moves more after :data:`CREEP_SWEEPS` is flagged ``displacement_not_met``).
+    from the last sweep's tensions) with its pull-ins short by the creep so far, and the next creep
+    is eq. CREEP's sum with each design's tensions linearised about those (:func:`_creep_newton`),
+    until the creep of the answer's own tensions (:func:`crept_by`) is the creep it was solved at to
+    ``displacement_tol`` (a design whose creep still moves more after :data:`CREEP_SWEEPS` is flagged
+    ``displacement_not_met``).
     ``crept`` is the creep its answer was solved at."""
     driven = designs.displacement_driven
     unloaded = _solve_displacement(designs, fractions_out, opts, threads, sequence=True, creep=creep)
     crept, tension = unloaded.crept, unloaded.tension
+    rate = np.zeros((*tension.shape, tension.shape[1]))
     for sweep in range(CREEP_SWEEPS):
         sol = _solve_displacement_loaded(designs, fractions_out, loads, opts, threads, sequence=True, crept=crept,
-                                         start=np.nan_to_num(tension))
-        summed = crept_by(creep, sol.tension, driven)
-        moved = np.abs(summed - crept).max(axis=1)
+                                         start=np.nan_to_num(tension), tension_rate=rate)
+        moved = np.abs(crept_by(creep, sol.tension, driven) - crept).max(axis=1)
         if (moved <= opts.displacement_tol).all() or sweep == CREEP_SWEEPS - 1:
             break
-        crept, tension = summed, sol.tension
+        crept, tension = _creep_newton(creep, sol.tension, rate, crept, driven), sol.tension
     status = sol.status.copy()
     status[(status == Status.CONVERGED.value) & (moved > opts.displacement_tol)] = Status.DISPLACEMENT_NOT_MET.value
     return dataclasses.replace(sol, status=status, converged=status == 0, crept=crept)
