@@ -440,6 +440,11 @@ def robot_schema(*, ref_template: str = "#/$defs/{model}") -> dict:
     defs = design.pop("$defs", {})
     vector = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
     columns = {"type": "array", "items": {"type": "string", "minLength": 1}}
+    # each kind its units (the default kind may be left out); creep moves displacement-driven tendons only
+    by_kind = [{"properties": {"kind": {"const": "displacement"}, "unit": {"enum": list(KINDS["displacement"])}}},
+               {"required": ["kind"], "properties": {"kind": {"const": "tension"},
+                                                     "unit": {"enum": list(KINDS["tension"])},
+                                                     "creep_rate": {"maximum": 0}}}]
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema", "title": "tdcr robot file",
         "description": "A real robot for tdcr replay and tdcr fit (tdcr/robot/real.py): its design, how its drives are "
@@ -448,7 +453,7 @@ def robot_schema(*, ref_template: str = "#/$defs/{model}") -> dict:
         "properties": {
             "name": {"type": "string"},
             "design": design,
-            "actuation": {"type": "object", "required": ["columns", "unit"], "properties": {
+            "actuation": {"type": "object", "required": ["columns", "unit"], "anyOf": by_kind, "properties": {
                 "columns": columns | {"description": "one column per tendon, in tendon order"},
                 "unit": {"enum": list(UNITS)}, "kind": {"enum": list(KINDS), "default": "displacement"},
                 "deadband": {"type": "number", "minimum": 0, "default": 0,

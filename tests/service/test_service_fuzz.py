@@ -83,6 +83,15 @@ def _actuation_beyond_tendon_loads(body) -> bool:
     return False
 
 
+def _columns_unlike_the_tendons(body) -> bool:
+    """Whether a robot file's actuation names another number of columns than its design has tendons
+    (one column per tendon, checked as `tdcr replay` checks it: a rule across fields)."""
+    if not isinstance(body, dict) or not all(isinstance(body.get(k), dict) for k in ("design", "actuation")):
+        return False
+    columns, tendons = body["actuation"].get("columns"), body["design"].get("tendons")
+    return isinstance(columns, list) and isinstance(tendons, list) and len(columns) != len(tendons)
+
+
 def _loads_for_a_load_free_operator(body) -> bool:
     """Whether a body names an operator that takes no loads (not ``*_loaded``, ``exact`` or ``auto``)
     for a design with a load that is not zero (refused naming the field: a rule across fields)."""
@@ -116,7 +125,8 @@ def test_every_check_passes(live, operations, name):
         case.validate_response(response, excluded_checks=excluded)
         if response.status_code == 422 and (_arclength_beyond_the_design(case.body)
                                              or _end_beyond_the_design(case.body)
-                                             or _actuation_beyond_tendon_loads(case.body)):
+                                             or _actuation_beyond_tendon_loads(case.body)
+                                             or _columns_unlike_the_tendons(case.body)):
             return  # bounds across fields (metres within each design's L, ...), which a JSON schema cannot state
         if response.status_code == 422 and _loads_for_a_load_free_operator(case.body):
             assert "takes no external loads" in response.text, (name, response.text[:500])  # naming the field
