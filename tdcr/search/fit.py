@@ -358,8 +358,10 @@ def default_groups(robot: Robot) -> tuple[str, ...]:
 
 
 def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | None:
-    """Why :func:`fit` cannot identify ``groups`` (an unknown one, two of :data:`EXCLUSIVE`, or, for a
-    ``robot`` commanded in tensions, one of :data:`DISPLACEMENT_ONLY`), or None."""
+    """Why :func:`fit` cannot identify ``groups`` (none, an unknown one, two of :data:`EXCLUSIVE`, or, for
+    a ``robot`` commanded in tensions, one of :data:`DISPLACEMENT_ONLY`), or None."""
+    if not groups:
+        return f"name at least one group; they are {', '.join(GROUPS)}"
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
         return f"unknown {', '.join(unknown)}; they are {', '.join(GROUPS)}"

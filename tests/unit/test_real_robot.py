@@ -783,6 +783,7 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
                             (["--fit", "angle,tendon_angle"], "angle and tendon_angle set the same values"),
                             (["--fit", "elasticity,stiffness"], "elasticity and stiffness set the same values"),
                             (["--fit", "E,bending"], "--fit: unknown bending"),
+                            (["--fit", " , "], "--fit: name at least one group; they are E, zero"),
                             (["--prior", "tendon_angel=0.2"], "--prior: unknown tendon_angel; the groups are"),
                             (["--prior", "marker=0"], "--prior: a width must be > 0"),
                             (["--prior", "marker"], "expected GROUP=WIDTH"),
