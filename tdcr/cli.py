@@ -404,8 +404,8 @@ def _cmd_calibrate(args) -> int:
         raise UsageError(f"the scores need the companion operators {missing}, not in the manifest")
     try:  # every record is computed before the manifest is written
         records = calibrate(args.models_dir, manifest, names, designs=args.designs, seed=args.seed)
-    except TooFewDesigns as exc:
-        raise UsageError(str(exc)) from None
+    except TooFewDesigns as exc:  # the library names the count, the CLI its option
+        raise UsageError(f"--designs: {exc}") from None
     for name, record in records.items():
         update_manifest(Path(args.models_dir), manifest["models"][name] | {"calibration": record})
         q = record["quantiles"]

@@ -143,7 +143,7 @@ def fit(error: np.ndarray, score: np.ndarray | None, theta: np.ndarray, *, level
     bins = np.clip(np.searchsorted(edges, theta, side="right") - 1, 0, n_bins - 1)
     counts, least = np.bincount(bins, minlength=n_bins), least_bin(level, delta)
     if counts.min() < least:
-        raise TooFewDesigns(f"--designs: a bending-angle bin holds {counts.min()} converged designs of {len(theta)}; "
+        raise TooFewDesigns(f"a bending-angle bin holds {counts.min()} converged designs of {len(theta)}; "
                             f"a {level:g} bound (delta {delta}) needs at least {least} in each of the {n_bins} bins")
     sigmas = np.ones_like(error) if score is None else score + SCORE_FLOOR
     regressor = ConformalRegressor().fit(residuals=error, sigmas=sigmas, bins=bins)
