@@ -111,7 +111,7 @@ def _cmd_replay(args) -> int:
     replay(robot, recording.commands[:1], workers=args.workers)
     startup = time.perf_counter() - start
     start = time.perf_counter()
-    answer = replay(robot, recording.commands, time=recording.time, workers=args.workers)
+    answer = replay(robot, recording.commands, time=recording.time, workers=args.workers, progress=not args.quiet)
     seconds = time.perf_counter() - start
     write_predictions(args.out, robot, recording, answer)
     n = len(recording.time)
@@ -625,7 +625,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=_output_file,
                    help="predicted tips: CSV in the measurement's columns and unit")
     p.add_argument("--workers", type=_at_least(0), default=0, help="kernel threads (default 0: one per core)")
-    p.add_argument("--quiet", action="store_true", help="the summary on one line")
+    p.add_argument("--quiet", action="store_true", help="no progress bar; the summary on one line")
     p.set_defaults(func=_cmd_replay)
 
     p = command("fit", "identify a real robot from motion-capture data (the 'design' extra: scipy, matplotlib)")

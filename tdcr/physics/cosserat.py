@@ -67,6 +67,7 @@ import functools
 import math
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -327,6 +328,7 @@ def solve(
     sequence: bool = False,
     creep: np.ndarray | None = None,
     validated: bool = False,
+    progress: Callable[[int], None] | None = None,
 ) -> RodSolution:
     """Equilibrium shapes of a batch of designs.
 
@@ -360,6 +362,10 @@ def solve(
         validated: the designs, loads and fractions come from the one validation path
             (:mod:`tdcr.api.validation`, as :func:`tdcr.physics.exact.solve_request`'s do): its
             checks are not run a second time.
+        progress: called with the number of designs just solved, by the displacement solve under
+            loads (the costliest, 50-100x the others per design): a ``sequence``
+            :data:`LOADED_CHUNK` designs at a time (the answers do not change), a creeping chain
+            every design of each sweep again.  Not called elsewhere.
 
     Returns:
         A :class:`RodSolution`.  A design that fails is flagged in ``status`` and ``converged``;
@@ -385,8 +391,9 @@ def solve(
             raise ValueError("displacement actuation covers consistent termination (no Jacobian, not linearized)")
         if loaded:
             if creep is not None:
-                return _solve_creeping_loaded(designs, fractions_out, loads, opts, workers, creep)
-            return _solve_displacement_loaded(designs, fractions_out, loads, opts, workers, sequence=sequence)
+                return _solve_creeping_loaded(designs, fractions_out, loads, opts, workers, creep, progress=progress)
+            return _solve_displacement_loaded(designs, fractions_out, loads, opts, workers, sequence=sequence,
+                                              progress=progress)
         return _solve_displacement(designs, fractions_out, opts, workers, sequence=sequence, creep=creep)
     if (loaded or shortcut) and opts.linearized:
         raise ValueError("the linearized model covers tendon loads only, with consistent termination")
@@ -647,6 +654,10 @@ LOADED_DISPLACEMENT_NEWTON, LOADED_DISPLACEMENT_HALVINGS = 30, 6
 LOADED_DISPLACEMENT_DIFF = 1e-6
 #: ... with ``sequence``: one design in this many differences its Jacobian at the start (replays).
 LOADED_DISPLACEMENT_SHARED = 8
+#: ... with ``sequence`` and ``solve(progress=)``: the designs are solved this many at a time, in order (a
+#: multiple of LOADED_DISPLACEMENT_SHARED: every chunk has the whole batch's leaders, so the answers are
+#: the same bit for bit), and each chunk is reported as it is done.
+LOADED_CHUNK = 32 * LOADED_DISPLACEMENT_SHARED
 #: ... Newton goes on to this fraction of ``displacement_tol`` (an answer within the tolerance counts
 #: as found): a series spring k turns a miss r into a tension error k r, and the iterations that close
 #: the gap are superlinear (at k = 5,000 N/m the tension errors fell from 2e-7 to 3e-13 N).
@@ -656,7 +667,44 @@ LOADED_DISPLACEMENT_MARGIN = 0.01
 def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
                                opts: SolverOptions, threads: int, *, sequence: bool = False,
                                crept: np.ndarray | None = None, start: np.ndarray | None = None,
-                               tension_rate: np.ndarray | None = None) -> RodSolution:
+                               tension_rate: np.ndarray | None = None,
+                               progress: Callable[[int], None] | None = None) -> RodSolution:
+    """:func:`_solve_displacement_loaded_batch`, told to ``progress`` as designs are done: a sequence
+    :data:`LOADED_CHUNK` designs at a time (the same answers), a batch once, whole."""
+    b = designs.n_designs
+    if progress is None or not sequence or b <= LOADED_CHUNK:
+        sol = _solve_displacement_loaded_batch(designs, fractions_out, loads, opts, threads, sequence=sequence,
+                                               crept=crept, start=start, tension_rate=tension_rate)
+        if progress is not None:
+            progress(b)
+        return sol
+    parts = []
+    for first in range(0, b, LOADED_CHUNK):
+        rows = slice(first, min(first + LOADED_CHUNK, b))  # views: tension_rate's rows are filled in place
+        parts.append(_solve_displacement_loaded_batch(
+            designs.take(rows), fractions_out, loads.take(rows), opts, threads, sequence=True,
+            crept=None if crept is None else crept[rows], start=None if start is None else start[rows],
+            tension_rate=None if tension_rate is None else tension_rate[rows]))
+        progress(rows.stop - first)
+    return _concatenate(parts)
+
+
+def _concatenate(parts: list[RodSolution]) -> RodSolution:
+    """One solution of the designs of ``parts``, in order (their batches joined)."""
+    def joined(values: list) -> np.ndarray | None:
+        return None if values[0] is None else np.concatenate(values)
+
+    out = {f.name: joined([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(RodSolution)
+           if f.name != "section"}
+    section = None if parts[0].section is None else _Material(
+        **{f.name: joined([getattr(p.section, f.name) for p in parts]) for f in dataclasses.fields(_Material)})
+    return RodSolution(**out, section=section)
+
+
+def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
+                                     opts: SolverOptions, threads: int, *, sequence: bool = False,
+                                     crept: np.ndarray | None = None, start: np.ndarray | None = None,
+                                     tension_rate: np.ndarray | None = None) -> RodSolution:
     """Displacement actuation in gravity and under tip loads: the tensions ``tau`` (B, N_t) at which
     every displacement-driven tendon i meets min(s_i tau_i, c_i tau_i + d_i(tau) - w_i) = 0 (eq. SE
     with its slack branch: w_i its pull-in minus its drive's ``zero``, c_i its compliance 1 /
@@ -831,7 +879,8 @@ def _creep_newton(creep: np.ndarray, tension: np.ndarray, tension_rate: np.ndarr
 
 
 def _solve_creeping_loaded(designs: DesignBatch, fractions_out: np.ndarray, loads: ExternalLoads,
-                           opts: SolverOptions, threads: int, creep: np.ndarray) -> RodSolution:
+                           opts: SolverOptions, threads: int, creep: np.ndarray, *,
+                           progress: Callable[[int], None] | None = None) -> RodSolution:
     """A creeping chain of displacement-driven designs under loads (eq. CREEP with eq. SE under the
     loads): each design's pull-ins short by e(b) = sum_{j<b} creep_j tau_j (:func:`crept_by`) of
     the answer's own tensions.  Newton's sweeps: the unloaded chain gives the first creep, then
@@ -841,14 +890,14 @@ def _solve_creeping_loaded(designs: DesignBatch, fractions_out: np.ndarray, load
     until the creep of the answer's own tensions (:func:`crept_by`) is the creep it was solved at to
     ``displacement_tol`` (a design whose creep still moves more after :data:`CREEP_SWEEPS` is flagged
     ``displacement_not_met``).
-    ``crept`` is the creep its answer was solved at."""
+    ``crept`` is the creep its answer was solved at.  ``progress`` hears of every sweep's designs."""
     driven = designs.displacement_driven
     unloaded = _solve_displacement(designs, fractions_out, opts, threads, sequence=True, creep=creep)
     crept, tension = unloaded.crept, unloaded.tension
     rate = np.zeros((*tension.shape, tension.shape[1]))
     for sweep in range(CREEP_SWEEPS):
         sol = _solve_displacement_loaded(designs, fractions_out, loads, opts, threads, sequence=True, crept=crept,
-                                         start=np.nan_to_num(tension), tension_rate=rate)
+                                         start=np.nan_to_num(tension), tension_rate=rate, progress=progress)
         moved = np.abs(crept_by(creep, sol.tension, driven) - crept).max(axis=1)
         if (moved <= opts.displacement_tol).all() or sweep == CREEP_SWEEPS - 1:
             break

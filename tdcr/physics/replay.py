@@ -59,7 +59,7 @@ class Replay:
 
 
 def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None, motion: np.ndarray | None = None,
-           workers: int = 0, options: SolverOptions = REPLAY_OPTIONS) -> Replay:
+           workers: int = 0, options: SolverOptions = REPLAY_OPTIONS, progress: bool = False) -> Replay:
     """The robot's tip for each command row.
 
     Args:
@@ -74,6 +74,10 @@ def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None
             :func:`tdcr.robot.real.motions`).
         workers: kernel threads (0: one per core).
         options: the solver's settings.
+        progress: show a progress bar of the rows solved (tqdm, on stderr).  Under loads it moves
+            :data:`tdcr.physics.cosserat.LOADED_CHUNK` rows at a time (the answers do not change), and
+            a creeping chain's sweeps each go through the rows again; elsewhere (thousands of rows a
+            second) it fills at the end.
     """
     commands = np.asarray(commands, dtype=np.float64)
     designs = robot.designs(commands, motion)  # checks the commands and motions
@@ -83,8 +87,21 @@ def replay(robot: Robot, commands: np.ndarray, *, time: np.ndarray | None = None
             raise ValueError(f"time: must be ({len(commands)},) finite seconds that increase, one per command row")
     motion = designs.motion
     creep = robot.creep(time) if time is not None and robot.creeps else None
-    sol = solve(designs, np.ones(1), loads=robot.row_loads(len(commands)),
-                options=options, workers=workers, sequence=True, creep=creep)
+    from tqdm import tqdm  # here: 30 ms that ``import tdcr`` need not pay
+
+    rows = len(commands)
+    sweeps = creep is not None and robot.loads is not None
+    with tqdm(total=rows, desc="replay, sweep 1" if sweeps else "replay", unit="row", disable=not progress,
+              leave=False) as bar:
+        def solved(n: int) -> None:
+            if bar.n + n > bar.total:  # a creeping chain's next sweep under loads
+                bar.total += rows
+                bar.set_description(f"replay, sweep {bar.total // rows}")
+            bar.update(n)
+
+        sol = solve(designs, np.ones(1), loads=robot.row_loads(rows), options=options, workers=workers,
+                    sequence=True, creep=creep, progress=solved if progress else None)
+        bar.update(bar.total - bar.n)
     position, rotation = sol.backbone[:, -1], sol.rotation[:, -1]
     return Replay(points=robot.measurement.points(position, rotation, time), tip_position=position,
                   tip_rotation=rotation, tension=sol.tension, motion=motion, status=sol.status.astype(np.int32),

@@ -448,6 +448,39 @@ def test_a_fitted_robot_with_friction_replays_in_gravity():
     assert np.abs(answer.tip_position - frictionless.tip_position).max() > 2e-5  # 90 um on these rows
 
 
+@pytest.mark.parametrize("rate", [0.0, 0.05], ids=["rows", "a creeping chain"])
+def test_a_progress_bar_under_loads_changes_no_answer(monkeypatch, capsys, rate):
+    """With a progress bar a replay under loads solves its rows a chunk at a time (here 8, so that
+    the chunks keep the batch's Jacobian leaders) and tells the bar of each; its answers are those of
+    the whole batch bit for bit, and the bar counts every row once (a creeping chain: once per sweep,
+    at least two)."""
+    from tdcr.physics import cosserat
+
+    fitted = json.loads((ROOT / "examples" / "ftdcr_v4_fitted.json").read_text())
+    fitted["design"] |= {"gravity": [0.0, 3.0, -9.81], "density": 7800.0}
+    fitted["actuation"]["creep_rate"] = rate
+    robot = load_robot(fitted)
+    recording = read_recording(SAMPLE, robot)
+    commands, time = recording.commands[:20], recording.time[:20]
+    whole = replay(robot, commands, time=time)
+    assert capsys.readouterr().err == ""  # no bar unless asked
+    monkeypatch.setattr(cosserat, "LOADED_CHUNK", 8)
+    told: list[int] = []
+    problem = {"designs": robot.designs(commands), "fractions": np.linspace(0.0, 1.0, 5),
+               "loads": robot.row_loads(20), "options": REPLAY_OPTIONS, "sequence": True,
+               "creep": robot.creep(time) if robot.creeps else None}
+    in_chunks, at_once = solve(**problem, progress=told.append), solve(**problem)
+    sweeps = len(told) // 3
+    assert told == [8, 8, 4] * sweeps and sweeps >= (2 if rate else 1)
+    for f in fields(at_once):  # every field of the chunks' answers joined
+        if isinstance(getattr(at_once, f.name), np.ndarray):
+            np.testing.assert_array_equal(getattr(in_chunks, f.name), getattr(at_once, f.name), err_msg=f.name)
+    chunked = replay(robot, commands, time=time, progress=True)
+    for f in fields(chunked):
+        np.testing.assert_array_equal(getattr(chunked, f.name), getattr(whole, f.name), err_msg=f.name)
+    assert whole.converged.all() and ("replay, sweep 1" if rate else "replay") in capsys.readouterr().err
+
+
 def test_a_fit_under_loads_recovers_a_known_robot_in_gravity(tmp_path):
     """A recording made by the loaded solver from a known robot lying in gravity (its tips sag by
     about 5 mm): the fit under the robot file's loads (a first round without them, then rounds of
