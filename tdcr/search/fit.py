@@ -116,6 +116,8 @@ LOSSES = ("linear", "soft_l1")
 #: Under loads: the most rounds of least squares with the loads' shift held; they stop once a round
 #: lowers the loaded replay's cost by less than this fraction (and one that raises it is undone).
 LOADED_ROUNDS, LOADED_RTOL = 6, 0.01
+#: :func:`plot` draws no line across a pause of more than this many times the recording's median interval.
+PLOT_GAP = 4.0
 #: A row whose answer is not finite scores this error per coordinate, m.
 FAILED_ERROR = 0.05
 
@@ -736,9 +738,19 @@ def _replay_points(robot: Robot, answer: Replay, time: np.ndarray) -> Replay:
     return replace(answer, points=robot.measurement.points(answer.tip_position, answer.tip_rotation, time))
 
 
+def pauses(time: np.ndarray) -> np.ndarray:
+    """Where a recording pauses (e.g. between patterns): the indices of the rows that come more than
+    :data:`PLOT_GAP` times the median interval after the row before, from the rows' ``time`` ``(T,)`` s."""
+    intervals = np.diff(np.asarray(time, dtype=np.float64))
+    if not intervals.size:
+        return np.zeros(0, dtype=np.int64)
+    return np.nonzero(intervals > PLOT_GAP * np.median(intervals))[0] + 1
+
+
 def plot(result: FitResult, train: Recording, validate: Recording | None, path: str) -> None:
     """Measured against predicted tips (x, y, z over the rows) and the error over time, for the
-    train and validation recordings, into ``path`` (PNG)."""
+    train and validation recordings, into ``path`` (PNG); the lines break at the recordings'
+    :func:`pauses`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -750,14 +762,18 @@ def plot(result: FitResult, train: Recording, validate: Recording | None, path: 
     fig, axes = plt.subplots(2, len(sets), figsize=(7 * len(sets), 7), squeeze=False)
     for col, (name, rec, answer, err) in enumerate(sets):
         t = rec.time - rec.time[0]
+        gaps = pauses(t)  # the lines break there instead of bridging rows the recording lacks
+        t_lines = np.insert(t, gaps, np.nan)
         ax = axes[0, col]
-        for a, axis in enumerate("xyz"):
-            ax.plot(t, rec.measured[:, a] * 1e3, ".", ms=2, label=f"measured {axis}")
-            ax.plot(t, answer.points[:, a] * 1e3, "-", lw=0.8, label=f"predicted {axis}")
+        for a, axis in enumerate("xyz"):  # one colour per coordinate: measured dots, the predicted line
+            ax.plot(t, rec.measured[:, a] * 1e3, ".", ms=2, color=f"C{a}", label=f"measured {axis}")
+            ax.plot(t_lines, np.insert(answer.points[:, a], gaps, np.nan) * 1e3, "-", lw=0.8, color=f"C{a}",
+                    label=f"predicted {axis}")
         ax.set(title=f"{name}: tip, mm (RMSE {err.rmse:.2f}, aligned {err.aligned:.2f})", xlabel="time, s")
         ax.legend(fontsize=6, ncol=3)
         ax = axes[1, col]
-        ax.plot(t, np.linalg.norm(answer.points - rec.measured, axis=1) * 1e3, lw=0.8)
+        error = np.linalg.norm(answer.points - rec.measured, axis=1) * 1e3
+        ax.plot(t_lines, np.insert(error, gaps, np.nan), lw=0.8)
         ax.set(title=f"{name}: |error|, mm (max {err.max:.2f})", xlabel="time, s", ylabel="mm")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

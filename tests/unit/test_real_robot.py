@@ -797,6 +797,17 @@ def test_a_prior_is_read_as_it_is_written():
             parse_prior(text)
 
 
+def test_the_plots_lines_break_where_the_recording_pauses():
+    """A row more than PLOT_GAP median intervals after the one before starts a new line."""
+    from tdcr.search.fit import PLOT_GAP, pauses
+
+    steady = np.arange(10) * 0.6
+    paused = np.concatenate([steady, steady[-1] + 0.6 * PLOT_GAP + 0.1 + steady])
+    assert pauses(steady).size == 0 and pauses(paused).tolist() == [10]
+    assert pauses(np.append(steady, steady[-1] + 0.6 * PLOT_GAP)).size == 0  # at the bound: no pause
+    assert pauses(np.array([3.0])).size == 0
+
+
 def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
     out, png = tmp_path / "fitted.json", tmp_path / "fit.png"
     run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(SAMPLE), "--validate", str(SAMPLE),
