@@ -478,7 +478,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     lock = threading.Lock()  # the cache and counters, with the Jacobian's columns on threads
     bar = tqdm(desc="fit: replays", unit="replay", disable=not progress, leave=False)
     solves = [0]
-    best = {"cost": np.inf, "z": np.zeros(len(x0))}
+    best = {"cost": np.inf, "z": np.zeros(len(x0)), "text": ""}  # text: the bar's postfix, the best point's RMSE
     unloaded = replace(robot, loads=None)
     shift: list[_LoadShift | None] = [None]  # the loads' shift of the rows' tip poses (None: no loads)
     loaded_replay: list[Replay | None] = [None]  # the last loaded replay, at the shift's values
@@ -513,7 +513,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         loaded_replay[0] = replay(_apply(robot, layout, x, base_angles), train.commands,
                                   time=train.time if creeping else None, workers=workers, options=REPLAY_OPTIONS)
         solves[0] += 1
-        bar.set_postfix_str("", refresh=False)
+        bar.set_postfix_str(best["text"], refresh=False)
         bar.update(1)
         loaded_seconds[0] += time.perf_counter() - begin
         return _LoadShift.between(loaded_replay[0], unloaded_replay(x))
@@ -534,6 +534,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
         with lock:  # the Jacobian's columns may run on threads
             if track and cost < best["cost"]:
                 best["cost"], best["z"] = cost, z.copy()
+                best["text"] = f"train RMSE {math.sqrt(np.mean(np.sum(err[scored] ** 2, axis=1))) * 1e3:.2f} mm"
+                bar.set_postfix_str(best["text"], refresh=False)
         return r
 
     def jacobian_apart(z: np.ndarray) -> np.ndarray:
