@@ -19,6 +19,8 @@ trust-region reflective with bounds, forward-difference Jacobian):
   their nominal radius);
 * ``angle``: a rotation of each segment's tendon angles, rad (rough routing angles); or
   ``tendon_angle``: a turn of each tendon's angle, rad;
+* ``end``: where each segment's tendons end, m, for the segments that end before the tip (not a
+  default: on FTDCR v6 it fits train better, and both recordings validate worse, docs/real_robot.md);
 * ``marker``, ``base_position``, ``base_rotation``: the measurement's registration, and
   ``time_constant``: the lag with which the measured tip follows the equilibria (eq. LAG, s); none
   needs a new solve.
@@ -68,7 +70,7 @@ from tdcr.robot.real import Measurement, Recording, Robot
 
 #: The parameter groups :func:`fit` can identify, in order.
 GROUPS = ("E", "zero", "elasticity", "stiffness", "friction", "creep", "offset", "tendon_offset", "angle",
-          "tendon_angle", "marker", "base_position", "base_rotation", "time_constant")
+          "tendon_angle", "end", "marker", "base_position", "base_rotation", "time_constant")
 #: Those :func:`fit` identifies unless told otherwise (each tendon's angle turned from the robot file's: on
 #: the shared recording's single-tendon sweeps the bend's direction was 1-8 degrees off, docs/real_robot.md).
 DEFAULT_GROUPS = ("E", "zero", "elasticity", "friction", "creep", "offset", "tendon_angle", "marker",
@@ -82,7 +84,7 @@ EXCLUSIVE = (("elasticity", "stiffness"), ("offset", "tendon_offset"), ("angle",
 REGISTRATION = ("marker", "base_position", "base_rotation", "time_constant")
 #: Each group's unit of the search (one unit of the optimiser's variable).
 _SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction": 0.1, "creep": 1.0, "offset": 0.05,
-          "tendon_offset": 0.05, "angle": 0.1, "tendon_angle": 0.1,
+          "tendon_offset": 0.05, "angle": 0.1, "tendon_angle": 0.1, "end": 2e-3,
           "marker": 1e-3, "base_position": 1e-3, "base_rotation": 0.01, "time_constant": 0.1}
 #: Searched as logarithms (positive, relative steps).
 _LOG = ("E", "elasticity", "stiffness", "friction", "creep", "offset", "tendon_offset", "time_constant")
@@ -96,7 +98,7 @@ _BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffne
            "friction": (math.log(1e-3), math.log(1.0)), "creep": (math.log(1e-6), math.log(1.0)),
            "offset": (math.log(1e-4), math.log(0.1)),
            "tendon_offset": (math.log(1e-4), math.log(0.1)),
-           "angle": (-0.5, 0.5), "tendon_angle": (-0.5, 0.5), "marker": (-0.05, 0.05),
+           "angle": (-0.5, 0.5), "tendon_angle": (-0.5, 0.5), "end": (1e-3, math.inf), "marker": (-0.05, 0.05),
            "base_position": (-0.25, 0.25), "base_rotation": (-4.0, 4.0),
            "time_constant": (math.log(1e-3), math.log(5.0))}
 #: The least-squares iterations (each a Jacobian) and the search's budget, s: on the shared recording 15
@@ -173,6 +175,13 @@ def segments(robot: Robot) -> list[np.ndarray]:
     return [np.nonzero(np.isclose(ends, e, rtol=0, atol=1e-9))[0] for e in np.unique(ends)]
 
 
+def _inner_segments(robot: Robot) -> list[np.ndarray]:
+    """The :func:`segments` whose tendons end before the tip (the ``end`` group moves those ends;
+    tendons that end at the tip stay there)."""
+    length = float(robot.design.L[0])
+    return [seg for seg in segments(robot) if robot.design.ends[0, seg[0]] < length - 1e-9]
+
+
 @dataclass(frozen=True)
 class _Layout:
     """Where each parameter sits in the search vector: ``names`` (p,), ``groups`` (p,), ``index`` (p,)
@@ -191,7 +200,8 @@ def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
     n_seg = len(segments(robot))
     n_t = robot.n_tendons
     counts = {"E": 1, "zero": n_t, "elasticity": 2, "stiffness": n_seg, "friction": n_seg, "creep": 1, "offset": n_seg,
-              "tendon_offset": n_t, "angle": n_seg, "tendon_angle": n_t, "marker": 3, "base_position": 3,
+              "tendon_offset": n_t, "angle": n_seg, "tendon_angle": n_t, "end": len(_inner_segments(robot)),
+              "marker": 3, "base_position": 3,
               "base_rotation": 3, "time_constant": 1}
     names, gs, index = [], [], []
     for g in GROUPS:
@@ -222,6 +232,8 @@ def _values(robot: Robot, layout: _Layout) -> np.ndarray:
             out.append(math.log(v if np.isfinite(v) and v > 0 else _LOG_START[g]))
         elif g in ("angle", "tendon_angle"):
             out.append(0.0)
+        elif g == "end":
+            out.append(float(d.ends[0, _inner_segments(robot)[i][0]]))
         elif g == "time_constant":
             out.append(math.log(m.time_constant if m.time_constant > 0 else _LOG_START[g]))
         elif g == "creep":
@@ -270,7 +282,9 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
     d, segs = robot.design, segments(robot)
     values = _without_common_turn(layout, values)
     fields = {"zero": d.resolved("zero").copy(), "stiffness": d.resolved("stiffness").copy(),
-              "friction": d.resolved("friction").copy(), "offset": d.offset.copy(), "angle": base_angles.copy()}
+              "friction": d.resolved("friction").copy(), "offset": d.offset.copy(), "angle": base_angles.copy(),
+              "end": d.ends.copy()}
+    inner = _inner_segments(robot)
     E = d.E.copy()
     actuation = robot.actuation
     elastic = [np.nan, np.nan]  # the drive's compliance c0 (m/N) and the tendons' axial stiffness EA (N)
@@ -292,6 +306,8 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
             fields["angle"][0, segs[i]] = base_angles[0, segs[i]] + v
         elif g == "tendon_angle":
             fields["angle"][0, i] = base_angles[0, i] + v
+        elif g == "end":
+            fields["end"][0, inner[i]] = min(v, float(d.L[0]))
         elif g == "time_constant":
             reg[g] = math.exp(v)
         elif g == "creep":
@@ -299,7 +315,7 @@ def _apply(robot: Robot, layout: _Layout, values: np.ndarray, base_angles: np.nd
         else:
             reg[g][i] = v
     if not np.isnan(elastic).any():  # eq. SE's k of a tendon of length end: 1 / k = c0 + end / EA
-        fields["stiffness"] = 1.0 / (elastic[0] + d.ends / elastic[1])
+        fields["stiffness"] = 1.0 / (elastic[0] + fields["end"] / elastic[1])
     measurement = replace(m, **reg)
     return replace(robot, design=d.replace(E=E, **fields), actuation=actuation, measurement=measurement)
 
@@ -344,7 +360,7 @@ class FitResult:
 #: The parameters of a group that are not alike: their own names (and units).
 _NAMES = {"elasticity": ("drive_compliance", "tendon_EA")}
 _NAME_UNITS = {"drive_compliance": "m/N", "tendon_EA": "N"}
-_UNITS = {"E": "Pa", "zero": "m", "stiffness": "N/m", "friction": "", "creep": "1/s", "offset": "m",
+_UNITS = {"E": "Pa", "zero": "m", "end": "m", "stiffness": "N/m", "friction": "", "creep": "1/s", "offset": "m",
           "tendon_offset": "m", "angle": "rad", "tendon_angle": "rad", "marker": "m", "base_position": "m",
           "base_rotation": "rad", "time_constant": "s"}
 
@@ -360,8 +376,9 @@ def default_groups(robot: Robot) -> tuple[str, ...]:
 
 
 def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | None:
-    """Why :func:`fit` cannot identify ``groups`` (none, an unknown one, two of :data:`EXCLUSIVE`, or, for
-    a ``robot`` commanded in tensions, one of :data:`DISPLACEMENT_ONLY`), or None."""
+    """Why :func:`fit` cannot identify ``groups`` (none, an unknown one, two of :data:`EXCLUSIVE`, for
+    a ``robot`` commanded in tensions one of :data:`DISPLACEMENT_ONLY`, or ``end`` for a robot whose
+    tendons all end at the tip), or None."""
     if not groups:
         return f"name at least one group; they are {', '.join(GROUPS)}"
     unknown = [g for g in groups if g not in GROUPS]
@@ -375,6 +392,8 @@ def check_groups(groups: Sequence[str], robot: Robot | None = None) -> str | Non
         verb = "acts" if len(inert) == 1 else "act"
         return (f"{', '.join(inert)} {verb} only on displacement actuation; this robot's drives command "
                 f"{robot.actuation.kind}s (actuation.kind)")
+    if robot is not None and "end" in groups and not _inner_segments(robot):
+        return "end moves the ends of segments that end before the tip; every tendon of this robot ends at the tip"
     return None
 
 
@@ -466,6 +485,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     held = np.isfinite(width)
     lower = np.array([_BOUNDS.get(n, _BOUNDS.get(g))[0] for n, g in zip(layout.names, layout.groups, strict=True)])
     upper = np.array([_BOUNDS.get(n, _BOUNDS.get(g))[1] for n, g in zip(layout.names, layout.groups, strict=True)])
+    upper[np.array([g == "end" for g in layout.groups], dtype=bool)] = float(robot.design.L[0])  # on the rod
     x0 = np.clip(_values(robot, layout), lower + 1e-6 * (upper - lower), upper - 1e-6 * (upper - lower))
     base_angles = robot.design.angles.copy()
     scored = train.has_measurement

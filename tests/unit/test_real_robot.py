@@ -595,6 +595,29 @@ def test_fit_recovers_a_known_robot_from_its_own_replay():
     assert values["time_constant"] == pytest.approx(0.35, rel=2e-2)
 
 
+def test_fit_finds_where_the_segments_end_and_keeps_the_tip_segment_at_the_tip():
+    """The ``end`` group: a recording made by a known robot whose first two segments end 6 mm further
+    and 7.5 mm nearer than its file says; the fit from the file's ends finds both again, and the
+    tendons that end at the tip stay there.  A robot whose tendons all end at the tip has no end to
+    fit, and says so."""
+    from tdcr.search.fit import check_groups, fit
+
+    start = load_robot(EXAMPLE)
+    ends = start.design.ends.copy()  # (1, 9): 0.06, 0.1225 and L = 0.1865 m, three tendons each
+    truth_ends = np.where(ends == 0.06, 0.066, np.where(ends == 0.1225, 0.115, ends))
+    truth = replace(start, design=start.design.replace(end=truth_ends))
+    made, _ = _recorded_by(truth)
+    result = fit(start, made, groups=("end",), prior=None, max_iterations=20, budget=120)
+    values = {p.name: p.value for p in result.parameters}
+    assert list(values) == ["end[0]", "end[1]"] and all(p.unit == "m" for p in result.parameters)
+    assert values["end[0]"] == pytest.approx(0.066, abs=2e-4) and values["end[1]"] == pytest.approx(0.115, abs=2e-4)
+    np.testing.assert_allclose(result.robot.design.ends, truth_ends, rtol=0, atol=2e-4)
+    assert result.initial.rmse > 1.0 and result.train.rmse < 0.05  # mm
+    at_tip = replace(start, design=start.design.replace(end=np.full_like(ends, start.design.L[0])))
+    assert "every tendon of this robot ends at the tip" in check_groups(("E", "end"), at_tip)
+    assert check_groups(("E", "end"), start) is None
+
+
 def test_the_lag_is_the_step_response_of_a_first_order_system():
     """eq. LAG against its closed form: after a step of the equilibrium from a to b at row 1, the
     measured point at row k >= 1 is b + (a - b) exp(-(t_k - t_0) / T) for uneven sample times; T = 0
