@@ -802,4 +802,5 @@ def plot(result: FitResult, train: Recording, validate: Recording | None, path: 
     plt.close(fig)
 
 
-__all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "at_start", "errors", "fit", "plot", "segments"]
+__all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "at_start", "errors", "fit", "pauses", "plot",
+           "segments"]
