@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tdcr.physics.replay import replay  # noqa: E402
-from tdcr.robot.real import load_robot, read_recording  # noqa: E402
+from tdcr.robot.real import RobotFileError, load_robot, read_recording  # noqa: E402
 from tdcr.search.fit import BUDGET, errors, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
@@ -75,11 +75,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="replays timed, each way")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
-    robot = robot_under(args.robot, args)
-    train = read_recording(args.train, robot)
-    val = read_recording(args.validate, robot)
-    start = time.perf_counter()
-    result = fit(robot, train, validate=val, budget=args.budget, groups=args.fit and tuple(args.fit.split(",")))
+    try:  # an unseen robot's files: their problems named, as tdcr fit names them (exit 2)
+        robot = robot_under(args.robot, args)
+        train = read_recording(args.train, robot)
+        val = read_recording(args.validate, robot)
+        start = time.perf_counter()
+        result = fit(robot, train, validate=val, budget=args.budget, groups=args.fit and tuple(args.fit.split(",")))
+    except (RobotFileError, OSError, ValueError) as exc:
+        parser.error(str(exc))
     fit_seconds = time.perf_counter() - start
     if args.out:
         result.robot.save(args.out)
@@ -109,6 +112,8 @@ def main() -> None:
     print(f"| replay without friction, rows/s, each run | {', '.join(f'{r:.0f}' for r in rates_frictionless)} | | |")
     print(f"| rows not converged (train, val) | {result.train.failed}, {result.validate.failed} | | |")
     worst = sorted(result.validate.per_pattern.items(), key=lambda kv: -kv[1])[:5]
+    if not worst:  # a recording without pattern labels (the robot file names no label_column)
+        return
     print("\nval patterns, aligned RMSE mm (worst 5): " + ", ".join(f"{k} {v:.2f}" for k, v in worst))
     keep = np.array([worst[0][0] not in str(label) for label in val.labels])
     rest = errors(result.validate_replay.take(keep), val.take(keep))

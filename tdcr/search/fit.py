@@ -163,7 +163,8 @@ def errors(answer: Replay, recording: Recording) -> Errors:
     aligned = err - err.mean(axis=0)
     dist, dist_aligned = np.linalg.norm(err, axis=1), np.linalg.norm(aligned, axis=1)
     patterns = np.array([re.sub(r"_hold$", "", str(label)) for label in recording.labels[scored]])
-    per = {p: float(np.sqrt((dist_aligned[patterns == p] ** 2).mean())) for p in dict.fromkeys(patterns)}
+    per = {p: float(np.sqrt((dist_aligned[patterns == p] ** 2).mean())) for p in dict.fromkeys(patterns)
+           if p}  # a row without a label (a recording with no label column) belongs to no pattern
     return Errors(rmse=float(np.sqrt((dist**2).mean())), aligned=float(np.sqrt((dist_aligned**2).mean())),
                   max=float(dist.max()), rows=int(scored.sum()), skipped=recording.skipped,
                   failed=int((~answer.converged[scored]).sum()), per_pattern=per)

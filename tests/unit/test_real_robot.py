@@ -820,6 +820,19 @@ def test_a_prior_is_read_as_it_is_written():
             parse_prior(text)
 
 
+def test_a_recording_without_labels_has_no_patterns():
+    """Without a label column every row's label is empty: the errors then list no pattern (not one
+    named ""), and with labels each ``_hold`` row counts with its pattern."""
+    from tdcr.search.fit import errors
+
+    robot = load_robot(EXAMPLE)
+    recording = read_recording(SAMPLE, robot)
+    answer = replay(robot, recording.commands, time=recording.time)
+    assert errors(answer, replace(recording, labels=np.full(len(recording.time), ""))).per_pattern == {}
+    labelled = errors(answer, recording).per_pattern
+    assert labelled and "" not in labelled and not any(k.endswith("_hold") for k in labelled)
+
+
 def test_the_plots_lines_break_where_the_recording_pauses():
     """A row more than PLOT_GAP median intervals after the one before starts a new line."""
     from tdcr.search.fit import PLOT_GAP, pauses
