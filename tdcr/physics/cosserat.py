@@ -689,6 +689,15 @@ def _solve_displacement_loaded(designs: DesignBatch, fractions_out: np.ndarray, 
     return _concatenate(parts)
 
 
+def _put(into: RodSolution, rows: np.ndarray, part: RodSolution, which: np.ndarray) -> None:
+    """Designs ``rows`` of ``into`` replaced by the designs ``which`` of ``part`` (a solve of the same
+    outputs), every per-design field (the section stiffnesses are the design's own in both)."""
+    for f in dataclasses.fields(RodSolution):
+        target = getattr(into, f.name)
+        if isinstance(target, np.ndarray):
+            target[rows] = getattr(part, f.name)[which]
+
+
 def _concatenate(parts: list[RodSolution]) -> RodSolution:
     """One solution of the designs of ``parts``, in order (their batches joined)."""
     def joined(values: list) -> np.ndarray | None:
@@ -709,9 +718,10 @@ def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.nda
     every displacement-driven tendon i meets min(s_i tau_i, c_i tau_i + d_i(tau) - w_i) = 0 (eq. SE
     with its slack branch: w_i its pull-in minus its drive's ``zero``, c_i its compliance 1 /
     stiffness, d_i(tau) the shortening of its path under the tensions and the loads, s_i > 0 a scale
-    in m/N), then the loaded solve at those tensions.  Semismooth Newton on the loaded kernel,
-    started from the unloaded solve's tensions, each loaded solve's shooting started from the M(0) of
-    the design's last accepted one; the path lengths' Jacobian by forward differences
+    in m/N), then the loaded solve at those tensions (the last accepted one: no shooting again).
+    Semismooth Newton on the loaded kernel, started from the unloaded solve's tensions, each loaded
+    solve's shooting started from the M(0) of the design's last accepted one; the path lengths'
+    Jacobian by forward differences
     (one loaded solve per driven tendon, every design in one batch), then kept up to date by
     Broyden's update along each step, and differenced again where no step along it lowers the miss.
     Each step is capped like the unloaded kernel's (1 N + 50 % of the tension) and halved until the
@@ -738,14 +748,17 @@ def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.nda
     scale = np.ones((b, n_t))  # s: the path's own stiffness dd_i/dtau_i, from each Jacobian
     moments = np.full((b, 3), np.nan)  # M(0) of each design's last accepted loaded solve, N m (NaN: none yet)
 
-    def miss_at(tau: np.ndarray, rows: np.ndarray, start: np.ndarray) -> np.ndarray:
+    def solved_miss(tau: np.ndarray, rows: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, RodSolution]:
         """r = c tau + d(tau) - w (len(rows), N_t), m, of designs ``rows`` at tensions ``tau`` (NaN
         where the loaded solve failed), their shooting started from ``start`` (len(rows), 3), which
-        receives the results' M(0)."""
+        receives the results' M(0); and the loaded solve."""
         sol = _solve_loaded_compiled(designs.take(rows).replace(tension=tau, displacement=None), fractions_out,
                                      loads.take(rows), opts, threads, base_moment=start)
         miss = compliance[rows] * tau + sol.displacement - wanted[rows]
-        return np.where((sol.status == Status.CONVERGED.value)[:, None], miss, np.nan)
+        return np.where((sol.status == Status.CONVERGED.value)[:, None], miss, np.nan), sol
+
+    def miss_at(tau: np.ndarray, rows: np.ndarray, start: np.ndarray) -> np.ndarray:
+        return solved_miss(tau, rows, start)[0]
 
     def phi(tau: np.ndarray, miss: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """min(s tau, r) on the driven tendons, 0 elsewhere (len(rows), N_t), m."""
@@ -755,7 +768,7 @@ def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.nda
         return np.where(np.isfinite(values).all(axis=1), np.abs(values).max(axis=1, initial=0.0), np.inf)
 
     rows = np.arange(b)
-    miss = miss_at(tension, rows, moments)
+    miss, answer = solved_miss(tension, rows, moments)  # the answer: each design's last accepted solve
     found = np.zeros(b, dtype=bool)
     stuck = np.zeros(b, dtype=bool)  # no step from here lowers the miss, along a Jacobian differenced here
     jacobians, refresh = np.zeros((b, n_t, n_t)), np.ones(b, dtype=bool)  # dr/dtau (m/N), and where to difference
@@ -808,13 +821,14 @@ def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.nda
         for halving in range(LOADED_DISPLACEMENT_HALVINGS + 1):
             trial = np.maximum(tau[pending] + step[pending] / 2.0**halving, 0.0)
             trial_moments = moments[rows[pending]]  # a copy: kept below where the step is
-            trial_miss = miss_at(trial, rows[pending], trial_moments)
+            trial_miss, trial_answer = solved_miss(trial, rows[pending], trial_moments)
             better = worst(phi(trial, trial_miss, rows[pending])) < before[pending]
             if halving == LOADED_DISPLACEMENT_HALVINGS:
                 refresh[rows[pending]] = True  # no step along it lowered the miss: differences next time
                 better = np.isfinite(trial_miss).all(axis=1)  # the last halving is kept where it solved
             keep = pending[better]
             tau[keep], miss[keep], moments[rows[keep]] = trial[better], trial_miss[better], trial_moments[better]
+            _put(answer, rows[keep], trial_answer, better)
             pending = pending[~better]
             if not pending.size:
                 break
@@ -829,8 +843,7 @@ def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.nda
         # the next iteration would difference the same Jacobian at the same tensions and fail the same
         # steps (every solve is deterministic): such a design is left where it is, to its status
         stuck[rows] = differenced & (moved == 0.0).all(axis=1)
-    sol = _solve_loaded_compiled(designs.replace(tension=tension, displacement=None), fractions_out, loads, opts,
-                                 threads, base_moment=moments)
+    sol = answer  # the loaded solve at the found tensions (each design's last accepted one: no solve again)
     status = sol.status.copy()
     status[(status == Status.CONVERGED.value) & ~found] = Status.DISPLACEMENT_NOT_MET.value
     slack = driven & (tension == 0.0) & (compliance * tension + sol.displacement - wanted > opts.displacement_tol)

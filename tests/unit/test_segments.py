@@ -183,6 +183,28 @@ def test_displacement_in_gravity_round_trips_the_tensions():
     assert relative_l2(back.tendons, forward.tendons).max() < 1e-6
 
 
+@pytest.mark.parametrize("sequence", [False, True])
+def test_a_loaded_displacement_answer_is_the_loaded_solve_at_its_tensions(sequence):
+    """The loaded displacement solve answers with Newton's last accepted shooting of each design
+    (it does not shoot again at the found tensions): that answer is a loaded tension solve at the
+    found tensions, to the shooting's tolerance (the two start their shooting from different M(0)),
+    and it meets the pull-ins: eq. SE, tau = k (u - d) with d the answer's own shortening, to k times
+    the displacement tolerance."""
+    rng = np.random.default_rng(23)
+    d = two_segments(5, pitch=4.0)
+    pull = rng.uniform(2e-4, 1.5e-3, (5, 6))
+    stiffness = np.full((5, 6), 3000.0)
+    driven = d.replace(displacement=pull, tension=np.zeros((5, 6)), stiffness=stiffness)
+    loads = _in_gravity(5)
+    sol = solve(driven, FRACTIONS, loads=loads, sequence=sequence)
+    again = solve(d.replace(tension=sol.tension, stiffness=stiffness), FRACTIONS, loads=loads)
+    assert sol.converged.all() and again.converged.all() and (sol.tension > 0.05).all()
+    assert relative_l2(sol.tendons, again.tendons).max() < 1e-9
+    np.testing.assert_allclose(sol.displacement, again.displacement, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(sol.tension, stiffness * (pull - sol.displacement), rtol=0.0,
+                               atol=3000.0 * SolverOptions().displacement_tol)
+
+
 def test_a_series_spring_in_gravity_pulls_with_k_times_the_pull_in_it_takes_up():
     """eq. SE under loads: tau = k max(0, u - zero - d) to 1e-9 N, d the loaded path's shortening;
     a tendon let out further than its path shortens hangs slack."""
