@@ -25,6 +25,7 @@ import tdcr
 from service.errors import ApiError
 from service.grpc_server import GrpcServer
 from service.metrics import HTTP, Metrics
+from service.model import RETRY_SATURATED_S
 from service.oip import InferenceRequest
 from service.routers import design_space, exact, health, inverse, models, predict, v2, viewer
 from service.settings import Settings
@@ -47,8 +48,9 @@ class ExactAdmission:
         exact = self.state.exact
         if scope["type"] == "http" and scope["path"] == "/exact" and exact is not None and exact.saturated:
             self.state.metrics.errors.labels(HTTP, "/exact", "saturated").inc()
+            retry = (b"retry-after", str(RETRY_SATURATED_S).encode())
             return await _send_error(send, 503, "the solver is saturated; retry later",
-                                     extra=[(b"connection", b"close"), (b"retry-after", b"1")])
+                                     extra=[(b"connection", b"close"), retry])
         return await self.app(scope, receive, send)
 
 

@@ -16,7 +16,15 @@ from contextlib import contextmanager
 
 import tdcr
 from service.metrics import Metrics
-from service.model import InferenceError, InferenceRequest, InferenceResponse, Kind, Model, ModelRepository
+from service.model import (
+    RETRY_STARTING_S,
+    InferenceError,
+    InferenceRequest,
+    InferenceResponse,
+    Kind,
+    Model,
+    ModelRepository,
+)
 from service.oip import EXTENSIONS, SERVER_NAME
 from tdcr.api.validation import InvalidRequest
 
@@ -66,7 +74,7 @@ class DataPlane:
         """The model ``name`` (None: the default of ``kind``, for designs with ``loads`` its loaded
         default); :class:`InferenceError` ``not_found`` else (``unavailable`` while the service starts)."""
         if self.starting:
-            raise InferenceError("unavailable", f"{STARTING}; retry shortly")
+            raise InferenceError("unavailable", f"{STARTING}; retry shortly", retry_after=RETRY_STARTING_S)
         return self.repository.get(name, kind=kind, version=version, loads=loads)
 
     def model_ready(self, name: str, version: str | None = None) -> bool:

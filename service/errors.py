@@ -54,8 +54,12 @@ LABELS = {"invalid": "validation"}
 
 def from_inference(exc: InferenceError, *, query: Collection[str] = ()) -> ApiError:
     """The HTTP error of a data-plane error: 422 / 413 naming every field (as :func:`from_invalid`),
-    404, 503 (with ``Retry-After`` when saturated) or 504."""
+    404, 503 (with ``Retry-After`` when saturated or starting: the error's ``retry_after``) or 504."""
     if exc.problems:
         return from_invalid(InvalidRequest(exc.problems, too_large=exc.kind == "too_large"), query=query)
-    headers = {"retry-after": "1"} if exc.kind == "saturated" else None
-    return ApiError(STATUS[exc.kind], exc.message, kind=LABELS.get(exc.kind, exc.kind), headers=headers)
+    return ApiError(STATUS[exc.kind], exc.message, kind=LABELS.get(exc.kind, exc.kind), headers=retry_headers(exc))
+
+
+def retry_headers(exc: InferenceError) -> dict[str, str] | None:
+    """The HTTP headers of a data-plane error that waiting may cure: ``Retry-After`` (every HTTP API)."""
+    return None if exc.retry_after is None else {"retry-after": str(exc.retry_after)}

@@ -34,19 +34,29 @@ Kind = Literal["surrogate", "solver", "inverse"]
 INLINE_DESIGNS = 4
 #: Error kinds (the ``tdcr_errors`` metric's label too).
 ERROR_KINDS = ("invalid", "not_found", "too_large", "saturated", "unavailable", "deadline")
+#: Seconds a client is asked to wait (HTTP ``Retry-After``) before it retries a saturated service.
+RETRY_SATURATED_S = 1
+#: ... and one that is starting (a first start compiles the solver for a minute or two).
+RETRY_STARTING_S = 5
 
 
 class InferenceError(Exception):
     """A request the data plane cannot answer: ``kind`` (one of :data:`ERROR_KINDS`), a message
     naming the field or tensor and the reason, and for ``invalid`` / ``too_large`` the ``problems``
-    (:class:`tdcr.api.validation.Problem`) when they came from the validation path."""
+    (:class:`tdcr.api.validation.Problem`) when they came from the validation path; ``retry_after``:
+    the seconds after which the same request may succeed (HTTP ``Retry-After``; None: not by waiting)."""
 
-    def __init__(self, kind: str, message: str, problems: tuple[Problem, ...] = ()):
+    def __init__(self, kind: str, message: str, problems: tuple[Problem, ...] = (), *,
+                 retry_after: int | None = None):
         super().__init__(message)
-        self.kind, self.message, self.problems = kind, message, tuple(problems)
+        self.kind, self.message, self.problems, self.retry_after = kind, message, tuple(problems), retry_after
 
     def __reduce__(self):  # picklable: it crosses the solver processes' pipes
-        return (InferenceError, (self.kind, self.message, self.problems))
+        return (_inference_error, (self.kind, self.message, self.problems, self.retry_after))
+
+
+def _inference_error(kind: str, message: str, problems: tuple[Problem, ...], retry_after: int | None):
+    return InferenceError(kind, message, problems, retry_after=retry_after)
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,16 @@ import anyio.from_thread
 import orjson
 from starlette.concurrency import run_in_threadpool
 
-from service.model import InferenceError, InferenceRequest, InferenceResponse, InverseAnswer, Model, ModelSpec
+from service.model import (
+    RETRY_SATURATED_S,
+    RETRY_STARTING_S,
+    InferenceError,
+    InferenceRequest,
+    InferenceResponse,
+    InverseAnswer,
+    Model,
+    ModelSpec,
+)
 from service.oip import EXACT_INPUTS, EXACT_OUTPUTS, INVERSE_INPUTS, INVERSE_OUTPUTS, INVERSE_STATUS
 from service.settings import Settings
 from service.solver_pool import SolverPool, WorkerDied, cold_paths
@@ -43,7 +52,8 @@ def _refuse_cold(request) -> None:
     cold = cold_paths(paths_of(request))
     if cold:
         raise InferenceError("unavailable", f"starting: the solver compiles its {' and '.join(cold)} path "
-                             "(a machine's first start, about two minutes on 2 cores); retry shortly")
+                             "(a machine's first start, about two minutes on 2 cores); retry shortly",
+                             retry_after=RETRY_STARTING_S)
 
 
 def exact_job(codec, payload, spec: ModelSpec, budget: WorkBudget) -> tuple[object, int]:
@@ -110,10 +120,11 @@ class ExactModel(Model):
         """``fn(*args, **kwargs)`` in a solver process, within a slot and the deadline; the
         process's failures as :class:`InferenceError` (its ``EXPECTED`` exceptions as they are)."""
         if self.pool is None or self.slots is None:
-            raise InferenceError("unavailable", f"{STARTING}; retry shortly" if self.starting
-                                 else "the solver pool is not running")
+            if self.starting:
+                raise InferenceError("unavailable", f"{STARTING}; retry shortly", retry_after=RETRY_STARTING_S)
+            raise InferenceError("unavailable", "the solver pool is not running")
         if self.slots.locked():
-            raise InferenceError("saturated", "the solver is saturated; retry later")
+            raise InferenceError("saturated", "the solver is saturated; retry later", retry_after=RETRY_SATURATED_S)
         timeout = self.settings.exact_timeout_s
         async with self.slots:
             try:

@@ -25,7 +25,7 @@ ROUTE = "/exact"
     response_model=ExactResponse,
     responses={413: {"model": ErrorResponse, "description": "too many designs, or more work than the deadline allows"},
                415: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
-               503: {"model": ErrorResponse},
+               503: {"model": ErrorResponse, "description": json_route.UNAVAILABLE},
                504: {"model": ErrorResponse}},
     description="A request (ExactRequest), or a robot file (RobotFile, e.g. what `tdcr fit` writes): its design "
                 "at the default arclengths, once the whole file passes the checks of `tdcr replay`.",

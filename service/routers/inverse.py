@@ -24,7 +24,8 @@ ROUTE = "/inverse"
     summary="Inverse kinematics: tensions that reach each target (bounded, least sum of squared tensions)",
     response_model=InverseResponse,
     responses={404: {"model": ErrorResponse}, 413: {"model": ErrorResponse}, 415: {"model": ErrorResponse},
-               422: {"model": ErrorResponse}, 503: {"model": ErrorResponse}, 504: {"model": ErrorResponse}},
+               422: {"model": ErrorResponse}, 503: {"model": ErrorResponse, "description": json_route.UNAVAILABLE},
+               504: {"model": ErrorResponse}},
     openapi_extra={"requestBody": {"required": True, "content": {
         "application/json": {"schema": {"$ref": "#/components/schemas/InverseRequest"}}}}},
 )

@@ -10,6 +10,9 @@ from service.metrics import HTTP
 from service.model import Codec, InferenceError, InferenceRequest, Kind
 from service.state import ServiceState
 
+#: The 503 of a route that runs the solver (the OpenAPI description).
+UNAVAILABLE = "the solver is saturated or still starting: retry after the Retry-After header's seconds"
+
 
 async def answer(request: Request, state: ServiceState, codec: Codec, *, kind: Kind, endpoint: str) -> Response:
     """The JSON body (415 unless declared JSON) on the default model of ``kind``."""

@@ -76,8 +76,9 @@ def _answer(plane: DataPlane, body: bytes, binary: bool, params: dict[str, list[
         200: {"model": PredictResponse, "content": {NPZ: {"schema": {"type": "string", "format": "binary"}}}},
         404: {"model": ErrorResponse}, 413: {"model": ErrorResponse}, 415: {"model": ErrorResponse},
         422: {"model": ErrorResponse},
-        503: {"model": ErrorResponse, "description": "with a tolerance: the exact solver that answers the designs "
-                                                     "over it is saturated (Retry-After)"},
+        503: {"model": ErrorResponse, "description": "the service is starting, or with a tolerance the exact solver "
+                                                     "that answers the designs over it is saturated or starting: "
+                                                     "retry after the Retry-After header's seconds"},
         504: {"model": ErrorResponse, "description": "with a tolerance: the exact solver did not finish within the "
                                                      "deadline"},
     },

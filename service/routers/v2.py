@@ -8,6 +8,7 @@ from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
 from service.deps import State
+from service.errors import retry_headers
 from service.metrics import HTTP
 from service.model import InferenceError, InferenceRequest
 from service.oip import HEADER_LENGTH, HTTP_STATUS, OipErrorBody, RestCodec
@@ -20,7 +21,7 @@ INFER = "/v2/models/{model}/infer"
 def _error(state: ServiceState, route: str, exc: InferenceError) -> JSONResponse:
     """The one mapping of data-plane errors to OIP REST answers."""
     state.metrics.errors.labels(HTTP, route, exc.kind).inc()
-    return JSONResponse({"error": exc.message}, status_code=HTTP_STATUS[exc.kind])
+    return JSONResponse({"error": exc.message}, status_code=HTTP_STATUS[exc.kind], headers=retry_headers(exc))
 
 
 def _routes(path: str, **kwargs):

@@ -17,6 +17,7 @@ import httpx
 import numpy as np
 import pytest
 
+from service.model import RETRY_STARTING_S
 from service.process import ServerProcess, free_port
 from tdcr import DesignBatch, Surrogate, design_space, solve
 from tdcr.clients import Client
@@ -201,7 +202,8 @@ def test_every_option_has_help_and_openapi_says_what_it_wrote(root, tmp_path):
 
 def test_the_port_answers_while_the_service_starts(root, tiny_models, tmp_path):
     """A first start compiles the solver (an empty numba cache here): meanwhile /healthz answers
-    200, /readyz and inference 503 with the reason, and the log says so; then it is ready."""
+    200, /readyz and inference 503 with the reason and a Retry-After (the service's own API and OIP
+    REST), and the log says so; then it is ready."""
     port = free_port()
     env = {**os.environ, "TDCR_MODELS_DIR": str(tiny_models[1]), "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
@@ -225,6 +227,10 @@ def test_the_port_answers_while_the_service_starts(root, tiny_models, tmp_path):
                 seen.append((200, 200))  # it became ready between the two calls
                 break
             assert predict.status_code == 503 and "starting" in predict.json()["message"]
+            assert predict.headers["retry-after"] == str(RETRY_STARTING_S)
+            oip = httpx.post(url + "/v2/models/exact/infer", json={"inputs": []})
+            if oip.status_code == 503:  # (200 with 400 below: it became ready meanwhile)
+                assert "starting" in oip.json()["error"] and oip.headers["retry-after"] == str(RETRY_STARTING_S)
             time.sleep(0.2)
         assert (200, 503) in seen and seen[-1] == (200, 200), seen[:3] + seen[-3:]
         log.seek(0)

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from service.model import RETRY_SATURATED_S
 from service.process import ServerProcess, child_pids
 from tdcr import design_space, relative_l2
 from tdcr.api.checks import InvalidRequest
@@ -211,6 +212,7 @@ def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_m
 
         first, second = asyncio.run(go())
         assert second.status_code == 503 and "saturated" in second.json()["message"]
+        assert second.headers["retry-after"] == str(RETRY_SATURATED_S)
         assert first.status_code == 504 and "did not finish within 0.3 s" in first.json()["message"]
     finally:
         srv.stop()

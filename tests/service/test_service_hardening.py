@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import io
 import os
+import pickle
 import signal
 import socket
 import time
@@ -309,7 +310,7 @@ def test_a_request_on_a_path_still_compiling_is_answered_starting_at_once(root, 
     design, displacement-driven, got 504 on a cold start).  Outside the solver processes nothing is
     refused."""
     from service import solver, solver_pool
-    from service.model import InferenceError
+    from service.model import RETRY_STARTING_S, InferenceError
     from tdcr.api.validation import validate_json
     from tdcr.physics.exact import paths_of
 
@@ -324,3 +325,5 @@ def test_a_request_on_a_path_still_compiling_is_answered_starting_at_once(root, 
     with pytest.raises(InferenceError) as refused:
         solver.solve_job(requests["ftdcr_v4_fitted.json"], None)
     assert refused.value.kind == "unavailable" and "compiles its displacement path" in str(refused.value)
+    piped = pickle.loads(pickle.dumps(refused.value))  # as it crosses the solver process's pipe
+    assert (piped.kind, piped.message, piped.retry_after) == ("unavailable", refused.value.message, RETRY_STARTING_S)

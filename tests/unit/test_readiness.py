@@ -10,7 +10,7 @@ import pytest
 
 from service.dataplane import DataPlane
 from service.metrics import Metrics
-from service.model import InferenceError, ModelRepository
+from service.model import RETRY_STARTING_S, InferenceError, ModelRepository
 from service.settings import Settings
 from service.solver import STARTING, ExactModel, InverseModel
 
@@ -32,7 +32,7 @@ def test_a_starting_solver_leaves_the_service_ready_and_says_so():
     assert plane.starting_models() == {"exact": STARTING, "inverse": STARTING}
     with pytest.raises(InferenceError, match="starting: the solver processes are starting") as err:
         asyncio.run(exact.run(print))
-    assert err.value.kind == "unavailable"
+    assert err.value.kind == "unavailable" and err.value.retry_after == RETRY_STARTING_S
 
 
 def test_a_solver_that_failed_to_start_is_a_problem_and_the_service_not_ready():
@@ -41,3 +41,6 @@ def test_a_solver_that_failed_to_start_is_a_problem_and_the_service_not_ready():
     assert not exact.starting and not plane.server_ready()
     assert plane.problems() == ["solver pool: not running", "solver pool: not running"]
     assert plane.starting_models() == {}
+    with pytest.raises(InferenceError, match="not running") as err:  # waiting will not cure it: no Retry-After
+        asyncio.run(exact.run(print))
+    assert err.value.kind == "unavailable" and err.value.retry_after is None
