@@ -8,11 +8,17 @@
 ``predict_json`` and ``exact`` send the JSON request format.  For one design ``predict_json``
 answers sooner: reading the ``.npz``'s ten arrays costs the client about 0.8 ms on a 2-core VM
 (docs/results.md, "The service's own latency, and the client's").
+
+A 503 that waiting cures (the solver saturated, the service or a solver path still starting) carries
+``Retry-After``; with ``retry_for`` (seconds, keyword) a client waits as told and sends the request
+again until that much time has passed, then raises the last answer's :class:`TDCRError`.
 """
 
 from __future__ import annotations
 
+import asyncio
 import io
+import time
 
 import httpx
 import numpy as np
@@ -25,11 +31,12 @@ INFERENCE_HEADER_LENGTH = "inference-header-content-length"
 
 
 class TDCRError(RuntimeError):
-    """A 4xx / 5xx answer; ``status`` and the server's ``message``."""
+    """A 4xx / 5xx answer; ``status``, the server's ``message`` and its ``Retry-After`` in seconds
+    (``retry_after``; None: waiting will not cure it)."""
 
-    def __init__(self, status: int, message: str):
+    def __init__(self, status: int, message: str, *, retry_after: float | None = None):
         super().__init__(f"HTTP {status}: {message}")
-        self.status, self.message = status, message
+        self.status, self.message, self.retry_after = status, message, retry_after
 
 
 def predict_request(features: np.ndarray, *, model: str | None = None, points: int | None = None, s=None,
@@ -81,13 +88,32 @@ def _params(model: str | None, points: int | None, s, arclength, outputs=None) -
     return params
 
 
+def _retry_after(response: httpx.Response) -> float | None:
+    """A 503's ``Retry-After`` in seconds (None: none, or not a number of seconds)."""
+    if response.status_code != 503:
+        return None
+    try:
+        return max(0.0, float(response.headers["retry-after"]))
+    except (KeyError, ValueError):
+        return None
+
+
+def _wait(response: httpx.Response, started: float, retry_for: float) -> float | None:
+    """How long to wait before sending again (None: answer with ``response``): its ``Retry-After``
+    while that still ends within ``retry_for`` s of ``started`` (``time.monotonic``)."""
+    delay = _retry_after(response)
+    if delay is None or time.monotonic() + delay > started + retry_for:
+        return None
+    return delay
+
+
 def _decode(response: httpx.Response) -> dict:
     if response.status_code >= 400:
         try:
             message = response.json().get("message", response.text)
         except ValueError:
             message = response.text
-        raise TDCRError(response.status_code, message)
+        raise TDCRError(response.status_code, message, retry_after=_retry_after(response))
     if response.headers.get("content-type", "").startswith(NPZ):
         with np.load(io.BytesIO(response.content)) as z:
             out = {k: z[k] for k in z.files}
@@ -97,8 +123,21 @@ def _decode(response: httpx.Response) -> dict:
 
 
 class Client:
-    def __init__(self, base_url: str, *, timeout: float = 60.0, **kwargs):
+    """``timeout``: each request's, s; ``retry_for``: how long a request may wait on 503s with
+    ``Retry-After`` in all, s (0: raise at the first); the rest goes to ``httpx.Client``."""
+
+    def __init__(self, base_url: str, *, timeout: float = 60.0, retry_for: float = 0.0, **kwargs):
         self._http = httpx.Client(base_url=base_url, timeout=timeout, **kwargs)
+        self.retry_for = retry_for
+
+    def _send(self, method: str, url: str, **kwargs) -> dict:
+        started = time.monotonic()
+        while True:
+            response = self._http.request(method, url, **kwargs)
+            delay = _wait(response, started, self.retry_for)
+            if delay is None:
+                return _decode(response)
+            time.sleep(delay)
 
     def __enter__(self):
         return self
@@ -126,21 +165,33 @@ class Client:
         """
         call = predict_request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs,
                                loads=loads, tolerance=tolerance)
-        return _decode(self._http.post("/predict", **call))
+        return self._send("POST", "/predict", **call)
 
     def predict_json(self, request: dict) -> dict:
-        return _decode(self._http.post("/predict", json=request))
+        return self._send("POST", "/predict", json=request)
 
     def exact(self, request: dict) -> dict:
-        return _decode(self._http.post("/exact", json=request))
+        return self._send("POST", "/exact", json=request)
 
     def models(self) -> dict:
-        return _decode(self._http.get("/models"))
+        return self._send("GET", "/models")
 
 
 class AsyncClient:
-    def __init__(self, base_url: str, *, timeout: float = 60.0, **kwargs):
+    """As :class:`Client`, on ``httpx.AsyncClient``."""
+
+    def __init__(self, base_url: str, *, timeout: float = 60.0, retry_for: float = 0.0, **kwargs):
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, **kwargs)
+        self.retry_for = retry_for
+
+    async def _send(self, method: str, url: str, **kwargs) -> dict:
+        started = time.monotonic()
+        while True:
+            response = await self._http.request(method, url, **kwargs)
+            delay = _wait(response, started, self.retry_for)
+            if delay is None:
+                return _decode(response)
+            await asyncio.sleep(delay)
 
     async def __aenter__(self):
         return self
@@ -157,10 +208,10 @@ class AsyncClient:
         """As :meth:`Client.predict`."""
         call = predict_request(features, model=model, points=points, s=s, arclength=arclength, outputs=outputs,
                                loads=loads, tolerance=tolerance)
-        return _decode(await self._http.post("/predict", **call))
+        return await self._send("POST", "/predict", **call)
 
     async def predict_json(self, request: dict) -> dict:
-        return _decode(await self._http.post("/predict", json=request))
+        return await self._send("POST", "/predict", json=request)
 
     async def exact(self, request: dict) -> dict:
-        return _decode(await self._http.post("/exact", json=request))
+        return await self._send("POST", "/exact", json=request)

@@ -196,8 +196,9 @@ def test_metrics_count_requests_designs_and_errors(example_request, server):
 
 
 def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_models):
-    """One slot and a 0.3 s deadline: a request that finds the slot taken gets 503 at once; the slow
-    one gets 504."""
+    """One slot and a 0.3 s deadline: a request that finds the slot taken gets 503 at once, with
+    Retry-After (the client raises it as ``retry_after``, or with ``retry_for`` waits and sends again
+    until the slot is free); the slow one gets 504."""
     srv = ServerProcess(tiny_models[1], exact_max_pending=1, exact_timeout_s=0.3, exact_seconds_per_design=1e-6,
                         exact_seconds_per_loaded_design=1e-6)
     try:  # 400 loaded designs at 400 points: seconds of the compiled solver
@@ -208,11 +209,24 @@ def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_m
                 first = asyncio.create_task(c.post("/exact", json=slow))
                 await asyncio.sleep(0.1)
                 second = await c.post("/exact", json=example_request)
-                return await first, second
+                with pytest.raises(TDCRError, match="saturated") as refused:
+                    async with AsyncClient(srv.url) as impatient:
+                        await impatient.exact(example_request)
+                statuses = []
 
-        first, second = asyncio.run(go())
+                async def seen(response):
+                    statuses.append(response.status_code)
+
+                async with AsyncClient(srv.url, retry_for=30.0, event_hooks={"response": [seen]}) as patient:
+                    waited = await patient.exact(example_request)
+                return await first, second, refused.value, waited, statuses
+
+        first, second, refused, waited, statuses = asyncio.run(go())
         assert second.status_code == 503 and "saturated" in second.json()["message"]
         assert second.headers["retry-after"] == str(RETRY_SATURATED_S)
+        assert refused.status == 503 and refused.retry_after == RETRY_SATURATED_S
+        assert len(waited["results"]) == len(example_request["designs"])
+        assert statuses[-1] == 200 and set(statuses[:-1]) <= {503}, statuses  # 503s while the slot was taken
         assert first.status_code == 504 and "did not finish within 0.3 s" in first.json()["message"]
     finally:
         srv.stop()
