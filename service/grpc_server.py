@@ -10,7 +10,9 @@ server reflection.
 Status codes: invalid tensors, and requests over the size limits -> ``INVALID_ARGUMENT``; an
 unknown model or version -> ``NOT_FOUND``; the solver saturated -> ``RESOURCE_EXHAUSTED``; the solver
 down or failed -> ``UNAVAILABLE``; past /exact's deadline -> ``DEADLINE_EXCEEDED``.  Each message
-names the tensor (or limit) and the reason.
+names the tensor (or limit) and the reason.  An error that waiting cures (saturated, starting)
+carries gRPC's server pushback, the trailing metadata ``grpc-retry-pushback-ms`` (HTTP's
+``Retry-After``), which a channel's retry policy honours.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["GRPCInferenceService"].full_name
 STATUS_CODES = {"invalid": grpc.StatusCode.INVALID_ARGUMENT, "too_large": grpc.StatusCode.INVALID_ARGUMENT,
                 "not_found": grpc.StatusCode.NOT_FOUND, "saturated": grpc.StatusCode.RESOURCE_EXHAUSTED,
                 "unavailable": grpc.StatusCode.UNAVAILABLE, "deadline": grpc.StatusCode.DEADLINE_EXCEEDED}
+#: gRPC's server pushback: how long a client's retry policy waits before the next attempt.
+PUSHBACK = "grpc-retry-pushback-ms"
 #: The codec of every ModelInfer call.
 CODEC = GrpcCodec()
 #: How often the health service's readiness follows the service's.
@@ -61,7 +65,8 @@ class InferenceServicer(pb_grpc.GRPCInferenceServiceServicer):
         except InferenceError as exc:
             code = STATUS_CODES[exc.kind]
             self.metrics.errors.labels(GRPC, method, exc.kind).inc()
-            await context.abort(code, exc.message)
+            pushback = () if exc.retry_after is None else ((PUSHBACK, str(round(exc.retry_after * 1000))),)
+            await context.abort(code, exc.message, trailing_metadata=pushback)
         except asyncio.CancelledError:  # the client went away or its deadline passed
             code = grpc.StatusCode.CANCELLED
             raise

@@ -19,6 +19,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
+from service.model import RETRY_SATURATED_S
 from service.process import ServerProcess
 from tdcr.oip_grpc import open_inference_grpc_pb2 as pb
 from tdcr.oip_grpc import open_inference_grpc_pb2_grpc as pb_grpc
@@ -240,7 +241,8 @@ def test_bad_tensors_get_a_clear_status(stub):
 
 def test_saturated_and_late_solver_calls(tiny_models):
     """Slow loaded solves against a 1 s deadline and one solver slot: one call runs past the deadline
-    (DEADLINE_EXCEEDED), the other finds the slot taken (RESOURCE_EXHAUSTED); the server goes on."""
+    (DEADLINE_EXCEEDED), the other finds the slot taken (RESOURCE_EXHAUSTED, with the server's
+    pushback of 1 s: ``grpc-retry-pushback-ms``); the server goes on."""
     heavy = sample_designs(200, seed=3).features()  # 200 loaded designs at 400 points: seconds of the compiled solver
     slow = _request("exact", heavy, s=np.linspace(0.0, 1.0, 400), gravity=np.tile([0.0, 9.81, 0.0], (200, 1)),
                     density=np.full(200, 7800.0))
@@ -248,11 +250,15 @@ def test_saturated_and_late_solver_calls(tiny_models):
         with grpc.insecure_channel(srv.grpc_target) as channel:
             infer = pb_grpc.GRPCInferenceServiceStub(channel).ModelInfer
 
+            pushbacks = []
+
             def call(request):
                 try:
                     infer(request, timeout=60)
                     return grpc.StatusCode.OK
                 except grpc.RpcError as exc:
+                    if exc.code() == grpc.StatusCode.RESOURCE_EXHAUSTED:
+                        pushbacks.append(dict(exc.trailing_metadata()).get("grpc-retry-pushback-ms"))
                     return exc.code()
 
             with ThreadPoolExecutor(1) as pool:
@@ -262,6 +268,7 @@ def test_saturated_and_late_solver_calls(tiny_models):
                     codes.append(call(slow))
                 codes.append(first.result())
             assert grpc.StatusCode.RESOURCE_EXHAUSTED in codes and grpc.StatusCode.DEADLINE_EXCEEDED in codes, codes
+            assert pushbacks and set(pushbacks) == {str(1000 * RETRY_SATURATED_S)}, pushbacks
             assert infer(_request("fno", heavy[:2])).model_name == "fno"
 
 
