@@ -347,9 +347,13 @@ class FitResult:
     load_rounds: tuple[Errors, ...] = ()
 
     def report(self) -> dict:
-        """The fit as JSON (the robot file's ``fitted``)."""
+        """The fit as JSON (the robot file's ``fitted``).  ``crept_m``: how far each tendon had crept
+        by train's last row (m, tendon order), by which the written file's drive zeros are moved (as
+        train left them, for a recording made after it); so the file's own replay of train starts
+        crept, and :func:`at_start` gives the robot as train found it."""
         rounds = {"load_rounds": [e.as_dict() for e in self.load_rounds]} if self.load_rounds else {}
-        return rounds | {"parameters": [{"name": p.name, "value": p.value,
+        crept = {"crept_m": [float(c) for c in self.train_replay.crept[-1]]}
+        return rounds | crept | {"parameters": [{"name": p.name, "value": p.value,
                                          "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit,
                                          "group": p.group}
                                         for p in self.parameters],

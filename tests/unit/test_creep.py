@@ -204,6 +204,10 @@ def test_fit_finds_a_known_creep_rate_and_the_fitted_file_goes_on_from_trains_en
     assert fitted.actuation.creep_rate == pytest.approx(found.value)
     np.testing.assert_allclose(fitted.design.resolved("zero") - start.design.resolved("zero"),
                                result.train_replay.crept[-1:], rtol=0, atol=1e-15)
+    crept = np.array(fitted.extra["fitted"]["crept_m"])  # the report says by how much
+    assert (crept > 0.0).any()
+    np.testing.assert_allclose(fitted.design.resolved("zero")[0] - start.design.resolved("zero")[0], crept,
+                               rtol=0, atol=1e-15)
     fitted.save(tmp_path / "fitted.json")
     again = replay(load_robot(tmp_path / "fitted.json"), later.commands, time=later.time)
     np.testing.assert_allclose(again.points, result.validate_replay.points, rtol=0, atol=1e-12)
