@@ -102,9 +102,12 @@ def _cmd_replay(args) -> int:
     import time
 
     from tdcr.physics.replay import replay, write_predictions
-    from tdcr.search.fit import errors
+    from tdcr.search.fit import errors, starts_crept
 
     robot, recording = _robot_and_recording(args.robot, args.commands, measured=None)  # scored where measured
+    note = starts_crept(robot, recording.time)
+    if note and not args.quiet:
+        print(f"note: {note}", file=sys.stderr)
     # the first row alone first: a process's first replay loads the compiled kernel (about 0.5 s,
     # more than a few hundred rows take), which the rate would otherwise carry
     start = time.perf_counter()
@@ -119,6 +122,8 @@ def _cmd_replay(args) -> int:
                "startup_seconds": startup, "not_converged": int((~answer.converged).sum()), "out": args.out}
     if all(c in recording.header for c in robot.measurement.columns):
         summary["errors"] = errors(answer, recording).as_dict()
+    if note:
+        summary["note"] = note
     json.dump(summary, sys.stdout, indent=None if args.quiet else 2)
     sys.stdout.write("\n")
     return 0

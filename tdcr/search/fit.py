@@ -329,7 +329,8 @@ class FitResult:
     ``prior``, the prior's width of each fitted group that had one (search units: the standard
     errors of those groups carry it), the search's ``groups``, ``loss`` and ``f_scale`` (mm), and
     under loads ``load_rounds``: the loaded replay's train errors after each round kept (the first
-    round fits without the loads, so ``initial`` is the start's replay without them)."""
+    round fits without the loads, so ``initial`` is the start's replay without them); ``train_end``:
+    the time of train's last row (s, the recording's clock), where the written file's creep stands."""
 
     robot: Robot
     parameters: list[Parameter]
@@ -345,14 +346,16 @@ class FitResult:
     loss: str = LOSS
     f_scale: float = F_SCALE
     load_rounds: tuple[Errors, ...] = ()
+    train_end: float | None = None
 
     def report(self) -> dict:
         """The fit as JSON (the robot file's ``fitted``).  ``crept_m``: how far each tendon had crept
-        by train's last row (m, tendon order), by which the written file's drive zeros are moved (as
-        train left them, for a recording made after it); so the file's own replay of train starts
-        crept, and :func:`at_start` gives the robot as train found it."""
+        by train's last row (m, tendon order; ``crept_at_s``: that row's time, s), by which the
+        written file's drive zeros are moved (as train left them, for a recording made after it); so
+        the file's own replay of train starts crept (:func:`starts_crept` says so), and
+        :func:`at_start` gives the robot as train found it."""
         rounds = {"load_rounds": [e.as_dict() for e in self.load_rounds]} if self.load_rounds else {}
-        crept = {"crept_m": [float(c) for c in self.train_replay.crept[-1]]}
+        crept = {"crept_m": [float(c) for c in self.train_replay.crept[-1]], "crept_at_s": self.train_end}
         return rounds | crept | {"parameters": [{"name": p.name, "value": p.value,
                                          "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit,
                                          "group": p.group}
@@ -665,7 +668,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0],
                     prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)},
                     groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale,
-                    load_rounds=tuple(rounds))
+                    load_rounds=tuple(rounds), train_end=float(train.time[-1]))
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
 
 
@@ -680,6 +683,23 @@ def at_start(robot: Robot, result: FitResult, parameters: Sequence[Parameter] | 
         raise ValueError(f"parameters: must be {list(layout.names)} in this order (the fit's groups)")
     x = np.array([math.log(p.value) if g in _LOG else p.value for p, g in zip(parameters, layout.groups, strict=True)])
     return _apply(robot, layout, x, robot.design.angles.copy())
+
+
+def starts_crept(robot: Robot, time: np.ndarray | None) -> str | None:
+    """Why a fitted file's replay of a recording that starts at or before its fit's train ended
+    (``time`` ``(T,)`` s, the recording's clock) is not the fit's: the file's drive zeros are as train
+    left them (its report's ``crept_m`` and ``crept_at_s``), so such a replay starts crept.  None for
+    a later recording, a file without a fit's report, a fit whose tendons did not creep, or no clock."""
+    report = robot.extra.get("fitted")
+    if not isinstance(report, dict) or time is None or not len(time):
+        return None
+    crept, until = report.get("crept_m"), report.get("crept_at_s")
+    if not crept or until is None or max(crept) <= 0.0 or time[0] > until:
+        return None
+    return (f"this recording starts at or before the last row of the fit's train (t = {until:.3f} s), but the "
+            f"file's drive zeros are as train left them, crept by up to {max(crept) * 1e3:.3f} mm (its fitted "
+            "crept_m): this replay starts crept, so it is not the fit's (tdcr.search.fit.at_start gives the robot "
+            "as train found it)")
 
 
 @dataclass(frozen=True)
@@ -808,4 +828,4 @@ def plot(result: FitResult, train: Recording, validate: Recording | None, path: 
 
 
 __all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "at_start", "errors", "fit", "pauses", "plot",
-           "segments"]
+           "segments", "starts_crept"]

@@ -5,6 +5,8 @@ tendon crept under its tension in the rows before."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -186,8 +188,9 @@ def test_fit_finds_a_known_creep_rate_and_the_fitted_file_goes_on_from_trains_en
     """A recording made by a creeping robot: its first 20 rows fitted from a robot that does not creep
     (group ``creep``, the Jacobian's columns side by side) give the rate again; the fitted file's zeros
     are the drives' as train left them, so its replay of the last 10 rows (recorded after train) is the
-    creeping robot's, and the same rows replayed from the start's zeros are not."""
-    from tdcr.search.fit import at_start, fit
+    creeping robot's, and the same rows replayed from the start's zeros are not.  A replay of a
+    recording that starts before train's end says that it starts crept (the API and ``tdcr replay``)."""
+    from tdcr.search.fit import at_start, fit, starts_crept
 
     truth = load_robot(_creeping(memory=False))
     rec = read_recording(SAMPLE, truth)
@@ -204,11 +207,16 @@ def test_fit_finds_a_known_creep_rate_and_the_fitted_file_goes_on_from_trains_en
     assert fitted.actuation.creep_rate == pytest.approx(found.value)
     np.testing.assert_allclose(fitted.design.resolved("zero") - start.design.resolved("zero"),
                                result.train_replay.crept[-1:], rtol=0, atol=1e-15)
-    crept = np.array(fitted.extra["fitted"]["crept_m"])  # the report says by how much
-    assert (crept > 0.0).any()
+    crept = np.array(fitted.extra["fitted"]["crept_m"])  # the report says by how much, and when
+    assert (crept > 0.0).any() and fitted.extra["fitted"]["crept_at_s"] == train.time[-1]
+    assert "this replay starts crept" in starts_crept(fitted, train.time)
+    assert starts_crept(fitted, later.time) is None and starts_crept(start, train.time) is None
     np.testing.assert_allclose(fitted.design.resolved("zero")[0] - start.design.resolved("zero")[0], crept,
                                rtol=0, atol=1e-15)
     fitted.save(tmp_path / "fitted.json")
+    run = subprocess.run([sys.executable, "-m", "tdcr.cli", "replay", str(tmp_path / "fitted.json"), str(SAMPLE),
+                          "--out", str(tmp_path / "pred.csv"), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and json.loads(run.stdout)["note"] == starts_crept(fitted, rec.time), run.stderr
     again = replay(load_robot(tmp_path / "fitted.json"), later.commands, time=later.time)
     np.testing.assert_allclose(again.points, result.validate_replay.points, rtol=0, atol=1e-12)
     afresh = replay(replace(fitted, design=start.design), later.commands, time=later.time)
