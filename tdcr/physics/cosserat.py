@@ -757,9 +757,6 @@ def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.nda
         miss = compliance[rows] * tau + sol.displacement - wanted[rows]
         return np.where((sol.status == Status.CONVERGED.value)[:, None], miss, np.nan), sol
 
-    def miss_at(tau: np.ndarray, rows: np.ndarray, start: np.ndarray) -> np.ndarray:
-        return solved_miss(tau, rows, start)[0]
-
     def phi(tau: np.ndarray, miss: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """min(s tau, r) on the driven tendons, 0 elsewhere (len(rows), N_t), m."""
         return np.where(driven[rows], np.minimum(tau * scale[rows], miss), 0.0)
@@ -801,7 +798,7 @@ def _solve_displacement_loaded_batch(designs: DesignBatch, fractions_out: np.nda
                 h = LOADED_DISPLACEMENT_DIFF * np.maximum(1.0, tau[stale, j])
                 bumped = tau[stale].copy()
                 bumped[:, j] += h
-                fresh[:, :, j] = (miss_at(bumped, rows[stale], moments[rows[stale]]) - miss[stale]) / h[:, None]
+                fresh[:, :, j] = (solved_miss(bumped, rows[stale], moments[rows[stale]])[0] - miss[stale]) / h[:, None]
             jacobians[rows[stale]], refresh[rows[stale]] = fresh, False
         differenced = np.zeros(rows.size, dtype=bool)
         differenced[stale] = True
