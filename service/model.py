@@ -51,12 +51,8 @@ class InferenceError(Exception):
         super().__init__(message)
         self.kind, self.message, self.problems, self.retry_after = kind, message, tuple(problems), retry_after
 
-    def __reduce__(self):  # picklable: it crosses the solver processes' pipes
-        return (_inference_error, (self.kind, self.message, self.problems, self.retry_after))
-
-
-def _inference_error(kind: str, message: str, problems: tuple[Problem, ...], retry_after: int | None):
-    return InferenceError(kind, message, problems, retry_after=retry_after)
+    def __reduce__(self):  # picklable: it crosses the solver processes' pipes (the keyword as state)
+        return (InferenceError, (self.kind, self.message, self.problems), {"retry_after": self.retry_after})
 
 
 @dataclass(frozen=True)
