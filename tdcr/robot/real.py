@@ -268,10 +268,11 @@ def _nonnegative(section: dict, key: str, where: str) -> float:
     return float(value)
 
 
-def _name(data: dict, key: str, default: str | None) -> str | None:
-    """``data[key]``, a column's name: a non-empty string (``default`` when absent)."""
+def _name(data: dict, key: str, default: str | None, *, optional: bool) -> str | None:
+    """``data[key]``, a column's name: a non-empty string (``default`` when absent; with ``optional``
+    also null, no such column)."""
     value = data.get(key, default)
-    if value is not None and not (isinstance(value, str) and value):
+    if not (isinstance(value, str) and value) and not (optional and value is None):
         raise RobotFileError(f"{key}: must be a column's name (a non-empty string), got {value!r}")
     return value
 
@@ -326,7 +327,8 @@ def load_robot(source: str | Path | dict) -> Robot:
                                  for k in ("marker", "base_position", "base_rotation")})
     known = {"name", "design", "actuation", "measurement", "time_column", "label_column"}
     return Robot(name=str(data.get("name", "robot")), design=design, actuation=actuation, measurement=measurement,
-                 time_column=_name(data, "time_column", "timestamp"), label_column=_name(data, "label_column", None),
+                 time_column=_name(data, "time_column", "timestamp", optional=False),
+                 label_column=_name(data, "label_column", None, optional=True),
                  extra={k: v for k, v in data.items() if k not in known}, loads=loads)
 
 
@@ -473,7 +475,7 @@ def robot_schema(*, ref_template: str = "#/$defs/{model}") -> dict:
                                   "description": "s: the measured tip follows each row's equilibrium with this "
                                                  "first-order lag (0: at once)"}}},
             "time_column": columns["items"] | {"default": "timestamp"},  # a column's name, as load_robot checks
-            "label_column": columns["items"],
+            "label_column": {"anyOf": [columns["items"], {"type": "null"}], "description": "null: no labels"},
             "fitted": {"type": "object", "description": "what tdcr fit found: parameters with standard errors, "
                                                         "train and validation errors (informative)"}},
         "$defs": defs}

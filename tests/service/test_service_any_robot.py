@@ -217,6 +217,7 @@ def test_exact_json_takes_a_fitted_robot_file_as_tdcr_solve_does(server, root):
     assert "must be in [0, 2], got 3" in answer.json()["message"]
     # the rest of the file passes the same checks as `tdcr replay`'s: a file they refuse is refused here
     for key, bad, reason in [(("time_column",), 7, "must be a column's name"),
+                             (("time_column",), None, "must be a column's name"),
                              (("actuation", "columns"), ["servo_1_mm"], "must be a list of 9 column names"),
                              (("measurement", "unit"), "inch", "must be one of")]:
         broken = json.loads((root / "examples" / "ftdcr_v4_fitted.json").read_text())

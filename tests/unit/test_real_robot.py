@@ -342,6 +342,7 @@ def test_bad_robot_files_name_the_key(tmp_path):
                           (lambda d: d["actuation"].update(kind=["tension"]), "actuation.kind: must be one of"),
                           (lambda d: d["measurement"].update(time_constant=-0.1), "measurement.time_constant: must"),
                           (lambda d: d.update(time_column=7), "time_column: must be a column's name"),
+                          (lambda d: d.update(time_column=None), "time_column: must be a column's name"),
                           (lambda d: d.update(label_column=""), "label_column: must be a column's name"),
                           (lambda d: d.pop("measurement"), "measurement: missing")]:
         data = json.loads(json.dumps(good))
@@ -564,6 +565,15 @@ def test_the_robot_schema_is_committed_and_the_example_follows_it():
     committed = json.loads((ROOT / "openapi" / "robot.schema.json").read_text())
     assert committed == json.loads(json.dumps(robot_schema())), "run: tdcr openapi"
     jsonschema.validate(json.loads(EXAMPLE.read_text()), committed)
+    # the schema and the loader agree on a null column: no labels, but a recording always has its times
+    unlabelled = json.loads(EXAMPLE.read_text()) | {"label_column": None}
+    jsonschema.validate(unlabelled, committed)
+    assert load_robot(unlabelled).label_column is None
+    timeless = unlabelled | {"time_column": None}
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(timeless, committed)
+    with pytest.raises(RobotFileError, match="time_column: must be a column's name"):
+        load_robot(timeless)
     robot = load_robot(EXAMPLE)
     assert load_robot(robot.to_json()).to_json() == robot.to_json()  # a saved robot file reads back the same
 
