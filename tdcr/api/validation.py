@@ -350,9 +350,10 @@ def _robot_file_request(robot: dict, *, limits: Limits, outputs: Iterable[str] |
     """A robot file asked of the solver: its design at the default arclengths (its actuation and
     measurement describe a recording: ``tdcr replay``).  Problems of the design are named under
     ``design``; the rest of the file passes the robot file's own checks
-    (:func:`tdcr.robot.real.load_robot`, as ``tdcr replay`` and ``tdcr fit`` run them), so a file
-    they refuse is refused here too, its problem named by its key (e.g. ``actuation.columns``)."""
-    from tdcr.robot.real import RobotFileError, load_robot
+    (:func:`tdcr.robot.real.robot_from`, as ``tdcr replay`` and ``tdcr fit`` run them after the design
+    passed this path once), so a file they refuse is refused here too, its problem named by its key
+    (e.g. ``actuation.columns``)."""
+    from tdcr.robot.real import RobotFileError, robot_from
 
     try:
         request = validate_json({"designs": [robot["design"]]}, target="solver", limits=limits, outputs=outputs)
@@ -360,7 +361,7 @@ def _robot_file_request(robot: dict, *, limits: Limits, outputs: Iterable[str] |
         raise InvalidRequest((p._replace(loc=("design", *p.loc[2:])) if p.loc[:2] == ("designs", 0) else p
                               for p in exc.problems), too_large=exc.too_large) from None
     try:
-        load_robot(robot)
+        robot_from(robot, request.groups[0])
     except RobotFileError as exc:
         key, _, reason = str(exc).partition(": ")
         raise InvalidRequest([Problem(tuple(key.split(".")), reason, "robot_file") if reason

@@ -37,11 +37,15 @@ import json
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tdcr.robot.designs import DesignBatch, ExternalLoads
 from tdcr.robot.fields import MOTIONS
+
+if TYPE_CHECKING:
+    from tdcr.api.validation import DesignGroup
 
 #: Units of the actuation and measurement columns: name -> factor to SI (m or N).
 UNITS: dict[str, float] = {"m": 1.0, "mm": 1e-3, "N": 1.0}
@@ -286,8 +290,8 @@ def _columns(section: dict, where: str, count: int) -> tuple[str, ...]:
 
 def load_robot(source: str | Path | dict) -> Robot:
     """A :class:`Robot` from a robot file (a path or its parsed JSON).  The design goes through the
-    one validation path (:func:`tdcr.api.validation.validate_json`, the solver's checks); every
-    problem raises :class:`RobotFileError` naming its key."""
+    one validation path (:func:`tdcr.api.validation.validate_json`, the solver's checks), the rest
+    through :func:`robot_from`; every problem raises :class:`RobotFileError` naming its key."""
     from tdcr.api.checks import InvalidRequest
     from tdcr.api.validation import validate_json
 
@@ -302,14 +306,24 @@ def load_robot(source: str | Path | dict) -> Robot:
             raise RobotFileError(f"{source}: not JSON ({exc.msg} at line {exc.lineno})") from None
     if not isinstance(data, dict):
         raise RobotFileError("the robot file must be a JSON object")
-    for key in ("design", "actuation", "measurement"):
-        if not isinstance(data.get(key), dict):
-            raise RobotFileError(f"{key}: missing (an object)")
+    if not isinstance(data.get("design"), dict):
+        raise RobotFileError("design: missing (an object)")
     try:
         request = validate_json({"designs": [data["design"]], "points": 2}, target="solver")
     except InvalidRequest as exc:
         raise RobotFileError("; ".join(f"design{_where(p.loc[2:])}: {p.msg}" for p in exc.problems)) from None
-    design, loads = request.groups[0].designs, request.groups[0].loads  # loads: absent ones as zeros
+    return robot_from(data, request.groups[0])
+
+
+def robot_from(data: dict, group: DesignGroup) -> Robot:
+    """The :class:`Robot` of robot file ``data`` whose design has passed the one validation path as
+    :class:`tdcr.api.validation.DesignGroup` ``group`` (one design; its loads, absent ones as zeros):
+    the rest of the file checked here, each problem a :class:`RobotFileError` naming its key (the
+    service's ``/exact`` takes a robot file through this too, without validating its design again)."""
+    for key in ("actuation", "measurement"):
+        if not isinstance(data.get(key), dict):
+            raise RobotFileError(f"{key}: missing (an object)")
+    design, loads = group.designs, group.loads
     loads = None if loads is None or loads.is_zero() else loads
     a, m = data["actuation"], data["measurement"]
     kind = _choice(a, "kind", "actuation", KINDS, "displacement")

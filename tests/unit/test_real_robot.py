@@ -22,6 +22,7 @@ from tdcr.robot.real import RobotFileError, load_robot, motions, read_recording
 pytestmark = pytest.mark.unit
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "ftdcr_v4.json"
+FITTED = ROOT / "examples" / "ftdcr_v4_fitted.json"
 #: The header and first 30 rows of the shared recording's validation file (tests/data/README.md).
 SAMPLE = ROOT / "tests" / "data" / "ftdcr_v4_sample.csv"
 #: The drive zeros of the known robots the fits must find again, m, (1, 9).
@@ -576,6 +577,27 @@ def test_the_robot_schema_is_committed_and_the_example_follows_it():
         load_robot(timeless)
     robot = load_robot(EXAMPLE)
     assert load_robot(robot.to_json()).to_json() == robot.to_json()  # a saved robot file reads back the same
+
+
+def test_a_robot_file_asked_of_the_solver_validates_its_design_once(monkeypatch):
+    """``/exact`` and ``tdcr solve`` take a robot file through ``validate_json``: its design passes the
+    one validation path once (with the caller's limits), the rest of the file the checks of
+    ``load_robot`` (:func:`tdcr.robot.real.robot_from`), which give the same robot."""
+    import tdcr.api.validation as validation
+    from tdcr.robot.real import robot_from
+
+    data = json.loads(FITTED.read_text())
+    calls = []
+    real = validation.validate_json
+
+    def counted(body, **options):
+        calls.append(body)
+        return real(body, **options)
+
+    monkeypatch.setattr(validation, "validate_json", counted)
+    request = validation.validate_json(data, target="solver")
+    assert len(calls) == 2 and calls[1] == {"designs": [data["design"]]}  # the file, then its design alone
+    assert robot_from(data, request.groups[0]).to_json() == load_robot(data).to_json()
 
 
 def test_fit_recovers_a_known_robot_from_its_own_replay():
