@@ -20,9 +20,11 @@ It then lists the pairs of rows of each file whose commands agree (every drive w
 mm) but that lie more than 3 rows apart, with the distance between their measured tips and between
 the joint fit's predicted tips.  Where the measured tips are far apart but the model's are not, the
 robot remembers something the model does not (its state differs for one command and the same
-motions).  Last, the loops of the single-drive sweeps (:func:`sweep_loops`): how much more bent the
-release branch is than the pull branch at the same command, measured and predicted.  Figures
-depend on the machine: it is printed.
+motions).  Then the loops of the single-drive sweeps (:func:`sweep_loops`): how much more bent the
+release branch is than the pull branch at the same command, measured and predicted.  Last, the turn
+of each pattern's bend about the base's axis (:func:`bend_turns`) that the train fit leaves, before
+and after train's longest pause and on val: a robot that turns on its mount during the session
+shows as a turn that changes in time.  Figures depend on the machine: it is printed.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ sys.path.insert(0, str(ROOT))
 from real_robot import add_load_arguments, robot_under  # noqa: E402  (this folder's)
 
 from tdcr.physics.replay import replay  # noqa: E402
-from tdcr.robot.real import Recording, read_recording  # noqa: E402
+from tdcr.robot.real import Recording, read_recording, rotation_matrix  # noqa: E402
 from tdcr.search.fit import FitResult, Parameter, at_start, errors, fit  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
@@ -126,6 +128,34 @@ def sweep_loops(recording: Recording, points: np.ndarray, *, span: float = 3e-3,
     return np.array(out)
 
 
+def bend_turns(recording: Recording, predicted: np.ndarray, axis: np.ndarray, *, rest: float = 2.5e-4,
+               least: float = 0.02) -> list[tuple[str, float, float]]:
+    """Per pattern (a run of one label with 5 or more scored rows whose predicted tip moves at least
+    ``least`` m across ``axis``): the turn about ``axis`` ``(3,)`` (a unit vector, the base's axis in the
+    measurement frame) that best maps the ``predicted`` ``(T, 3)`` m deflections onto the measured
+    ones, each taken across the axis from its own median at rest (the rows whose every command is
+    within ``rest`` m of 0).  Returns ``(label, its first row's time s, turn rad)``, the turn
+    counterclockwise about the axis: atan2(sum a . (q x m), sum q . m) over the pattern's rows."""
+    scored = recording.has_measurement & np.isfinite(predicted).all(axis=1)
+    at_rest = scored & (np.abs(recording.commands).max(axis=1) <= rest)
+    if not at_rest.any():
+        return []
+    across = np.eye(3) - np.outer(axis, axis)
+    measured = (recording.measured - np.median(recording.measured[at_rest], axis=0)) @ across
+    model = (predicted - np.median(predicted[at_rest], axis=0)) @ across
+    labels = recording.labels
+    starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
+    out = []
+    for a, b in zip(starts, np.r_[starts[1:], len(labels)], strict=True):
+        rows = np.flatnonzero(scored[a:b]) + a
+        if rows.size < 5 or np.linalg.norm(model[rows], axis=1).max() < least:
+            continue
+        q, m = model[rows], measured[rows]
+        turn = np.arctan2(np.sum(np.cross(q, m) @ axis), np.sum(q * m))
+        out.append((str(labels[a]), float(recording.time[a]), float(turn)))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
@@ -203,6 +233,27 @@ def main() -> None:
                   f"{np.median(predicted):+.2f}")
         else:
             print(f"  {name}: no single-drive sweep")
+
+    fitted = at_start(robot, on_train)
+    axis = rotation_matrix(fitted.measurement.base_rotation) @ np.array([0.0, 0.0, 1.0])
+    turns = bend_turns(both, replay(fitted, both.commands, time=both.time).points, axis)
+    gaps = np.diff(train.time)
+    pause = int(np.argmax(gaps))
+    print(f"\nthe turn of each pattern's bend about the base's axis that the train fit leaves (measured against "
+          f"predicted, counterclockwise), degrees; train's longest pause: {gaps[pause]:.1f} s after "
+          f"{train.time[pause] - train.time[0]:.0f} s:")
+    parts = (("train, before the pause", lambda t: t <= train.time[pause]),
+             ("train, after it", lambda t: train.time[pause] < t <= train.time[-1]),
+             ("val", lambda t: t > train.time[-1]))
+    for name, inside in parts:
+        chosen = [(label, turn) for label, t, turn in turns if inside(t)]
+        if chosen:
+            degrees = np.degrees([turn for _, turn in chosen])
+            print(f"  {name}: {len(chosen)} patterns, mean {degrees.mean():+.2f}, from {degrees.min():+.1f} to "
+                  f"{degrees.max():+.1f}: " + ", ".join(f"{label} {d:+.1f}" for (label, _), d in zip(chosen, degrees,
+                                                                                                      strict=True)))
+        else:
+            print(f"  {name}: no pattern")
 
 
 if __name__ == "__main__":
