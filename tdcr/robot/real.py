@@ -272,11 +272,11 @@ def _nonnegative(section: dict, key: str, where: str) -> float:
     return float(value)
 
 
-def _name(data: dict, key: str, default: str | None, *, optional: bool) -> str | None:
-    """``data[key]``, a column's name: a non-empty string (``default`` when absent; with ``optional``
-    also null, no such column)."""
+def _name(data: dict, key: str, default: str | None) -> str | None:
+    """``data[key]``, a column's name: a non-empty string (``default`` when absent); a column whose
+    default is None (optional: none) may also be null."""
     value = data.get(key, default)
-    if not (isinstance(value, str) and value) and not (optional and value is None):
+    if not (isinstance(value, str) and value) and not (default is None and value is None):
         raise RobotFileError(f"{key}: must be a column's name (a non-empty string), got {value!r}")
     return value
 
@@ -341,8 +341,7 @@ def robot_from(data: dict, group: DesignGroup) -> Robot:
                                  for k in ("marker", "base_position", "base_rotation")})
     known = {"name", "design", "actuation", "measurement", "time_column", "label_column"}
     return Robot(name=str(data.get("name", "robot")), design=design, actuation=actuation, measurement=measurement,
-                 time_column=_name(data, "time_column", "timestamp", optional=False),
-                 label_column=_name(data, "label_column", None, optional=True),
+                 time_column=_name(data, "time_column", "timestamp"), label_column=_name(data, "label_column", None),
                  extra={k: v for k, v in data.items() if k not in known}, loads=loads)
 
 
