@@ -36,6 +36,14 @@ TARGETS = {"val aligned RMSE, mm": ("<=", 6.5), "val plain RMSE, mm": ("<=", 8.0
            "replay, rows/s": (">=", 2000.0)}
 
 
+def add_recording_arguments(parser: argparse.ArgumentParser, *, robot: str, help: str | None = None) -> None:
+    """``--robot`` (default ``examples/ROBOT``), ``--train`` and ``--validate`` (default: the shared
+    FTDCR v4 recording's files): the files every real-robot benchmark reads."""
+    parser.add_argument("--robot", default=str(ROOT / "examples" / robot), help=help)
+    parser.add_argument("--train", default=str(SHARED / "train.csv"))
+    parser.add_argument("--validate", default=str(SHARED / "val.csv"))
+
+
 def add_load_arguments(parser: argparse.ArgumentParser) -> None:
     """``--gravity`` and ``--density``: the robot file's loads set from the command line (also
     ``real_robot_floor.py``'s)."""
@@ -65,9 +73,7 @@ def _rates(robot, recording, repeats: int = 5) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
-    parser.add_argument("--train", default=str(SHARED / "train.csv"))
-    parser.add_argument("--validate", default=str(SHARED / "val.csv"))
+    add_recording_arguments(parser, robot="ftdcr_v4.json")
     parser.add_argument("--budget", type=float, default=BUDGET, help="the fit's search budget, s")
     parser.add_argument("--out", default=None, help="write the fitted robot file here")
     parser.add_argument("--fit", default=None, help="the groups fitted (tdcr fit's --fit; default: its defaults)")

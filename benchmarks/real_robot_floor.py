@@ -41,13 +41,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from real_robot import add_load_arguments, robot_under  # noqa: E402  (this folder's)
+from real_robot import add_load_arguments, add_recording_arguments, robot_under  # noqa: E402  (this folder's)
 
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import Recording, read_recording, rotation_matrix  # noqa: E402
 from tdcr.search.fit import FitResult, Parameter, at_start, errors, fit  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 GAP = 1.0  # s between train's last row and val's first in the joint recording
 
 
@@ -158,9 +157,7 @@ def bend_turns(recording: Recording, predicted: np.ndarray, axis: np.ndarray, *,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
-    parser.add_argument("--train", default=str(SHARED / "train.csv"))
-    parser.add_argument("--validate", default=str(SHARED / "val.csv"))
+    add_recording_arguments(parser, robot="ftdcr_v4.json")
     parser.add_argument("--iterations", type=int, default=40, help="least-squares iterations of each fit")
     parser.add_argument("--same", type=float, default=0.05, help="commands agree within this, mm (every drive)")
     add_load_arguments(parser)

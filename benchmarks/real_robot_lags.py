@@ -19,19 +19,18 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from real_robot import add_recording_arguments  # noqa: E402  (this folder's)
+
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import load_robot, read_recording, settle  # noqa: E402
 from tdcr.search.fit import errors  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 FAST, SLOW, WEIGHTS = (0.25, 0.29, 0.35), (1.0, 3.0, 10.0), (0.0, 0.1, 0.2, 0.3)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4_fitted.json"))
-    parser.add_argument("--train", default=str(SHARED / "train.csv"))
-    parser.add_argument("--validate", default=str(SHARED / "val.csv"))
+    add_recording_arguments(parser, robot="ftdcr_v4_fitted.json")
     args = parser.parse_args()
     robot = load_robot(args.robot)
     scores = {}

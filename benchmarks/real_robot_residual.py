@@ -27,11 +27,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from real_robot import add_recording_arguments  # noqa: E402  (this folder's)
+
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import load_robot, read_recording  # noqa: E402
 from tdcr.search.fit import errors  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 #: Each feature set: the replay's values it stacks (tip position mm, tip direction x 100, tensions
 #: x 10 N, commands mm, motions x 5), before standardisation.
 FEATURES = {
@@ -59,9 +60,7 @@ def main() -> None:
     from sklearn.neighbors import KNeighborsRegressor
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4_fitted.json"), help="a fitted robot")
-    parser.add_argument("--train", default=str(SHARED / "train.csv"))
-    parser.add_argument("--validate", default=str(SHARED / "val.csv"))
+    add_recording_arguments(parser, robot="ftdcr_v4_fitted.json", help="a fitted robot")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)

@@ -39,7 +39,8 @@ from scipy.optimize import least_squares
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from real_robot_floor import SHARED, joined  # noqa: E402  (this folder's)
+from real_robot import add_recording_arguments  # noqa: E402  (this folder's)
+from real_robot_floor import joined  # noqa: E402
 
 from tdcr.physics.replay import replay  # noqa: E402
 from tdcr.robot.real import load_robot, read_recording, rotation_matrix, settle  # noqa: E402
@@ -52,9 +53,7 @@ MODELS = {"none": (0, 1.0), "rate about the base's axis": (1, 1e-4), "rate about
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4_fitted.json"))
-    parser.add_argument("--train", default=str(SHARED / "train.csv"))
-    parser.add_argument("--validate", default=str(SHARED / "val.csv"))
+    add_recording_arguments(parser, robot="ftdcr_v4_fitted.json")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     fitted = load_robot(args.robot)
