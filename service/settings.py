@@ -34,7 +34,9 @@ class Settings(BaseSettings):
     exact_workers: int = Field(1, ge=1, description="solver processes behind /exact")
     exact_max_designs: int = Field(2000, ge=1, description="designs per /exact request")
     exact_max_pending: int = Field(8, ge=1, description="/exact requests queued or running before 503")
-    exact_timeout_s: float = Field(30.0, gt=0, description="per-request deadline of /exact before 504")
+    exact_timeout_s: float = Field(30.0, gt=0, description="deadline of one /exact request's work in a solver process "
+                                  "before 504 (the process is killed); a request that waits as long for a free "
+                                  "process gets 503 with Retry-After")
     exact_seconds_per_design: float = Field(
         2e-4, gt=0, description="admission estimate of one tendon-loaded design at 42 points, s (measured with the "
         "compiled kernel on one core: 0.075 ms)")

@@ -29,7 +29,7 @@ from service.model import (
 )
 from service.oip import EXACT_INPUTS, EXACT_OUTPUTS, INVERSE_INPUTS, INVERSE_OUTPUTS, INVERSE_STATUS
 from service.settings import Settings
-from service.solver_pool import SolverPool, WorkerDied, cold_paths
+from service.solver_pool import NoFreeWorker, SolverPool, WorkerDied, cold_paths
 from tdcr.api.schemas import EXACT_MODEL
 from tdcr.api.validation import InvalidRequest, ShapeRequest
 from tdcr.physics.exact import ExactAnswer, TooMuchWork, WorkBudget, admit, paths_of, solve_request
@@ -93,7 +93,7 @@ class ExactModel(Model):
 
     def start(self) -> None:
         """Start the solver processes (blocks for their start, about a second each)."""
-        self.pool = SolverPool(self.settings.exact_workers)
+        self.pool = SolverPool(self.settings.exact_workers, preload=(__name__,))  # the jobs below
         self.slots = asyncio.Semaphore(self.settings.exact_max_pending)
 
     @property
@@ -133,6 +133,9 @@ class ExactModel(Model):
                 raise InferenceError("too_large", str(exc)) from None
             except TimeoutError:  # the worker was killed: the work stops with the deadline
                 raise InferenceError("deadline", f"the solver did not finish within {timeout} s") from None
+            except NoFreeWorker as exc:  # e.g. the only process restarting after a deadline: not started
+                raise InferenceError("saturated", f"the solver is saturated: {exc}; retry later",
+                                     retry_after=RETRY_SATURATED_S) from None
             except WorkerDied as exc:
                 raise InferenceError("unavailable", str(exc)) from None
             except RuntimeError as exc:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import logging
 import multiprocessing
 import os
@@ -37,6 +38,11 @@ class WorkerDied(RuntimeError):
     """The worker process died while solving (it has been replaced)."""
 
 
+class NoFreeWorker(RuntimeError):
+    """No worker became free within the deadline (all busy, or being replaced after a deadline's
+    kill): the request never started, so it is not a deadline's failure but a refusal to retry."""
+
+
 def _die_with_parent(parent: int) -> None:
     """SIGKILL this process when the parent dies: the kernel's parent-death signal where there is
     one (Linux), and a watchdog thread polling the parent pid everywhere."""
@@ -54,10 +60,14 @@ def _die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
-def _serve(conn: Connection, parent: int) -> None:
-    """Worker loop: ``(fn, args, kwargs, expected exception types)`` in, ``(ok, result or exception)`` out."""
+def _serve(conn: Connection, parent: int, preload: tuple[str, ...]) -> None:
+    """Worker loop: ``(fn, args, kwargs, expected exception types)`` in, ``(ok, result or exception)`` out.
+    ``preload``: the modules of the functions it will be sent, imported before it says ready (else
+    the first request unpickling its function pays the imports, a quarter second, inside its deadline)."""
     _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server handles Ctrl-C and stops us
+    for module in preload:
+        importlib.import_module(module)
     from tdcr.physics.exact import DEFAULT_PATHS, PATHS, warm_up
 
     warm_up(DEFAULT_PATHS)  # ready once the default path answers; the others compile meanwhile
@@ -104,9 +114,10 @@ def _warm_up_rest(paths: tuple[str, ...]) -> None:
 
 
 class _Worker:
-    def __init__(self, ctx):
+    def __init__(self, ctx, preload: tuple[str, ...]):
         self.conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=_serve, args=(child, os.getpid()), daemon=True, name="tdcr-solver")
+        self.process = ctx.Process(target=_serve, args=(child, os.getpid(), preload), daemon=True,
+                                   name="tdcr-solver")
         self.process.start()
         child.close()
 
@@ -134,10 +145,12 @@ def _exchange(worker: _Worker, message, timeout: float):
 
 
 class SolverPool:
-    """``workers`` solver processes; :meth:`run` solves on an idle one within a deadline."""
+    """``workers`` solver processes; :meth:`run` solves on an idle one within a deadline.  ``preload``:
+    the modules whose functions :meth:`run` will send, imported by each process before it is ready."""
 
-    def __init__(self, workers: int, *, start_timeout_s: float = 300.0):
+    def __init__(self, workers: int, *, preload: tuple[str, ...] = (), start_timeout_s: float = 300.0):
         self._ctx = multiprocessing.get_context("spawn")
+        self._preload = tuple(preload)
         self._start_timeout_s = start_timeout_s
         # the one thread that starts workers: their parent-death signal is tied to it (module docstring)
         self._spawner = ThreadPoolExecutor(1, thread_name_prefix="tdcr-solver-spawner")
@@ -148,7 +161,7 @@ class SolverPool:
 
     def _start(self) -> _Worker:
         """A ready worker (on the spawner thread only)."""
-        worker = _Worker(self._ctx)
+        worker = _Worker(self._ctx, self._preload)
         worker.wait_ready(self._start_timeout_s)
         return worker
 
@@ -165,18 +178,22 @@ class SolverPool:
         return self._idle
 
     async def run(self, fn, *args, timeout: float, expected: tuple[type[Exception], ...] = (), **kwargs):
-        """``fn(*args, **kwargs)`` in a worker; ``TimeoutError`` past ``timeout`` s (the worker is
-        killed and replaced), :class:`WorkerDied` if it died; an ``expected`` exception of ``fn`` is
-        raised as it is, any other as ``RuntimeError``."""
+        """``fn(*args, **kwargs)`` in a worker; :class:`NoFreeWorker` if none becomes free within
+        ``timeout`` s, ``TimeoutError`` if the work then runs ``timeout`` s (the worker is killed and
+        replaced), :class:`WorkerDied` if it died; an ``expected`` exception of ``fn`` is raised as it
+        is, any other as ``RuntimeError``.  The wait for a worker and the work each have the whole
+        ``timeout``: a request that got a worker late (one restarting after a deadline) would otherwise
+        have its few milliseconds of work killed for time it spent waiting."""
         idle = self._idle_queue()
-        deadline = asyncio.get_running_loop().time() + timeout
-        worker = await asyncio.wait_for(idle.get(), timeout)
+        try:  # an idle worker is taken at once, however short the timeout
+            worker = idle.get_nowait() if idle.qsize() else await asyncio.wait_for(idle.get(), timeout)
+        except TimeoutError:
+            raise NoFreeWorker(f"no solver process became free within {timeout} s") from None
         healthy, died = False, False
         try:
-            remaining = max(deadline - asyncio.get_running_loop().time(), 0.0)
             # the blocking pipe I/O runs in a thread; a cancelled request abandons it (the worker is
             # then killed, which ends the thread's wait)
-            ok, result = await anyio.to_thread.run_sync(_exchange, worker, (fn, args, kwargs, expected), remaining,
+            ok, result = await anyio.to_thread.run_sync(_exchange, worker, (fn, args, kwargs, expected), timeout,
                                                         abandon_on_cancel=True)
             healthy = True
         except TimeoutError:  # a subclass of OSError: re-raised as it is

@@ -198,7 +198,8 @@ def test_metrics_count_requests_designs_and_errors(example_request, server):
 def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_models):
     """One slot and a 0.3 s deadline: a request that finds the slot taken gets 503 at once, with
     Retry-After (the client raises it as ``retry_after``, or with ``retry_for`` waits and sends again
-    until the slot is free); the slow one gets 504."""
+    until the slot is free, and while the only solver process restarts after the deadline's kill);
+    the slow one gets 504."""
     srv = ServerProcess(tiny_models[1], exact_max_pending=1, exact_timeout_s=0.3, exact_seconds_per_design=1e-6,
                         exact_seconds_per_loaded_design=1e-6)
     try:  # 400 loaded designs at 400 points: seconds of the compiled solver

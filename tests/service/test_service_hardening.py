@@ -303,6 +303,29 @@ def test_solver_workers_outlive_the_thread_that_started_the_pool():
         pool.close()
 
 
+def test_waiting_for_a_free_worker_past_the_deadline_is_a_refusal_not_a_deadline():
+    """A request that finds no worker free within its deadline never started: the pool raises
+    ``NoFreeWorker`` (the service's 503 "saturated" with Retry-After), not ``TimeoutError`` (504), and
+    leaves the busy worker alone.  (After a deadline's kill, the only worker restarting took longer
+    than a 0.3 s deadline on a slow machine, and a client that waited politely got 504.)"""
+    from service.solver_pool import NoFreeWorker, SolverPool
+
+    pool = SolverPool(1)
+    try:
+        async def go():
+            busy = asyncio.create_task(pool.run(time.sleep, 3.0, timeout=60))
+            await asyncio.sleep(0.5)
+            with pytest.raises(NoFreeWorker, match="within 0.2 s"):
+                await pool.run(time.sleep, 0.0, timeout=0.2)
+            return await busy
+
+        worker = pool.workers[0]
+        assert asyncio.run(go()) is None
+        assert pool.workers == [worker] and worker.process.is_alive()
+    finally:
+        pool.close()
+
+
 def test_a_request_on_a_path_still_compiling_is_answered_starting_at_once(root, monkeypatch):
     """In a solver process that has compiled only the default path (a machine's first start), a request
     that needs another path is refused as "unavailable" (503, retry) at once: waiting for numba's
