@@ -122,11 +122,16 @@ def _decode(response: httpx.Response) -> dict:
     return response.json()
 
 
+#: A request's default timeout, s: above twice the service's default /exact deadline (30 s to wait for
+#: a free solver process, then 30 s for the work).
+TIMEOUT_S = 90.0
+
+
 class Client:
     """``timeout``: each request's, s; ``retry_for``: how long a request may wait on 503s with
     ``Retry-After`` in all, s (0: raise at the first); the rest goes to ``httpx.Client``."""
 
-    def __init__(self, base_url: str, *, timeout: float = 60.0, retry_for: float = 0.0, **kwargs):
+    def __init__(self, base_url: str, *, timeout: float = TIMEOUT_S, retry_for: float = 0.0, **kwargs):
         self._http = httpx.Client(base_url=base_url, timeout=timeout, **kwargs)
         self.retry_for = retry_for
 
@@ -180,7 +185,7 @@ class Client:
 class AsyncClient:
     """As :class:`Client`, on ``httpx.AsyncClient``."""
 
-    def __init__(self, base_url: str, *, timeout: float = 60.0, retry_for: float = 0.0, **kwargs):
+    def __init__(self, base_url: str, *, timeout: float = TIMEOUT_S, retry_for: float = 0.0, **kwargs):
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, **kwargs)
         self.retry_for = retry_for
 
