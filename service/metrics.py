@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from prometheus_client import CollectorRegistry, Counter, Histogram, ProcessCollector
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, ProcessCollector
 
 #: The ``protocol`` label: HTTP (the JSON/binary API and OIP v2 REST) or gRPC (OIP v2).
 HTTP = "http"
@@ -22,6 +22,7 @@ class Metrics:
     batch: Histogram
     guarded: Counter
     fallback: Counter
+    solver_slots: Gauge
 
     @classmethod
     def create(cls) -> Metrics:
@@ -42,4 +43,7 @@ class Metrics:
                              ["model"], registry=reg),
             batch=Histogram("tdcr_graph_run_designs", "designs per onnxruntime run (dynamic batching)", ["model"],
                             buckets=(1, 2, 4, 8, 16, 32, 64, 256, 1024, 4096, 16384, 65536), registry=reg),
+            solver_slots=Gauge("tdcr_solver_slots_in_use", "solver slots held (of TDCR_EXACT_MAX_PENDING): /exact, "
+                               "/inverse and guarded requests waiting for or running in a solver process; "
+                               "at the maximum /exact answers 503 saturated", registry=reg),
         )

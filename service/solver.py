@@ -89,6 +89,7 @@ class ExactModel(Model):
         self.budget = settings.exact_budget()
         self.pool: SolverPool | None = None
         self.slots: asyncio.Semaphore | None = None
+        self.in_flight = 0  #: requests holding a slot: queued for a process or running in one
         self.failed = False  #: the processes did not start (a problem /readyz reports)
 
     def start(self) -> None:
@@ -127,6 +128,7 @@ class ExactModel(Model):
             raise InferenceError("saturated", "the solver is saturated; retry later", retry_after=RETRY_SATURATED_S)
         timeout = self.settings.exact_timeout_s
         async with self.slots:
+            self.in_flight += 1
             try:
                 return await self.pool.run(fn, *args, timeout=timeout, expected=EXPECTED, **kwargs)
             except TooMuchWork as exc:
@@ -141,6 +143,8 @@ class ExactModel(Model):
             except RuntimeError as exc:
                 log.error("solver failed: %s", exc)
                 raise InferenceError("unavailable", "the solver failed on this request; retry later") from None
+            finally:
+                self.in_flight -= 1
 
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         body, count = await self.run(exact_job, request.codec, request.payload, self.spec, self.budget)

@@ -36,8 +36,15 @@ class ServiceState:
     @classmethod
     def create(cls, settings: Settings) -> ServiceState:
         metrics = Metrics.create()
-        return cls(settings=settings, metrics=metrics, plane=DataPlane(ModelRepository(), metrics,
-                                                                     inline=settings.inline))
+        state = cls(settings=settings, metrics=metrics, plane=DataPlane(ModelRepository(), metrics,
+                                                                      inline=settings.inline))
+        metrics.solver_slots.set_function(state.solver_slots_in_use)
+        return state
+
+    def solver_slots_in_use(self) -> int:
+        """Requests holding a solver slot now (0 while the solver starts)."""
+        exact = self.exact
+        return 0 if exact is None else exact.in_flight
 
     @property
     def repository(self) -> ModelRepository:

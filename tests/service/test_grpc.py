@@ -386,8 +386,10 @@ def test_the_data_plane_answers_a_short_request_on_the_event_loop_only_when_noth
 
         def infer_blocking(self, request):
             if request.payload == "slow":
-                threading.Event().wait(0.2)
+                assert release.wait(30.0), "never released"
             return InferenceResponse(threading.get_ident(), 1)
+
+    release = threading.Event()  # the slow inference holds its worker thread until then
 
     repository = ModelRepository()
     repository.register(Echo())
@@ -400,8 +402,10 @@ def test_the_data_plane_answers_a_short_request_on_the_event_loop_only_when_noth
         alone = (await ask("short")).body
         long = (await ask("long")).body
         slow = asyncio.ensure_future(ask("slow"))
-        await asyncio.sleep(0.05)
+        while plane.in_flight == 0:  # until the slow inference is in flight
+            await asyncio.sleep(0)
         beside = (await ask("short")).body
+        release.set()
         await slow
         return loop_thread, alone, long, beside
 

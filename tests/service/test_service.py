@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from prometheus_client.parser import text_string_to_metric_families
 
 from service.model import RETRY_SATURATED_S
 from service.process import ServerProcess, child_pids
@@ -195,6 +196,12 @@ def test_metrics_count_requests_designs_and_errors(example_request, server):
     assert 'tdcr_graph_run_designs_count{model="deeponet"}' in text
 
 
+async def solver_slots_in_use(client: httpx.AsyncClient) -> float:
+    """The service's ``tdcr_solver_slots_in_use`` gauge, read from its /metrics."""
+    families = text_string_to_metric_families((await client.get("/metrics")).text)
+    return next(f.samples[0].value for f in families if f.name == "tdcr_solver_slots_in_use")
+
+
 def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_models):
     """One slot and a 0.3 s deadline: a request that finds the slot taken gets 503 at once, with
     Retry-After (the client raises it as ``retry_after``, or with ``retry_for`` waits and sends again
@@ -207,8 +214,12 @@ def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_m
 
         async def go():
             async with httpx.AsyncClient(base_url=srv.url, timeout=120) as c:
+                assert await solver_slots_in_use(c) == 0
                 first = asyncio.create_task(c.post("/exact", json=slow))
-                await asyncio.sleep(0.1)
+                given_up = time.monotonic() + 30.0
+                while await solver_slots_in_use(c) < 1:  # until the slow request holds the only slot
+                    assert time.monotonic() < given_up, "the slow request never took the solver slot"
+                    await asyncio.sleep(0.005)
                 second = await c.post("/exact", json=example_request)
                 with pytest.raises(TDCRError, match="saturated") as refused:
                     async with AsyncClient(srv.url) as impatient:
@@ -220,15 +231,16 @@ def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_m
 
                 async with AsyncClient(srv.url, retry_for=30.0, event_hooks={"response": [seen]}) as patient:
                     waited = await patient.exact(example_request)
-                return await first, second, refused.value, waited, statuses
+                return await first, second, refused.value, waited, statuses, await solver_slots_in_use(c)
 
-        first, second, refused, waited, statuses = asyncio.run(go())
+        first, second, refused, waited, statuses, slots_after = asyncio.run(go())
         assert second.status_code == 503 and "saturated" in second.json()["message"]
         assert second.headers["retry-after"] == str(RETRY_SATURATED_S)
         assert refused.status == 503 and refused.retry_after == RETRY_SATURATED_S
         assert len(waited["results"]) == len(example_request["designs"])
         assert statuses[-1] == 200 and set(statuses[:-1]) <= {503}, statuses  # 503s while the slot was taken
         assert first.status_code == 504 and "did not finish within 0.3 s" in first.json()["message"]
+        assert slots_after == 0  # every slot given back, the killed request's too
     finally:
         srv.stop()
 
