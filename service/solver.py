@@ -10,7 +10,6 @@ the work with its process.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 
 import anyio.from_thread
@@ -88,14 +87,12 @@ class ExactModel(Model):
         self.limits = settings.exact_limits()
         self.budget = settings.exact_budget()
         self.pool: SolverPool | None = None
-        self.slots: asyncio.Semaphore | None = None
-        self.in_flight = 0  #: requests holding a slot: queued for a process or running in one
+        self.in_flight = 0  #: requests holding a slot (of exact_max_pending): waiting for a process or in one
         self.failed = False  #: the processes did not start (a problem /readyz reports)
 
     def start(self) -> None:
         """Start the solver processes (blocks for their start, about a second each)."""
         self.pool = SolverPool(self.settings.exact_workers, preload=(__name__,))  # the jobs below
-        self.slots = asyncio.Semaphore(self.settings.exact_max_pending)
 
     @property
     def starting(self) -> bool:
@@ -115,36 +112,35 @@ class ExactModel(Model):
 
     @property
     def saturated(self) -> bool:
-        return self.slots is not None and self.slots.locked()
+        return self.in_flight >= self.settings.exact_max_pending
 
     async def run(self, fn, *args, **kwargs):
         """``fn(*args, **kwargs)`` in a solver process, within a slot and the deadline; the
         process's failures as :class:`InferenceError` (its ``EXPECTED`` exceptions as they are)."""
-        if self.pool is None or self.slots is None:
+        if self.pool is None:
             if self.starting:
                 raise InferenceError("unavailable", f"{STARTING}; retry shortly", retry_after=RETRY_STARTING_S)
             raise InferenceError("unavailable", "the solver pool is not running")
-        if self.slots.locked():
+        if self.saturated:  # (the slot is taken below with no await between: the event loop's thread only)
             raise InferenceError("saturated", "the solver is saturated; retry later", retry_after=RETRY_SATURATED_S)
         timeout = self.settings.exact_timeout_s
-        async with self.slots:
-            self.in_flight += 1
-            try:
-                return await self.pool.run(fn, *args, timeout=timeout, expected=EXPECTED, **kwargs)
-            except TooMuchWork as exc:
-                raise InferenceError("too_large", str(exc)) from None
-            except TimeoutError:  # the worker was killed: the work stops with the deadline
-                raise InferenceError("deadline", f"the solver did not finish within {timeout} s") from None
-            except NoFreeWorker as exc:  # e.g. the only process restarting after a deadline: not started
-                raise InferenceError("saturated", f"the solver is saturated: {exc}; retry later",
-                                     retry_after=RETRY_SATURATED_S) from None
-            except WorkerDied as exc:
-                raise InferenceError("unavailable", str(exc)) from None
-            except RuntimeError as exc:
-                log.error("solver failed: %s", exc)
-                raise InferenceError("unavailable", "the solver failed on this request; retry later") from None
-            finally:
-                self.in_flight -= 1
+        self.in_flight += 1
+        try:
+            return await self.pool.run(fn, *args, timeout=timeout, expected=EXPECTED, **kwargs)
+        except TooMuchWork as exc:
+            raise InferenceError("too_large", str(exc)) from None
+        except TimeoutError:  # the worker was killed: the work stops with the deadline
+            raise InferenceError("deadline", f"the solver did not finish within {timeout} s") from None
+        except NoFreeWorker as exc:  # e.g. the only process restarting after a deadline: not started
+            raise InferenceError("saturated", f"the solver is saturated: {exc}; retry later",
+                                 retry_after=RETRY_SATURATED_S) from None
+        except WorkerDied as exc:
+            raise InferenceError("unavailable", str(exc)) from None
+        except RuntimeError as exc:
+            log.error("solver failed: %s", exc)
+            raise InferenceError("unavailable", "the solver failed on this request; retry later") from None
+        finally:
+            self.in_flight -= 1
 
     async def infer(self, request: InferenceRequest) -> InferenceResponse:
         body, count = await self.run(exact_job, request.codec, request.payload, self.spec, self.budget)
