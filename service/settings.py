@@ -33,7 +33,8 @@ class Settings(BaseSettings):
     onnx_chunk: int = Field(512, ge=1, description="large batches run as chunks of this many designs")
     exact_workers: int = Field(1, ge=1, description="solver processes behind /exact")
     exact_max_designs: int = Field(2000, ge=1, description="designs per /exact request")
-    exact_max_pending: int = Field(8, ge=1, description="/exact requests queued or running before 503")
+    exact_max_pending: int = Field(8, ge=1, description="solver slots: requests (/exact, /inverse, guarded /predict) "
+                                   "waiting for or running in a solver process before /exact answers 503")
     exact_timeout_s: float = Field(30.0, gt=0, description="deadline of one /exact request's work in a solver process "
                                   "before 504 (the process is killed); a request that waits as long for a free "
                                   "process gets 503 with Retry-After")
