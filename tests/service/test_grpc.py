@@ -402,7 +402,8 @@ def test_the_data_plane_answers_a_short_request_on_the_event_loop_only_when_noth
         alone = (await ask("short")).body
         long = (await ask("long")).body
         slow = asyncio.ensure_future(ask("slow"))
-        while plane.in_flight == 0:  # until the slow inference is in flight
+        while plane.in_flight == 0:  # until the slow inference is in flight (a failure ends it: no hang)
+            assert not slow.done(), "the slow inference ended before it was in flight"
             await asyncio.sleep(0)
         beside = (await ask("short")).body
         release.set()
