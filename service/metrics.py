@@ -45,5 +45,5 @@ class Metrics:
                             buckets=(1, 2, 4, 8, 16, 32, 64, 256, 1024, 4096, 16384, 65536), registry=reg),
             solver_slots=Gauge("tdcr_solver_slots_in_use", "solver slots held (of TDCR_EXACT_MAX_PENDING): /exact, "
                                "/inverse and guarded requests waiting for or running in a solver process; "
-                               "at the maximum /exact answers 503 saturated", registry=reg),
+                               "at the maximum a request that needs one is refused saturated", registry=reg),
         )

@@ -34,7 +34,8 @@ class Settings(BaseSettings):
     exact_workers: int = Field(1, ge=1, description="solver processes behind /exact")
     exact_max_designs: int = Field(2000, ge=1, description="designs per /exact request")
     exact_max_pending: int = Field(8, ge=1, description="solver slots: requests (/exact, /inverse, guarded /predict) "
-                                   "waiting for or running in a solver process before /exact answers 503")
+                                   "waiting for or running in a solver process; with all taken, a request that "
+                                   "needs one is refused saturated (503, gRPC RESOURCE_EXHAUSTED; /exact at the door)")
     exact_timeout_s: float = Field(30.0, gt=0, description="deadline of one /exact request's work in a solver process "
                                   "before 504 (the process is killed); a request that waits as long for a free "
                                   "process gets 503 with Retry-After")
