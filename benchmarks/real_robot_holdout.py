@@ -5,6 +5,7 @@
     python benchmarks/real_robot_holdout.py --split halves
     python benchmarks/real_robot_holdout.py --group creep --split time   # the first half fitted, the second scored
     python benchmarks/real_robot_holdout.py --prior tendon_angle=0.5   # a prior judged instead of a group
+    python benchmarks/real_robot_holdout.py --loss soft_l1             # a loss judged against the default
 
 Two folds: ``--split patterns`` deals the patterns (labels, a ``_hold`` row with its pattern)
 alternately into them, so a pattern is either fitted or scored (but a single-tendon sweep then
@@ -16,8 +17,9 @@ with the default groups with and without ``--group`` (with it added when it is n
 scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors`).  With
 ``--prior GROUP=WIDTH[,...]`` the two fits are the default groups without any prior and with that
 one (:func:`tdcr.search.fit.fit`'s ``prior``, widths in search units); else both take the default
-prior.  No validation file is read, so a choice made on these figures has not seen it.  The folds are split
-in time, so the command history (each tendon's motion) restarts where a fold resumes.
+prior.  With ``--loss LOSS`` they are the default groups under the default loss and under that one
+(at the default ``f_scale``).  No validation file is read, so a choice made on these figures has not
+seen it.  The folds are split in time, so the command history (each tendon's motion) restarts where a fold resumes.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tdcr.robot.real import load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import DEFAULT_GROUPS, PRIOR, fit, format_prior, parse_prior  # noqa: E402
+from tdcr.search.fit import DEFAULT_GROUPS, LOSS, LOSSES, PRIOR, fit, format_prior, parse_prior  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 
@@ -61,6 +63,7 @@ def main() -> None:
                         help="how the folds are made")
     parser.add_argument("--prior", type=_prior, default=None,
                         help="judge a prior instead: GROUP=WIDTH[,GROUP=WIDTH...]")
+    parser.add_argument("--loss", choices=LOSSES, default=None, help=f"judge a loss instead, against {LOSS}")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
@@ -77,19 +80,25 @@ def main() -> None:
             rows = np.nonzero(patterns == p)[0]
             fold[rows[len(rows) // 2:]] = 1
     print(f"split: {args.split}")
+    if args.prior and args.loss:
+        parser.error("--prior and --loss: judge one at a time")
     if args.prior:
         named = format_prior(args.prior)
-        choices = (("no prior", DEFAULT_GROUPS, None), (f"prior {named}", DEFAULT_GROUPS, args.prior))
+        choices = (("no prior", DEFAULT_GROUPS, None, LOSS), (f"prior {named}", DEFAULT_GROUPS, args.prior, LOSS))
+    elif args.loss:
+        choices = ((f"loss {LOSS}", DEFAULT_GROUPS, PRIOR, LOSS),
+                   (f"loss {args.loss}", DEFAULT_GROUPS, PRIOR, args.loss))
     else:
         without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
-        choices = ((f"without {args.group}", without, PRIOR), (f"with {args.group}", without + (args.group,), PRIOR))
+        choices = ((f"without {args.group}", without, PRIOR, LOSS),
+                   (f"with {args.group}", without + (args.group,), PRIOR, LOSS))
     print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
           "| held-out plain, mm | fit, s |\n|---|---|---|---|---|---|---|")
     for k in (0,) if args.split == "time" else (0, 1):  # in time: the later half is never fitted
         fitted, held_out = recording.take(fold == k), recording.take(fold != k)
-        for name, groups, prior in choices:
+        for name, groups, prior, loss in choices:
             start = time.perf_counter()
-            result = fit(robot, fitted, validate=held_out, groups=groups, prior=prior)
+            result = fit(robot, fitted, validate=held_out, groups=groups, prior=prior, loss=loss)
             print(f"| {k} | {name} | {len(fitted.time)} / {len(held_out.time)} | {result.train.rmse:.2f} | "
                   f"{result.validate.aligned:.2f} | {result.validate.rmse:.2f} | {time.perf_counter() - start:.0f} |",
                   flush=True)

@@ -877,6 +877,8 @@ def test_the_plots_lines_break_where_the_recording_pauses():
 
 
 def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
+    from tdcr.search.fit import LOSS
+
     out, png = tmp_path / "fitted.json", tmp_path / "fit.png"
     run = subprocess.run([sys.executable, "-m", "tdcr.cli", "fit", str(EXAMPLE), str(SAMPLE), "--validate", str(SAMPLE),
                           "--fit", "marker,time_constant", "--max-iterations", "2", "--out", str(out), "--plot",
@@ -887,7 +889,7 @@ def test_the_cli_fits_and_exits_2_on_groups_it_cannot_fit(tmp_path):
     assert [p["name"] for p in report["parameters"]] == ["marker[0]", "marker[1]", "marker[2]", "time_constant"]
     assert [p["group"] for p in report["parameters"]] == ["marker"] * 3 + ["time_constant"]
     # the report says how it was searched: the groups, the loss and the prior given
-    assert report["groups"] == ["marker", "time_constant"] and report["loss"] == "linear"
+    assert report["groups"] == ["marker", "time_constant"] and report["loss"] == LOSS
     assert report["prior"] == {"marker": 0.5}
     assert report["train"]["rmse_mm"] <= report["initial_train"]["rmse_mm"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
