@@ -3,7 +3,7 @@
 The model is the physics of :func:`tdcr.physics.replay.replay` (series-elastic tendons with drive
 zeros, Capstan friction that follows each tendon's motion); the fit finds the parameters the data
 can identify by nonlinear least squares on the measured points (``scipy.optimize.least_squares``,
-trust-region reflective with bounds, forward-difference Jacobian):
+trust-region reflective with bounds, forward-difference Jacobian, a soft-L1 loss by default: :data:`LOSS`):
 
 * ``E``: Young's modulus of the backbone (one backbone: the bending stiffness of every segment);
 * ``zero``: each tendon's drive zero, m (where it is just taut on the straight rod);
