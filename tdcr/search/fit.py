@@ -44,7 +44,8 @@ errors leave out how the loads' effect changes with the values: along a directio
 loads' effect tells apart the rounds move slowly.
 
 A segment is the tendons that end together.  Every parameter is reported with its standard error
-from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 = SSR / (m - p); none where m <= p), taken in
+from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 Huber's scale of the loss: :func:`_covariance_scale`,
+SSR / (m - p) for plain least squares; none where m <= p), taken in
 the span of the directions that move the robot: with ``base_rotation`` fitted, a common turn of every
 tendon is the base's, so the turns are reported with zero mean.  Errors are the RMS of the
 3-D point error over the rows with a measurement, mm: "plain", and "aligned" after removing the
@@ -646,7 +647,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     free = _free_directions(layout)
     m, q = jac.shape[0], free.shape[1]
     r_best = residual(z, track=False)
-    s2 = float(r_best @ r_best) / max(m - q, 1)  # mm^2
+    s2 = _covariance_scale(r_best, loss, f_scale, free=q)  # mm^2
     cov = s2 * free @ np.linalg.pinv((jac @ free).T @ (jac @ free)) @ free.T
     stderr = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
     # a parameter the residuals do not move (e.g. a lag far below the sampling interval) is not
@@ -764,6 +765,29 @@ def _robust_cost(r: np.ndarray, loss: str, f_scale: float) -> float:
     if loss == "linear":
         return float(r @ r)
     return float((2.0 * f_scale**2 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)).sum())  # soft_l1 (LOSSES)
+
+
+def _influence(r: np.ndarray, loss: str, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The loss's influence function psi(r) = d(cost / 2) / dr of :func:`_robust_cost` and its
+    derivative psi'(r), each ``(m,)`` for the residuals ``r`` ``(m,)``: r and 1 for plain least
+    squares; r / sqrt(1 + z) and (1 + z)^-3/2, z = (r / f_scale)^2, for soft_l1."""
+    if loss == "linear":
+        return r, np.ones_like(r)
+    z = (r / f_scale) ** 2
+    return r / np.sqrt(1.0 + z), (1.0 + z) ** -1.5
+
+
+def _covariance_scale(r: np.ndarray, loss: str, f_scale: float, *, free: int) -> float:
+    """The factor of (J^T J)^-1 in the parameters' covariance, in the residuals' units squared, for
+    the residuals ``r`` ``(m,)`` at an optimum with ``p = free`` free directions: Huber's estimate for
+    an M-estimator (Huber 1981, Robust Statistics, sec. 7.6; statsmodels' RLM ``cov="H1"``),
+    K^2 [sum psi^2 / (m - p)] / [mean psi']^2, K = 1 + (p / m) var(psi') / mean(psi')^2.  For plain
+    least squares (psi = r, psi' = 1) it is s^2 = SSR / (m - p)."""
+    m = len(r)
+    psi, slope = _influence(r, loss, f_scale)
+    mean = float(slope.mean())
+    k = 1.0 + free / m * float(slope.var()) / mean**2
+    return k**2 * float(psi @ psi) / max(m - free, 1) / mean**2
 
 
 class _OutOfTime(Exception):
