@@ -65,6 +65,8 @@ def main() -> None:
                         help="judge a prior instead: GROUP=WIDTH[,GROUP=WIDTH...]")
     parser.add_argument("--loss", choices=LOSSES, default=None, help=f"judge a loss instead, against {LOSS}")
     args = parser.parse_args()
+    if args.prior and args.loss:
+        parser.error("--prior and --loss: judge one at a time")
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
     recording = read_recording(args.train, robot)
@@ -80,8 +82,6 @@ def main() -> None:
             rows = np.nonzero(patterns == p)[0]
             fold[rows[len(rows) // 2:]] = 1
     print(f"split: {args.split}")
-    if args.prior and args.loss:
-        parser.error("--prior and --loss: judge one at a time")
     if args.prior:
         named = format_prior(args.prior)
         choices = (("no prior", DEFAULT_GROUPS, None, LOSS), (f"prior {named}", DEFAULT_GROUPS, args.prior, LOSS))
