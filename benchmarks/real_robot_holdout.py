@@ -6,6 +6,7 @@
     python benchmarks/real_robot_holdout.py --group creep --split time   # the first half fitted, the second scored
     python benchmarks/real_robot_holdout.py --prior tendon_angle=0.5   # a prior judged instead of a group
     python benchmarks/real_robot_holdout.py --loss soft_l1             # a loss judged against the default
+    python benchmarks/real_robot_holdout.py --f-scale 2.5,10           # the loss's scale (mm) judged
 
 Two folds: ``--split patterns`` deals the patterns (labels, a ``_hold`` row with its pattern)
 alternately into them, so a pattern is either fitted or scored (but a single-tendon sweep then
@@ -18,8 +19,10 @@ scores the other fold: aligned and plain RMSE, mm (:func:`tdcr.search.fit.errors
 ``--prior GROUP=WIDTH[,...]`` the two fits are the default groups without any prior and with that
 one (:func:`tdcr.search.fit.fit`'s ``prior``, widths in search units); else both take the default
 prior.  With ``--loss LOSS`` they are the default groups under the default loss and under that one
-(at the default ``f_scale``).  No validation file is read, so a choice made on these figures has not
-seen it.  The folds are split in time, so the command history (each tendon's motion) restarts where a fold resumes.
+(at the default ``f_scale``).  With ``--f-scale MM[,MM...]`` they are the default fit and one under
+the loss (``--loss``, else the default one) at each of those scales.  No validation file is read,
+so a choice made on these figures has not seen it.  The folds are split in time, so the command
+history (each tendon's motion) restarts where a fold resumes.
 """
 
 from __future__ import annotations
@@ -38,7 +41,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tdcr.robot.real import load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import DEFAULT_GROUPS, LOSS, LOSSES, PRIOR, fit, format_prior, parse_prior  # noqa: E402
+from tdcr.search.fit import (  # noqa: E402
+    DEFAULT_GROUPS,
+    F_SCALE,
+    LOSS,
+    LOSSES,
+    PRIOR,
+    check_f_scale,
+    fit,
+    format_prior,
+    parse_prior,
+)
 
 SHARED = ROOT.parent / "shared" / "real_robot" / "ftdcr_v4"
 
@@ -54,6 +67,18 @@ def _prior(text: str) -> dict[str, float]:
     return prior
 
 
+def _f_scales(text: str) -> tuple[float, ...]:
+    """``--f-scale``'s ``MM[,MM...]`` (argparse exits 2 with the reason)."""
+    try:
+        scales = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"numbers of mm separated by commas, got {text!r}") from None
+    for scale in scales:
+        if (problem := check_f_scale(scale)) is not None:
+            raise argparse.ArgumentTypeError(problem)
+    return scales
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--robot", default=str(ROOT / "examples" / "ftdcr_v4.json"))
@@ -64,9 +89,11 @@ def main() -> None:
     parser.add_argument("--prior", type=_prior, default=None,
                         help="judge a prior instead: GROUP=WIDTH[,GROUP=WIDTH...]")
     parser.add_argument("--loss", choices=LOSSES, default=None, help=f"judge a loss instead, against {LOSS}")
+    parser.add_argument("--f-scale", type=_f_scales, default=None,
+                        help=f"judge the loss's scale instead: MM[,MM...], against {F_SCALE:g} mm")
     args = parser.parse_args()
-    if args.prior and args.loss:
-        parser.error("--prior and --loss: judge one at a time")
+    if args.prior and (args.loss or args.f_scale):
+        parser.error("--prior with --loss or --f-scale: judge one at a time")
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
     recording = read_recording(args.train, robot)
@@ -82,23 +109,28 @@ def main() -> None:
             rows = np.nonzero(patterns == p)[0]
             fold[rows[len(rows) // 2:]] = 1
     print(f"split: {args.split}")
+    default = (f"loss {LOSS} at {F_SCALE:g} mm", DEFAULT_GROUPS, PRIOR, LOSS, F_SCALE)
     if args.prior:
         named = format_prior(args.prior)
-        choices = (("no prior", DEFAULT_GROUPS, None, LOSS), (f"prior {named}", DEFAULT_GROUPS, args.prior, LOSS))
+        choices = (("no prior", DEFAULT_GROUPS, None, LOSS, F_SCALE),
+                   (f"prior {named}", DEFAULT_GROUPS, args.prior, LOSS, F_SCALE))
+    elif args.f_scale:
+        loss = args.loss or LOSS
+        choices = (default, *((f"loss {loss} at {scale:g} mm", DEFAULT_GROUPS, PRIOR, loss, scale)
+                              for scale in args.f_scale))
     elif args.loss:
-        choices = ((f"loss {LOSS}", DEFAULT_GROUPS, PRIOR, LOSS),
-                   (f"loss {args.loss}", DEFAULT_GROUPS, PRIOR, args.loss))
+        choices = (default, (f"loss {args.loss}", DEFAULT_GROUPS, PRIOR, args.loss, F_SCALE))
     else:
         without = tuple(g for g in DEFAULT_GROUPS if g != args.group)
-        choices = ((f"without {args.group}", without, PRIOR, LOSS),
-                   (f"with {args.group}", without + (args.group,), PRIOR, LOSS))
+        choices = ((f"without {args.group}", without, PRIOR, LOSS, F_SCALE),
+                   (f"with {args.group}", without + (args.group,), PRIOR, LOSS, F_SCALE))
     print("\n| fitted fold | groups | rows fitted / held out | fitted RMSE, mm | held-out aligned, mm "
           "| held-out plain, mm | fit, s |\n|---|---|---|---|---|---|---|")
     for k in (0,) if args.split == "time" else (0, 1):  # in time: the later half is never fitted
         fitted, held_out = recording.take(fold == k), recording.take(fold != k)
-        for name, groups, prior, loss in choices:
+        for name, groups, prior, loss, f_scale in choices:
             start = time.perf_counter()
-            result = fit(robot, fitted, validate=held_out, groups=groups, prior=prior, loss=loss)
+            result = fit(robot, fitted, validate=held_out, groups=groups, prior=prior, loss=loss, f_scale=f_scale)
             print(f"| {k} | {name} | {len(fitted.time)} / {len(held_out.time)} | {result.train.rmse:.2f} | "
                   f"{result.validate.aligned:.2f} | {result.validate.rmse:.2f} | {time.perf_counter() - start:.0f} |",
                   flush=True)

@@ -111,7 +111,9 @@ DIFF_STEP = 1e-2
 #: A soft-L1 loss at 5 mm by default (since 2026-12-07): with the creep among the groups it scored the
 #: held-out folds of train better than plain least squares in all five of the shared recording's and
 #: in sum on FTDCR v6's, and it even ends at a lower train RMSE on both recordings
-#: (``benchmarks/real_robot_holdout.py --loss``, docs/real_robot.md "A robust loss").  A prior
+#: (``benchmarks/real_robot_holdout.py --loss``, docs/real_robot.md "A robust loss").  Smaller scales
+#: (down to 0.3 mm) scored those folds better still, and validated worse on both recordings: a
+#: near-L1 fit gives up the single-tendon sweeps that pin each tendon (``--f-scale``, the same).  A prior
 #: 0.2 units (0.02 rad) wide on the tendons' turns only: a turn the recording pins (a tendon's own
 #: sweep) moves as freely as before, one it barely constrains stays near the file's angle
 #: (held-out halves of train, ``benchmarks/real_robot_holdout.py --prior``).
