@@ -94,6 +94,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.prior and (args.loss or args.f_scale):
         parser.error("--prior with --loss or --f-scale: judge one at a time")
+    if args.f_scale and args.loss == "linear":
+        parser.error("--f-scale with --loss linear: plain least squares has no scale")
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or platform.platform()}")
     robot = load_robot(args.robot)
     recording = read_recording(args.train, robot)
