@@ -100,27 +100,36 @@ def check_features(features: np.ndarray, rows: np.ndarray | None = None) -> list
     return problems
 
 
+def _outside(values: np.ndarray, field) -> np.ndarray:
+    """Where ``values`` (any shape) are not finite or outside ``field``'s admissible bounds (its
+    ``admissible``, ``exclusive_min`` and ``exclusive_max``), as a bool array of the same shape."""
+    low, high = field.admissible
+    with np.errstate(invalid="ignore"):
+        return (~np.isfinite(values) | ((values >= high) if field.exclusive_max else (values > high))
+                | ((values <= low) if field.exclusive_min else (values < low)))
+
+
 def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[Problem]:
     """Problems with the general design's optional fields (:data:`tdcr.robot.fields.OPTIONAL`): a value
     that is not finite or outside its admissible bounds, or an arclength (``end``) beyond the
-    design's L (within rounding: clamped)."""
+    design's L (within rounding: clamped; not judged where L itself is refused, which
+    :func:`check_features` names)."""
     rows = np.arange(designs.n_designs) if rows is None else rows
+    length_admissible = ~_outside(designs.L, TABLE_I["L"])  # (B,): an end is judged against these Ls only
     problems = []
     for field in OPTIONAL:
         values = getattr(designs, field.name)
         if values is None:
             continue
         values = values.reshape(designs.n_designs, -1)
-        low, high = field.admissible
+        low = field.admissible[0]
         given = ~np.isnan(values) if field.alternative_to else np.ones(values.shape, dtype=bool)
         given &= ~((values == np.inf) & np.isinf(field.fill(designs.L[:1], 1)).all())  # inf: the default (rigid)
-        with np.errstate(invalid="ignore"):
-            bad = given & (~np.isfinite(values) | ((values >= high) if field.exclusive_max else (values > high))
-                           | ((values <= low) if field.exclusive_min else (values < low)))
-            if field.choices:
-                bad |= given & ~np.isin(values, list(field.choices.values()))
-            if field.within_length:
-                bad |= values > designs.L[:, None] * (1.0 + FRACTION_ROUNDING)
+        bad = given & _outside(values, field)
+        if field.choices:
+            bad |= given & ~np.isin(values, list(field.choices.values()))
+        if field.within_length:
+            bad |= length_admissible[:, None] & (values > designs.L[:, None] * (1.0 + FRACTION_ROUNDING))
         for b, i in zip(*np.nonzero(bad), strict=True):
             loc = ("designs", int(rows[b])) + ((field.name,) if field.per == "design" else ("tendons", int(i),
                                                                                             field.name))
@@ -130,7 +139,7 @@ def check_layout(designs: DesignBatch, rows: np.ndarray | None = None) -> list[P
             elif field.choices:
                 words = " or ".join(f"{w!r} ({n:g})" for w, n in field.choices.items())
                 msg, kind = f"must be {words}, got {value:.6g}", "not_a_choice"
-            elif field.within_length and value > low:
+            elif field.within_length and value > low and length_admissible[b]:
                 msg, kind = (f"must be in (0, L] = {interval(field, high=designs.L[b])}, got {value:.6g}",
                              "end_beyond_length")
             else:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tdcr.api import schemas
-from tdcr.api.checks import LAYOUT_REASONS, check_layout, check_standard_layout, format_location
+from tdcr.api.checks import LAYOUT_REASONS, InvalidRequest, check_layout, check_standard_layout, format_location
 from tdcr.api.validation import validate_features, validate_json
 from tdcr.robot import design_space
 from tdcr.robot.designs import DesignBatch, FeatureLayout
@@ -120,3 +120,25 @@ def test_the_oip_layout_and_the_design_space_follow_the_registry():
     assert ("not a layout field; they are angle, end, poisson, displacement, stiffness, zero, friction and motion"
             in str(info.value))
     assert format_location(("designs", 0, "tendons", 1, "end")) == "designs[0].tendons[1].end"
+
+
+def test_an_end_is_judged_against_its_own_design_length_only_where_that_length_is_admissible():
+    designs = design_space.sample_designs(2, seed=4)
+    n = designs.n_tendons
+    half = np.repeat(designs.L[:, None] / 2, n, axis=1)  # (2, N_t) m: inside either design
+    refused = designs.replace(L=np.array([-1.0, designs.L[1]]), end=half)
+    # design 0's L is refused, and the one validation path names only that: its ends are not judged against it
+    with pytest.raises(InvalidRequest) as refusal:
+        validate_json({"designs": refused.to_dicts(), "points": 5}, target="solver")
+    assert [p.loc for p in refusal.value.problems] == [("designs", 0, "L")]
+    # an end beyond an admissible L is named with that L; beyond its own bound, with the bound
+    beyond = designs.replace(end=np.repeat(designs.L[:, None] * 1.5, n, axis=1))
+    problems = check_layout(beyond)
+    assert len(problems) == 2 * n and all(p.type == "end_beyond_length" and "(0, L] = (0, " in p.msg
+                                          for p in problems)
+    end = BY_NAME["end"]
+    far = refused.replace(end=np.full((2, n), end.admissible[1] * 2))
+    by_design = {b: [p for p in check_layout(far) if p.loc[1] == b] for b in (0, 1)}
+    assert len(by_design[0]) == len(by_design[1]) == n
+    assert all(p.type == "out_of_range" and interval(end) in p.msg for p in by_design[0])  # L refused
+    assert all(p.type == "end_beyond_length" for p in by_design[1])
