@@ -24,6 +24,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 #: What ``stop`` finds in the log of a server that raised an unhandled exception.
 UNHANDLED = "Exception in ASGI application"
+#: How long ``wait_for_paths`` waits, s, from /readyz: a machine's first start compiles the solver's
+#: other paths after it says ready (about 75 s each on 2 cores, README), from the cache at once later.
+PATHS_TIMEOUT_S = 360.0
 
 
 def child_pids(pid: int) -> list[int]:
@@ -73,11 +76,21 @@ class ServerProcess:
     """
 
     def __init__(self, models_dir: str | Path, *, ready_timeout_s: float = 90.0, grpc: bool = True,
-                 wait_for_solver: bool = True, root: Path = ROOT, **settings):
+                 wait_for_solver: bool = True, wait_for_paths: tuple[str, ...] = (), root: Path = ROOT,
+                 **settings):
         """``grpc``: also serve gRPC, on a free port (``grpc_target``); ``wait_for_solver``: also wait
         for the solver (``exact`` ready: on a machine's first start it compiles after /readyz);
+        ``wait_for_paths``: also wait until ``/exact`` answers a small request on each of these solver
+        paths (``"displacement"``, ``"loaded"``: :data:`tdcr.physics.exact.PATHS`), which the solver
+        processes compile after they say ready (503 "starting" until then, about two minutes on a
+        machine's first start), for up to :data:`PATHS_TIMEOUT_S` more.
         ``root``: the source tree whose ``tdcr`` and ``service`` it runs (another revision's worktree
         for a benchmark's ``--against``; its solver processes import the same tree)."""
+        from tdcr.physics.exact import PATHS
+
+        unknown = set(wait_for_paths) - set(PATHS)
+        if unknown:
+            raise ValueError(f"wait_for_paths: unknown solver paths {sorted(unknown)}; they are {list(PATHS)}")
         self.port, self.grpc_port = free_ports(2) if grpc else (free_port(), 0)
         self.url = f"http://127.0.0.1:{self.port}"
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
@@ -91,17 +104,62 @@ class ServerProcess:
                 [sys.executable, "-m", "tdcr.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
                  "--grpc-port", str(self.grpc_port), "--log-level", "warning"],
                 cwd=root, env=env, stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + ready_timeout_s
+        try:
+            if self._wait_ready(time.monotonic() + ready_timeout_s, wait_for_solver) and self._wait_for_paths(
+                    wait_for_paths, time.monotonic() + PATHS_TIMEOUT_S):
+                return
+            problem = "server did not become ready"
+        except RuntimeError as e:
+            problem = str(e)
+        self.stop(check=False)
+        raise RuntimeError(f"{problem}: {self.log()[-3000:]}")
+
+    def _wait_ready(self, deadline: float, wait_for_solver: bool) -> bool:
+        """Poll ``/readyz`` until it answers 200 (and lists no solver model as starting, with
+        ``wait_for_solver``); False if the server exits or the ``deadline`` (``time.monotonic()``) passes."""
         while time.monotonic() < deadline and self.proc.poll() is None:
             try:
                 with urllib.request.urlopen(self.url + "/readyz", timeout=2) as r:
                     if r.status == 200 and not (wait_for_solver and json.loads(r.read()).get("starting")):
-                        return
+                        return True
             except (urllib.error.URLError, ConnectionError, TimeoutError):
                 pass
             time.sleep(0.2)
-        self.stop(check=False)
-        raise RuntimeError(f"server did not become ready: {self.log()[-3000:]}")
+        return False
+
+    def _wait_for_paths(self, paths: tuple[str, ...], deadline: float) -> bool:
+        """Post a small request on each solver path of ``paths`` to ``/exact`` until it answers 200,
+        waiting out each 503 (its ``Retry-After``) and each failed connection; False if the server exits or
+        the ``deadline`` (``time.monotonic()``) passes first.  Any other answer raises ``RuntimeError``
+        with its body."""
+        import numpy as np
+
+        from tdcr.robot.design_space import sample_designs
+
+        design = sample_designs(1, seed=0)
+        bodies = {"displacement": design.replace(displacement=np.full(design.offset.shape, 1e-4)).to_dicts(),
+                  "loaded": [d | {"tip_force": [0.0, 0.01, 0.0]} for d in design.to_dicts()],
+                  "tendon": design.to_dicts()}
+        for path in paths:
+            body = json.dumps({"designs": bodies[path], "points": 5}).encode()
+            while True:
+                request = urllib.request.Request(self.url + "/exact", data=body,
+                                                 headers={"Content-Type": "application/json"})
+                try:
+                    with urllib.request.urlopen(request, timeout=60):
+                        break
+                except urllib.error.HTTPError as e:
+                    if e.code != 503:
+                        raise RuntimeError(f"/exact on the {path} path: {e.code} {e.read()[:500]!r}") from None
+                    wait = float(e.headers.get("Retry-After") or 1.0)
+                except (urllib.error.URLError, ConnectionError, TimeoutError):
+                    if self.proc.poll() is not None:
+                        return False
+                    wait = 1.0
+                if time.monotonic() + wait > deadline:
+                    return False
+                time.sleep(wait)
+        return True
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")

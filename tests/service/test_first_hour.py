@@ -26,7 +26,7 @@ from tdcr.surrogates.runtime import best_model
 
 @pytest.fixture(scope="module")
 def server(tiny_models):
-    srv = ServerProcess(tiny_models[1], grpc=False)
+    srv = ServerProcess(tiny_models[1], grpc=False, wait_for_paths=("loaded",))
     yield srv
     srv.stop()
 

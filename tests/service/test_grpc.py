@@ -37,7 +37,8 @@ Output = pb.ModelInferRequest.InferRequestedOutputTensor
 
 @pytest.fixture(scope="module")
 def server(tiny_models):
-    srv = ServerProcess(tiny_models[1], max_designs=500, grpc_max_receive_bytes=MAX_RECEIVE)
+    srv = ServerProcess(tiny_models[1], max_designs=500, grpc_max_receive_bytes=MAX_RECEIVE,
+                        wait_for_paths=("loaded",))
     yield srv
     srv.stop()
 
@@ -246,7 +247,8 @@ def test_saturated_and_late_solver_calls(tiny_models):
     heavy = sample_designs(200, seed=3).features()  # 200 loaded designs at 400 points: seconds of the compiled solver
     slow = _request("exact", heavy, s=np.linspace(0.0, 1.0, 400), gravity=np.tile([0.0, 9.81, 0.0], (200, 1)),
                     density=np.full(200, 7800.0))
-    with ServerProcess(tiny_models[1], exact_timeout_s=1, exact_max_pending=1, exact_admission_factor=100) as srv:
+    with ServerProcess(tiny_models[1], exact_timeout_s=1, exact_max_pending=1, exact_admission_factor=100,
+                       wait_for_paths=("loaded",)) as srv:
         with grpc.insecure_channel(srv.grpc_target) as channel:
             infer = pb_grpc.GRPCInferenceServiceStub(channel).ModelInfer
 

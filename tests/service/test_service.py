@@ -208,7 +208,7 @@ def test_exact_saturation_gives_503_and_the_deadline_504(example_request, tiny_m
     until the slot is free, and while the only solver process restarts after the deadline's kill);
     the slow one gets 504."""
     srv = ServerProcess(tiny_models[1], exact_max_pending=1, exact_timeout_s=0.3, exact_seconds_per_design=1e-6,
-                        exact_seconds_per_loaded_design=1e-6)
+                        exact_seconds_per_loaded_design=1e-6, wait_for_paths=("loaded",))
     try:  # 400 loaded designs at 400 points: seconds of the compiled solver
         slow = {"designs": [{**example_request["designs"][1], "tip_force": [0.01, 0.0, 0.0]}] * 400, "points": 400}
 

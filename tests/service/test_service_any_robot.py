@@ -34,9 +34,17 @@ def robots() -> DesignBatch:
 def server():
     from service.process import ServerProcess
 
-    srv = ServerProcess(DEFAULT_MODELS_DIR, ready_timeout_s=300)  # a first start compiles the kernels
+    # a machine's first start compiles the kernels, the displacement and loaded paths after /readyz
+    srv = ServerProcess(DEFAULT_MODELS_DIR, ready_timeout_s=300, wait_for_paths=("displacement", "loaded"))
     yield srv
     srv.stop()
+
+
+def test_a_server_waits_only_for_solver_paths_it_knows():
+    from service.process import ServerProcess
+
+    with pytest.raises(ValueError, match=r"unknown solver paths \['tension'\]; they are \['tendon', 'loaded'"):
+        ServerProcess(DEFAULT_MODELS_DIR, wait_for_paths=("loaded", "tension"))  # before any process starts
 
 
 def test_exact_json_takes_any_robot_and_answers_tensions_and_displacements(server):

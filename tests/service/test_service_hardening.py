@@ -47,7 +47,8 @@ def _wait(condition, timeout_s: float = 30.0) -> bool:
 def server(tiny_models):
     # admission estimates made small, so that work past the deadline is admitted and killed
     srv = ServerProcess(tiny_models[1], exact_timeout_s=3, exact_workers=1, exact_max_pending=4,
-                        max_body_bytes=2_000_000, exact_seconds_per_loaded_design=1e-4)
+                        max_body_bytes=2_000_000, exact_seconds_per_loaded_design=1e-4,
+                        wait_for_paths=("loaded",))
     yield srv
     srv.stop()
 

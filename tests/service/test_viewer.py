@@ -28,7 +28,7 @@ CHROMIUM_ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swi
 def server():
     from tdcr.surrogates.runtime import DEFAULT_MODELS_DIR
 
-    srv = ServerProcess(DEFAULT_MODELS_DIR)  # the shipped models: calibrated bounds to show
+    srv = ServerProcess(DEFAULT_MODELS_DIR, wait_for_paths=("loaded",))  # the shipped models: calibrated bounds
     yield srv
     srv.stop()
 
