@@ -27,6 +27,9 @@ UNHANDLED = "Exception in ASGI application"
 #: How long ``wait_for_paths`` waits, s, from /readyz: a machine's first start compiles the solver's
 #: other paths after it says ready (about 75 s each on 2 cores, README), from the cache at once later.
 PATHS_TIMEOUT_S = 360.0
+#: A shipped request that runs each solver path (tdcr.physics.exact.PATHS; the hardening tests check
+#: that each runs its path), for ``wait_for_paths``.
+PATH_EXAMPLES = {"tendon": "request.json", "loaded": "request_loaded.json", "displacement": "ftdcr_v4_fitted.json"}
 
 
 def child_pids(pid: int) -> list[int]:
@@ -80,17 +83,15 @@ class ServerProcess:
                  **settings):
         """``grpc``: also serve gRPC, on a free port (``grpc_target``); ``wait_for_solver``: also wait
         for the solver (``exact`` ready: on a machine's first start it compiles after /readyz);
-        ``wait_for_paths``: also wait until ``/exact`` answers a small request on each of these solver
-        paths (``"displacement"``, ``"loaded"``: :data:`tdcr.physics.exact.PATHS`), which the solver
+        ``wait_for_paths``: also wait until ``/exact`` answers the shipped example of each of these solver
+        paths (``"displacement"``, ``"loaded"``: :data:`PATH_EXAMPLES`), which the solver
         processes compile after they say ready (503 "starting" until then, about two minutes on a
         machine's first start), for up to :data:`PATHS_TIMEOUT_S` more.
         ``root``: the source tree whose ``tdcr`` and ``service`` it runs (another revision's worktree
         for a benchmark's ``--against``; its solver processes import the same tree)."""
-        from tdcr.physics.exact import PATHS
-
-        unknown = set(wait_for_paths) - set(PATHS)
+        unknown = set(wait_for_paths) - set(PATH_EXAMPLES)
         if unknown:
-            raise ValueError(f"wait_for_paths: unknown solver paths {sorted(unknown)}; they are {list(PATHS)}")
+            raise ValueError(f"wait_for_paths: unknown solver paths {sorted(unknown)}; they are {list(PATH_EXAMPLES)}")
         self.port, self.grpc_port = free_ports(2) if grpc else (free_port(), 0)
         self.url = f"http://127.0.0.1:{self.port}"
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
@@ -128,20 +129,12 @@ class ServerProcess:
         return False
 
     def _wait_for_paths(self, paths: tuple[str, ...], deadline: float) -> bool:
-        """Post a small request on each solver path of ``paths`` to ``/exact`` until it answers 200,
-        waiting out each 503 (its ``Retry-After``) and each failed connection; False if the server exits or
-        the ``deadline`` (``time.monotonic()``) passes first.  Any other answer raises ``RuntimeError``
-        with its body."""
-        import numpy as np
-
-        from tdcr.robot.design_space import sample_designs
-
-        design = sample_designs(1, seed=0)
-        bodies = {"displacement": design.replace(displacement=np.full(design.offset.shape, 1e-4)).to_dicts(),
-                  "loaded": [d | {"tip_force": [0.0, 0.01, 0.0]} for d in design.to_dicts()],
-                  "tendon": design.to_dicts()}
+        """Post the shipped example of each solver path of ``paths`` (:data:`PATH_EXAMPLES`) to ``/exact``
+        until it answers 200, waiting out each 503 (its ``Retry-After``) and each failed connection; False
+        if the server exits or the ``deadline`` (``time.monotonic()``) passes first.  Any other answer
+        raises ``RuntimeError`` with its body."""
         for path in paths:
-            body = json.dumps({"designs": bodies[path], "points": 5}).encode()
+            body = (ROOT / "examples" / PATH_EXAMPLES[path]).read_bytes()
             while True:
                 request = urllib.request.Request(self.url + "/exact", data=body,
                                                  headers={"Content-Type": "application/json"})
