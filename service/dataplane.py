@@ -65,6 +65,10 @@ class DataPlane:
         """The models still starting after the service became ready, and what they say."""
         return {m.name: m.starting_note() for m in self.repository if m.starting}
 
+    def compiling(self) -> dict[str, list[str]]:
+        """The solver paths each started model is still compiling (:meth:`Model.compiling`)."""
+        return {m.name: paths for m in self.repository if not m.starting and (paths := m.compiling())}
+
     @staticmethod
     def server_metadata() -> dict:
         return {"name": SERVER_NAME, "version": tdcr.__version__, "extensions": EXTENSIONS}

@@ -166,6 +166,11 @@ class Model(ABC):
         """What /readyz says of the model while it is :attr:`starting`."""
         return self.health() or "starting"
 
+    def compiling(self) -> list[str]:
+        """The solver paths the model is still compiling once started (a request on one: 503
+        "starting", with Retry-After); none but the solver's."""
+        return []
+
     def ready(self) -> bool:
         """Whether the model can answer now."""
         return self.health() is None

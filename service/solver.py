@@ -107,6 +107,9 @@ class ExactModel(Model):
             return "solver pool: not running"
         return None if self.pool.healthy else "solver pool: a worker is being replaced"
 
+    def compiling(self) -> list[str]:
+        return [] if self.pool is None else self.pool.compiling()
+
     def parameters(self) -> dict:
         return {"deadline_s": self.settings.exact_timeout_s}
 

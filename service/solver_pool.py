@@ -29,6 +29,8 @@ from multiprocessing.connection import Connection
 import anyio
 from starlette.concurrency import run_in_threadpool
 
+from tdcr.physics.exact import DEFAULT_PATHS, PATHS
+
 log = logging.getLogger("tdcr.service")
 
 _PR_SET_PDEATHSIG = 1
@@ -60,19 +62,21 @@ def _die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
-def _serve(conn: Connection, parent: int, preload: tuple[str, ...]) -> None:
+def _serve(conn: Connection, parent: int, preload: tuple[str, ...], warm) -> None:
     """Worker loop: ``(fn, args, kwargs, expected exception types)`` in, ``(ok, result or exception)`` out.
     ``preload``: the modules of the functions it will be sent, imported before it says ready (else
-    the first request unpickling its function pays the imports, a quarter second, inside its deadline)."""
+    the first request unpickling its function pays the imports, a quarter second, inside its deadline).
+    ``warm``: one shared flag per solver path (:data:`PATHS`), set here as each is compiled."""
     _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server handles Ctrl-C and stops us
     for module in preload:
         importlib.import_module(module)
-    from tdcr.physics.exact import DEFAULT_PATHS, PATHS, warm_up
+    from tdcr.physics.exact import warm_up
 
-    warm_up(DEFAULT_PATHS)  # ready once the default path answers; the others compile meanwhile
     global _WARM
-    _WARM = set(DEFAULT_PATHS)
+    _WARM = warm
+    warm_up(DEFAULT_PATHS)  # ready once the default path answers; the others compile meanwhile
+    _mark_warm(DEFAULT_PATHS)
     conn.send((True, "ready"))
     rest = tuple(p for p in PATHS if p not in DEFAULT_PATHS)
     threading.Thread(target=_warm_up_rest, args=(rest,), daemon=True, name="tdcr-warm-up").start()
@@ -89,13 +93,24 @@ def _serve(conn: Connection, parent: int, preload: tuple[str, ...]) -> None:
             conn.send((False, RuntimeError(f"{exc.__class__.__name__}: {exc}")))
 
 
-#: In a solver process: the solver paths compiled (or loaded) so far; None elsewhere (no check).
-_WARM: set[str] | None = None
+#: In a solver process: one flag per solver path (:data:`PATHS`), set once the path is compiled (or
+#: loaded from the cache), shared with the server (:meth:`SolverPool.compiling`); None elsewhere (no check).
+_WARM = None
+
+
+def _warm_paths(flags) -> set[str]:
+    """The solver paths whose flag in ``flags`` (one per :data:`PATHS`) is set."""
+    return {path for path, warm in zip(PATHS, flags, strict=True) if warm}
+
+
+def _mark_warm(paths) -> None:
+    for path in paths:
+        _WARM[PATHS.index(path)] = 1
 
 
 def cold_paths(paths) -> list[str]:
     """Those of ``paths`` that this solver process is still compiling (none outside the solver processes)."""
-    return [] if _WARM is None else sorted(set(paths) - _WARM)
+    return [] if _WARM is None else sorted(set(paths) - _warm_paths(_WARM))
 
 
 def _warm_up_rest(paths: tuple[str, ...]) -> None:
@@ -110,13 +125,14 @@ def _warm_up_rest(paths: tuple[str, ...]) -> None:
             warm_up((path,))
         except Exception:  # noqa: BLE001 - a request on that path compiles it itself, and reports what fails
             log.exception("warming up the solver path %s failed", path)
-        _WARM.add(path)
+        _mark_warm((path,))
 
 
 class _Worker:
     def __init__(self, ctx, preload: tuple[str, ...]):
         self.conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=_serve, args=(child, os.getpid(), preload), daemon=True,
+        self.warm = ctx.RawArray("b", len(PATHS))  # the paths it has compiled (set by the process)
+        self.process = ctx.Process(target=_serve, args=(child, os.getpid(), preload, self.warm), daemon=True,
                                    name="tdcr-solver")
         self.process.start()
         child.close()
@@ -164,6 +180,15 @@ class SolverPool:
         worker = _Worker(self._ctx, self._preload)
         worker.wait_ready(self._start_timeout_s)
         return worker
+
+    def compiling(self) -> list[str]:
+        """The solver paths that a process is still compiling (a machine's first start: about two
+        minutes on 2 cores; a replaced process loads them from the cache in seconds).  A request on
+        one of them may be answered "starting" meanwhile (:func:`cold_paths`)."""
+        warm = set(PATHS)
+        for worker in self.workers:
+            warm &= _warm_paths(worker.warm)
+        return sorted(set(PATHS) - warm)
 
     @property
     def healthy(self) -> bool:

@@ -17,12 +17,14 @@ async def healthz() -> dict:
 
 
 @router.get("/readyz", summary="Readiness: every model loaded, checksum verified and warmed up; the solver may "
-                              "still be starting (listed under `starting`: /exact says 503 meanwhile)",
+                              "still be starting (listed under `starting`: /exact says 503 meanwhile) or "
+                              "compiling its other paths (under `compiling`: a request on one says 503)",
             responses={503: {"description": "not ready"}})
 async def readyz(state: State):
     ready = state.plane.server_ready()
     body = {"ready": ready, "models": state.surrogates, "default_model": state.default_model,
-            "problems": state.problems + state.plane.problems(), "starting": state.plane.starting_models()}
+            "problems": state.problems + state.plane.problems(), "starting": state.plane.starting_models(),
+            "compiling": state.plane.compiling()}
     return JSONResponse(body, status_code=200 if ready else 503)
 
 

@@ -203,7 +203,8 @@ def test_every_option_has_help_and_openapi_says_what_it_wrote(root, tmp_path):
 def test_the_port_answers_while_the_service_starts(root, tiny_models, tmp_path):
     """A first start compiles the solver (an empty numba cache here): meanwhile /healthz answers
     200, /readyz and inference 503 with the reason and a Retry-After (the service's own API and OIP
-    REST), and the log says so; then it is ready."""
+    REST), and the log says so; then it is ready.  Once the solver joins, /readyz lists the paths it
+    still compiles, and a request on one is refused at once with a Retry-After."""
     port = free_port()
     env = {**os.environ, "TDCR_MODELS_DIR": str(tiny_models[1]), "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
@@ -235,6 +236,24 @@ def test_the_port_answers_while_the_service_starts(root, tiny_models, tmp_path):
         assert (200, 503) in seen and seen[-1] == (200, 200), seen[:3] + seen[-3:]
         log.seek(0)
         assert "the first start on a machine compiles the solver kernels" in log.read()
+        robot = (root / "examples" / "ftdcr_v4_fitted.json").read_bytes()  # displacement: compiled last
+        compiling, refused = [], None
+        while time.monotonic() < deadline:
+            ready = httpx.get(url + "/readyz").json()
+            if "exact" in ready["starting"]:  # the solver joins (its default path compiled) ...
+                assert ready["compiling"] == {}, ready
+            else:  # ... then compiles its other paths
+                compiling.append(ready["compiling"].get("exact", []))
+                assert compiling[-1], "the solver joins while its last path still compiles (about a minute)"
+                answer = httpx.post(url + "/exact", content=robot, headers={"Content-Type": "application/json"})
+                refused = None if answer.status_code == 200 else answer  # (200: a process compiled it since)
+                break
+            time.sleep(0.2)
+        assert compiling and set(compiling[0]) <= {"loaded", "displacement"}, compiling
+        if refused is not None:
+            assert refused.status_code == 503 and "compiles its displacement path" in refused.json()["message"], \
+                refused.text
+            assert refused.headers["retry-after"] == str(RETRY_STARTING_S)
     finally:
         proc.terminate()
         proc.wait(timeout=30)

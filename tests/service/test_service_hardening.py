@@ -17,7 +17,7 @@ import numpy as np
 import orjson
 import pytest
 
-from service.process import ServerProcess, child_pids, solver_pids
+from service.process import PATHS_TIMEOUT_S, ServerProcess, child_pids, solver_pids
 
 pytestmark = pytest.mark.skipif(not Path("/proc").exists(), reason="needs /proc")
 
@@ -304,6 +304,33 @@ def test_solver_workers_outlive_the_thread_that_started_the_pool():
         pool.close()
 
 
+def test_a_pool_says_which_solver_paths_its_processes_still_compile():
+    """Each solver process sets a shared flag per path as it compiles it (or loads it from the cache),
+    after the default path it says ready with: the pool's ``compiling`` (``/readyz``'s) lists the others
+    until every process has them, and a process's own check (``cold_paths``) reads the same flags."""
+    from service.solver_pool import SolverPool, cold_paths
+    from tdcr.physics.exact import DEFAULT_PATHS, PATHS
+
+    pool = SolverPool(2)
+    try:
+        assert set(pool.compiling()) <= set(PATHS) - set(DEFAULT_PATHS)  # said ready: the default path is in
+        deadline = time.monotonic() + PATHS_TIMEOUT_S  # a machine's first start compiles them (two minutes)
+        while pool.compiling() and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert pool.compiling() == []
+        assert [list(w.warm) for w in pool.workers] == [[1] * len(PATHS)] * 2
+
+        async def in_each_process():  # both processes at once: each answers one
+            return sorted(await asyncio.gather(*(pool.run(cold_paths, PATHS, timeout=60) for _ in pool.workers)))
+
+        assert asyncio.run(in_each_process()) == [[], []]
+        pool.workers[0].warm[PATHS.index("loaded")] = 0  # as a replaced process before it has loaded the path
+        assert pool.compiling() == ["loaded"]
+        assert asyncio.run(in_each_process()) == [[], ["loaded"]]
+    finally:
+        pool.close()
+
+
 def test_waiting_for_a_free_worker_past_the_deadline_is_a_refusal_not_a_deadline():
     """A request that finds no worker free within its deadline never started: the pool raises
     ``NoFreeWorker`` (the service's 503 "saturated" with Retry-After), not ``TimeoutError`` (504), and
@@ -347,7 +374,7 @@ def test_a_request_on_a_path_still_compiling_is_answered_starting_at_once(root, 
     assert all(paths_of(requests[name]) == {path} for path, name in PATH_EXAMPLES.items())
     for request in requests.values():  # not a solver process: no check
         solver._refuse_cold(request)
-    monkeypatch.setattr(solver_pool, "_WARM", {"tendon", "loaded"})
+    monkeypatch.setattr(solver_pool, "_WARM", [int(path in ("tendon", "loaded")) for path in PATHS])
     solver._refuse_cold(requests["request.json"])
     solver._refuse_cold(requests["request_loaded.json"])
     with pytest.raises(InferenceError) as refused:
