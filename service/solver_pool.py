@@ -9,6 +9,10 @@ they ask Linux for a parent-death signal (``PR_SET_PDEATHSIG``) and also watch t
 Linux sends that signal when the *thread* that started the process ends, so every worker is started
 on the pool's own spawner thread, which lives as long as the pool: started from a short-lived
 thread-pool thread (anyio ends its idle threads after 10 s), a healthy worker was killed with it.
+
+A worker says ready once the solver's default path is compiled (a machine's first start compiles
+it, about a minute on 2 cores) and compiles the others after that; it shares one flag per path with
+the server, so that ``/readyz`` lists the paths still compiling (:meth:`SolverPool.compiling`).
 """
 
 from __future__ import annotations
