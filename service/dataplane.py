@@ -66,8 +66,8 @@ class DataPlane:
         return {m.name: m.starting_note() for m in self.repository if m.starting}
 
     def compiling(self) -> dict[str, list[str]]:
-        """The solver paths each started model is still compiling (:meth:`Model.compiling`)."""
-        return {m.name: paths for m in self.repository if not m.starting and (paths := m.compiling())}
+        """The solver paths each model is still compiling (:meth:`Model.compiling`)."""
+        return {m.name: paths for m in self.repository if (paths := m.compiling())}
 
     @staticmethod
     def server_metadata() -> dict:

@@ -27,9 +27,6 @@ UNHANDLED = "Exception in ASGI application"
 #: How long ``wait_for_paths`` waits, s, from /readyz: a machine's first start compiles the solver's
 #: other paths after it says ready (about 75 s each on 2 cores, README), from the cache at once later.
 PATHS_TIMEOUT_S = 360.0
-#: A shipped request that runs each solver path (tdcr.physics.exact.PATHS; the hardening tests check
-#: that each runs its path), for ``wait_for_paths``.
-PATH_EXAMPLES = {"tendon": "request.json", "loaded": "request_loaded.json", "displacement": "ftdcr_v4_fitted.json"}
 
 
 def child_pids(pid: int) -> list[int]:
@@ -83,15 +80,18 @@ class ServerProcess:
                  **settings):
         """``grpc``: also serve gRPC, on a free port (``grpc_target``); ``wait_for_solver``: also wait
         for the solver (``exact`` ready: on a machine's first start it compiles after /readyz);
-        ``wait_for_paths``: also wait until ``/exact`` answers the shipped example of each of these solver
-        paths (``"displacement"``, ``"loaded"``: :data:`PATH_EXAMPLES`), which the solver
-        processes compile after they say ready (503 "starting" until then, about two minutes on a
-        machine's first start), for up to :data:`PATHS_TIMEOUT_S` more.
+        ``wait_for_paths``: also wait until ``/readyz`` lists none of these solver paths
+        (``"displacement"``, ``"loaded"``: :data:`tdcr.physics.exact.PATHS`) under ``compiling``: the
+        solver processes compile them after they say ready (a request on one says 503 "starting"
+        until then, about two minutes on a machine's first start), for up to :data:`PATHS_TIMEOUT_S` more.
         ``root``: the source tree whose ``tdcr`` and ``service`` it runs (another revision's worktree
         for a benchmark's ``--against``; its solver processes import the same tree)."""
-        unknown = set(wait_for_paths) - set(PATH_EXAMPLES)
-        if unknown:
-            raise ValueError(f"wait_for_paths: unknown solver paths {sorted(unknown)}; they are {list(PATH_EXAMPLES)}")
+        if wait_for_paths:
+            from tdcr.physics.exact import PATHS  # (the solver's import, only where it is asked for)
+
+            unknown = set(wait_for_paths) - set(PATHS)
+            if unknown:
+                raise ValueError(f"wait_for_paths: unknown solver paths {sorted(unknown)}; they are {list(PATHS)}")
         self.port, self.grpc_port = free_ports(2) if grpc else (free_port(), 0)
         self.url = f"http://127.0.0.1:{self.port}"
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
@@ -105,54 +105,26 @@ class ServerProcess:
                 [sys.executable, "-m", "tdcr.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
                  "--grpc-port", str(self.grpc_port), "--log-level", "warning"],
                 cwd=root, env=env, stdout=log, stderr=subprocess.STDOUT)
-        try:
-            if self._wait_ready(time.monotonic() + ready_timeout_s, wait_for_solver) and self._wait_for_paths(
-                    wait_for_paths, time.monotonic() + PATHS_TIMEOUT_S):
-                return
-            problem = "server did not become ready"
-        except RuntimeError as e:
-            problem = str(e)
-        self.stop(check=False)
-        raise RuntimeError(f"{problem}: {self.log()[-3000:]}")
+        ready = self._wait(time.monotonic() + ready_timeout_s, lambda r: not (wait_for_solver and r["starting"]))
+        if ready and wait_for_paths:  # the solver up, and none of the paths listed as still compiling
+            ready = self._wait(time.monotonic() + PATHS_TIMEOUT_S, lambda r: "exact" not in r["starting"] and not (
+                set(wait_for_paths) & set(r["compiling"].get("exact", ()))))
+        if not ready:
+            self.stop(check=False)
+            raise RuntimeError(f"server did not become ready: {self.log()[-3000:]}")
 
-    def _wait_ready(self, deadline: float, wait_for_solver: bool) -> bool:
-        """Poll ``/readyz`` until it answers 200 (and lists no solver model as starting, with
-        ``wait_for_solver``); False if the server exits or the ``deadline`` (``time.monotonic()``) passes."""
+    def _wait(self, deadline: float, done) -> bool:
+        """Poll ``/readyz`` until it answers 200 with a body (dict) that ``done`` accepts; False if the
+        server exits or the ``deadline`` (``time.monotonic()``) passes first."""
         while time.monotonic() < deadline and self.proc.poll() is None:
             try:
                 with urllib.request.urlopen(self.url + "/readyz", timeout=2) as r:
-                    if r.status == 200 and not (wait_for_solver and json.loads(r.read()).get("starting")):
+                    if r.status == 200 and done(json.loads(r.read())):
                         return True
-            except (urllib.error.URLError, ConnectionError, TimeoutError):
+            except (urllib.error.URLError, ConnectionError, TimeoutError):  # (503 is an HTTPError: not ready)
                 pass
             time.sleep(0.2)
         return False
-
-    def _wait_for_paths(self, paths: tuple[str, ...], deadline: float) -> bool:
-        """Post the shipped example of each solver path of ``paths`` (:data:`PATH_EXAMPLES`) to ``/exact``
-        until it answers 200, waiting out each 503 (its ``Retry-After``) and each failed connection; False
-        if the server exits or the ``deadline`` (``time.monotonic()``) passes first.  Any other answer
-        raises ``RuntimeError`` with its body."""
-        for path in paths:
-            body = (ROOT / "examples" / PATH_EXAMPLES[path]).read_bytes()
-            while True:
-                request = urllib.request.Request(self.url + "/exact", data=body,
-                                                 headers={"Content-Type": "application/json"})
-                try:
-                    with urllib.request.urlopen(request, timeout=60):
-                        break
-                except urllib.error.HTTPError as e:
-                    if e.code != 503:
-                        raise RuntimeError(f"/exact on the {path} path: {e.code} {e.read()[:500]!r}") from None
-                    wait = float(e.headers.get("Retry-After") or 1.0)
-                except (urllib.error.URLError, ConnectionError, TimeoutError):
-                    if self.proc.poll() is not None:
-                        return False
-                    wait = 1.0
-                if time.monotonic() + wait > deadline:
-                    return False
-                time.sleep(wait)
-        return True
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")
