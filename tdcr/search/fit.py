@@ -44,8 +44,10 @@ errors leave out how the loads' effect changes with the values: along a directio
 loads' effect tells apart the rounds move slowly.
 
 A segment is the tendons that end together.  Every parameter is reported with its standard error
-from the Jacobian at the optimum (s^2 (J^T J)^-1, s^2 Huber's scale of the loss: :func:`_covariance_scale`,
-SSR / (m - p) for plain least squares; none where m <= p), taken in
+from the Jacobian at the optimum: the cluster-robust sandwich over train's patterns (:func:`clusters`,
+:func:`_covariance`), since a model's error lasts a whole sweep and its rows are not independent; with
+fewer than two such stretches, s^2 (J^T J)^-1, s^2 Huber's scale of the loss (:func:`_covariance_scale`,
+SSR / (m - p) for plain least squares); none where m <= p.  Either is taken in
 the span of the directions that move the robot: with ``base_rotation`` fitted, a common turn of every
 tendon is the base's, so the turns are reported with zero mean.  Errors are the RMS of the
 3-D point error over the rows with a measurement, mm: "plain", and "aligned" after removing the
@@ -132,13 +134,16 @@ FAILED_ERROR = 0.05
 @dataclass(frozen=True)
 class Parameter:
     """One identified value: ``name`` (e.g. ``zero[3]``), ``value`` and ``stderr`` in ``unit`` (SI;
-    ``inf`` where the data do not move it: not identified, ``null`` in the report), and its ``group``."""
+    ``inf`` where the data do not move it: not identified, ``null`` in the report), and its ``group``;
+    ``stderr_independent``: the standard error were train's residuals independent (the same as
+    ``stderr`` with fewer than two :func:`clusters`; smaller when a model's error lasts a sweep)."""
 
     name: str
     value: float
     stderr: float
     unit: str
     group: str = ""
+    stderr_independent: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -167,12 +172,31 @@ def errors(answer: Replay, recording: Recording) -> Errors:
     err = (answer.points - recording.measured)[scored] * 1e3
     aligned = err - err.mean(axis=0)
     dist, dist_aligned = np.linalg.norm(err, axis=1), np.linalg.norm(aligned, axis=1)
-    patterns = np.array([re.sub(r"_hold$", "", str(label)) for label in recording.labels[scored]])
+    patterns = _patterns(recording)[scored]
     per = {p: float(np.sqrt((dist_aligned[patterns == p] ** 2).mean())) for p in dict.fromkeys(patterns)
            if p}  # a row without a label (a recording with no label column) belongs to no pattern
     return Errors(rmse=float(np.sqrt((dist**2).mean())), aligned=float(np.sqrt((dist_aligned**2).mean())),
                   max=float(dist.max()), rows=int(scored.sum()), skipped=recording.skipped,
                   failed=int((~answer.converged[scored]).sum()), per_pattern=per)
+
+
+def _patterns(recording: Recording) -> np.ndarray:
+    """Each row's pattern ``(T,)``: its label less a ``_hold`` suffix (a hold belongs to the sweep it
+    ends; "" where the recording has no label)."""
+    return np.array([re.sub(r"_hold$", "", str(label)) for label in recording.labels])
+
+
+def clusters(recording: Recording) -> np.ndarray:
+    """The stretches of a recording whose errors the fit's standard errors take as correlated
+    ``(T,)`` (int, one per stretch): its patterns (:func:`_patterns`) where it has labels, otherwise
+    the runs between its :func:`pauses`.  A model's error lasts as long as the motion that causes it,
+    so the rows of one sweep are not independent samples (the standard errors: :func:`_covariance`)."""
+    patterns = _patterns(recording)
+    if (patterns != "").any():
+        return np.unique(patterns, return_inverse=True)[1]
+    runs = np.zeros(len(recording.time), dtype=np.int64)
+    runs[pauses(recording.time)] = 1
+    return np.cumsum(runs)
 
 
 def segments(robot: Robot) -> list[np.ndarray]:
@@ -335,7 +359,9 @@ class FitResult:
     errors of those groups carry it), the search's ``groups``, ``loss`` and ``f_scale`` (mm), and
     under loads ``load_rounds``: the loaded replay's train errors after each round kept (the first
     round fits without the loads, so ``initial`` is the start's replay without them); ``train_end``:
-    the time of train's last row (s, the recording's clock), where the written file's creep stands."""
+    the time of train's last row (s, the recording's clock), where the written file's creep stands;
+    ``clusters``: over how many of train's :func:`clusters` the standard errors were estimated (0:
+    its residuals taken as independent, with fewer than two)."""
 
     robot: Robot
     parameters: list[Parameter]
@@ -352,6 +378,7 @@ class FitResult:
     f_scale: float = F_SCALE
     load_rounds: tuple[Errors, ...] = ()
     train_end: float | None = None
+    clusters: int = 0
 
     def report(self) -> dict:
         """The fit as JSON (the robot file's ``fitted``).  ``crept_m``: how far each tendon had crept
@@ -361,13 +388,19 @@ class FitResult:
         :func:`at_start` gives the robot as train found it."""
         rounds = {"load_rounds": [e.as_dict() for e in self.load_rounds]} if self.load_rounds else {}
         crept = {"crept_m": [float(c) for c in self.train_replay.crept[-1]], "crept_at_s": self.train_end}
-        return rounds | crept | {"parameters": [{"name": p.name, "value": p.value,
-                                         "stderr": p.stderr if math.isfinite(p.stderr) else None, "unit": p.unit,
-                                         "group": p.group}
-                                        for p in self.parameters],
+        return rounds | crept | {"parameters": [{"name": p.name, "value": p.value, "stderr": _finite(p.stderr),
+                                                 "stderr_independent": _finite(p.stderr_independent),
+                                                 "unit": p.unit, "group": p.group}
+                                                for p in self.parameters],
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves,
-                "prior": self.prior, "groups": list(self.groups), "loss": self.loss, "f_scale_mm": self.f_scale}
+                "prior": self.prior, "groups": list(self.groups), "loss": self.loss, "f_scale_mm": self.f_scale,
+                "stderr_clusters": self.clusters}
+
+
+def _finite(value: float) -> float | None:
+    """``value``, or None (JSON's null) where it is not finite."""
+    return value if math.isfinite(value) else None
 
 
 #: The parameters of a group that are not alike: their own names (and units).
@@ -649,20 +682,28 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     free = _free_directions(layout)
     m, q = jac.shape[0], free.shape[1]
     r_best = residual(z, track=False)
-    s2 = _covariance_scale(r_best, loss, f_scale, free=q)  # mm^2
-    cov = s2 * free @ np.linalg.pinv((jac @ free).T @ (jac @ free)) @ free.T
-    stderr = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
-    # a parameter the residuals do not move (e.g. a lag far below the sampling interval) is not
-    # identified: its variance is unbounded, not the 0 the pseudo-inverse gives its null direction
     column = np.linalg.norm(jac, axis=0)
-    stderr[column <= 1e-9 * max(float(column.max()), 1e-300)] = np.inf
-    if m <= q:  # no more residuals than free directions: no residual variance to scale them by
-        stderr[:] = np.inf
+
+    def standard_errors(cov: np.ndarray) -> np.ndarray:
+        """The standard errors ``(p,)`` (search units) of the covariance ``(q, q)`` along ``free``."""
+        stderr = np.sqrt(np.clip(np.diag(free @ cov @ free.T), 0.0, None)) * scale
+        # a parameter the residuals do not move (e.g. a lag far below the sampling interval) is not
+        # identified: its variance is unbounded, not the 0 the pseudo-inverse gives its null direction
+        stderr[column <= 1e-9 * max(float(column.max()), 1e-300)] = np.inf
+        if m <= q:  # no more residuals than free directions: no residual variance to scale them by
+            stderr[:] = np.inf
+        return stderr
+
+    clustered, count = _covariance(jac @ free, r_best, loss=loss, f_scale=f_scale,
+                                   groups=np.repeat(clusters(train)[scored], 3))  # each residual's cluster
+    apart, _ = _covariance(jac @ free, r_best, loss=loss, f_scale=f_scale, groups=None)
+    stderrs = standard_errors(clustered), standard_errors(apart)
     params = []
-    for name, g, v, se in zip(layout.names, layout.groups, x, stderr, strict=True):
+    for name, g, v, se, se_apart in zip(layout.names, layout.groups, x, *stderrs, strict=True):
         value = math.exp(v) if g in _LOG else v
         params.append(Parameter(name=name, value=float(value), stderr=float(value * se if g in _LOG else se),
-                                unit=_NAME_UNITS.get(name) or _UNITS[g], group=g))
+                                unit=_NAME_UNITS.get(name) or _UNITS[g], group=g,
+                                stderr_independent=float(value * se_apart if g in _LOG else se_apart)))
     # under loads the last loaded replay, at these values (the shift's): its own tensions and statuses
     train_replay = _replay_points(fitted, solved(x) if loaded_replay[0] is None else loaded_replay[0], train.time)
     fitted = fitted.after(train_replay.crept[-1])  # as train left it: what a later recording starts from
@@ -674,7 +715,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0],
                     prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)},
                     groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale,
-                    load_rounds=tuple(rounds), train_end=float(train.time[-1]))
+                    load_rounds=tuple(rounds), train_end=float(train.time[-1]), clusters=count)
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
 
 
@@ -779,6 +820,32 @@ def _influence(r: np.ndarray, loss: str, f_scale: float) -> tuple[np.ndarray, np
     return r / np.sqrt(1.0 + z), (1.0 + z) ** -1.5
 
 
+def _covariance(jac: np.ndarray, r: np.ndarray, *, loss: str, f_scale: float,
+                groups: np.ndarray | None) -> tuple[np.ndarray, int]:
+    """The covariance ``(q, q)`` of the parameters along the Jacobian's ``jac`` ``(m, q)`` columns at an
+    optimum with residuals ``r`` ``(m,)``, and the number of clusters it was estimated over.
+
+    With ``groups`` ``(n,)`` (int: the cluster of each of the first n residuals, the data's; the rest,
+    e.g. a prior's, are not sampled) of at least two clusters: the cluster-robust sandwich of an
+    M-estimator (Cameron & Miller 2015, "A practitioner's guide to cluster-robust inference",
+    J. Human Resources 50(2); statsmodels' ``cov_type="cluster"``), A^-1 B A^-1 with
+    A = J^T diag(psi') J and B the sum over the G clusters g of s_g s_g^T, s_g = J_g^T psi_g, times
+    G / (G - 1) (n - 1) / (n - q).  Otherwise (or with
+    ``groups=None``) the residuals are taken as independent: :func:`_covariance_scale` (J^T J)^-1,
+    and 0 clusters."""
+    q = jac.shape[1]
+    count = 0 if groups is None or len(groups) == 0 else int(np.unique(groups).size)
+    if count < 2:
+        return _covariance_scale(r, loss, f_scale, free=q) * np.linalg.pinv(jac.T @ jac), 0
+    psi, slope = _influence(r, loss, f_scale)
+    bread = np.linalg.pinv(jac.T @ (slope[:, None] * jac))
+    n = len(groups)
+    sums = np.zeros((int(groups.max()) + 1, q))
+    np.add.at(sums, groups, jac[:n] * psi[:n, None])  # each cluster's score s_g
+    meat = sums.T @ sums * count / (count - 1) * (n - 1) / max(n - q, 1)
+    return bread @ meat @ bread, count
+
+
 def _covariance_scale(r: np.ndarray, loss: str, f_scale: float, *, free: int) -> float:
     """The factor of (J^T J)^-1 in the parameters' covariance, in the residuals' units squared, for
     the residuals ``r`` ``(m,)`` at an optimum with ``p = free`` free directions: Huber's estimate for
@@ -856,5 +923,5 @@ def plot(result: FitResult, train: Recording, validate: Recording | None, path: 
     plt.close(fig)
 
 
-__all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "at_start", "errors", "fit", "pauses", "plot",
-           "segments", "starts_crept"]
+__all__ = ["GROUPS", "Errors", "FitResult", "Measurement", "Parameter", "at_start", "clusters", "errors", "fit",
+           "pauses", "plot", "segments", "starts_crept"]

@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
     ("real_robot_holdout.py", ["--loss", "cauchy"], "--loss: invalid choice: 'cauchy'"),
     ("real_robot_holdout.py", ["--f-scale", "2.5", "--loss", "linear"], "plain least squares has no scale"),
     ("real_robot.py", ["--train", "no_such_recording.csv"], "no_such_recording.csv: cannot read"),
+    ("real_robot_stderr.py", ["--train", "no_such_recording.csv"], "no_such_recording.csv: cannot read"),
 ])
 def test_a_bad_argument_exits_2_naming_it(tmp_path, script, arguments, reason):
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *arguments], cwd=tmp_path,
