@@ -10,7 +10,8 @@ a draw of N(0, 1): RMS 1, median |z| 0.67, |z| > 2 in 5 % of them.  Both kinds t
 judged so: ``stderr`` (the cluster-robust sandwich over the patterns) and ``stderr_independent``
 (train's residuals taken as independent).  A value searched as a logarithm (E, stiffness, friction,
 ...) is compared in it: its difference and standard error relative.  A parameter whose standard
-error is not finite in a half is left out.
+error is not finite in a half is left out.  Last, the pairs of parameters whose estimates correlate
+strongly in the fit on all of train (its report's ``correlations``).
 
 docs/real_robot.md ("Standard errors over the sweeps") gives the figures.  Figures depend on the
 machine: it is printed.
@@ -34,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 from real_robot import add_recording_arguments  # noqa: E402  (this folder's)
 
 from tdcr.robot.real import RobotFileError, load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import _LOG, clusters, fit  # noqa: E402
+from tdcr.search.fit import _LOG, CORRELATION_SHOWN, clusters, fit  # noqa: E402
 
 #: The standard errors judged: the fit's Parameter attribute -> its name here.
 KINDS = {"stderr": "clustered", "stderr_independent": "independent"}
@@ -88,6 +89,8 @@ def main() -> None:
     for k, name in KINDS.items():
         v = np.abs(np.array(z[k]))
         print(f"| {name} | {v.size} | {np.sqrt(np.mean(v**2)):.2f} | {np.median(v):.2f} | {np.mean(v > 2):.0%} |")
+    print(f"\nthe fit on all of train, pairs correlating by {CORRELATION_SHOWN} or more: "
+          + (", ".join(f"{a} / {b} {r:+.3f}" for a, b, r in results["all"].correlations) or "none"))
 
 
 if __name__ == "__main__":

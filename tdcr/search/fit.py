@@ -47,7 +47,9 @@ A segment is the tendons that end together.  Every parameter is reported with it
 from the Jacobian at the optimum: the cluster-robust sandwich over train's patterns (:func:`clusters`,
 :func:`_covariance`), since a model's error lasts a whole sweep and its rows are not independent; with
 fewer than two such stretches, s^2 (J^T J)^-1, s^2 Huber's scale of the loss (:func:`_covariance_scale`,
-SSR / (m - p) for plain least squares); none where m <= p.  Either is taken in
+SSR / (m - p) for plain least squares, reported beside it as ``stderr_independent``); none where
+m <= p.  The report lists the pairs whose estimates correlate strongly (:data:`CORRELATION_SHOWN`,
+from the latter's covariance).  Either is taken in
 the span of the directions that move the robot: with ``base_rotation`` fitted, a common turn of every
 tendon is the base's, so the turns are reported with zero mean.  Errors are the RMS of the
 3-D point error over the rows with a measurement, mm: "plain", and "aligned" after removing the
@@ -56,6 +58,7 @@ mean error over the file (the metric of the public opencr-mujoco calibration).
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import re
@@ -120,6 +123,9 @@ DIFF_STEP = 1e-2
 #: sweep) moves as freely as before, one it barely constrains stays near the file's angle
 #: (held-out halves of train, ``benchmarks/real_robot_holdout.py --prior``).
 LOSS, F_SCALE, PRIOR = "soft_l1", 5.0, MappingProxyType({"tendon_angle": 0.2})
+#: The report lists the pairs of parameters whose estimates correlate at least this much, either sign:
+#: values the recording hardly tells apart (lmfit's fit report lists its correlations so).
+CORRELATION_SHOWN = 0.9
 #: The losses :func:`fit` offers (``least_squares``'s names).
 LOSSES = ("linear", "soft_l1")
 #: Under loads: the most rounds of least squares with the loads' shift held; they stop once a round
@@ -361,7 +367,10 @@ class FitResult:
     round fits without the loads, so ``initial`` is the start's replay without them); ``train_end``:
     the time of train's last row (s, the recording's clock), where the written file's creep stands;
     ``clusters``: over how many of train's :func:`clusters` the standard errors were estimated (0:
-    its residuals taken as independent, with fewer than two)."""
+    its residuals taken as independent, with fewer than two); ``correlations``: the pairs of
+    parameters (a, b, r) whose estimates correlate by at least :data:`CORRELATION_SHOWN` under the
+    covariance of the loss's curvature (``stderr_independent``'s), strongest first (for a logarithm's
+    group, its logarithm's)."""
 
     robot: Robot
     parameters: list[Parameter]
@@ -379,6 +388,7 @@ class FitResult:
     load_rounds: tuple[Errors, ...] = ()
     train_end: float | None = None
     clusters: int = 0
+    correlations: tuple[tuple[str, str, float], ...] = ()
 
     def report(self) -> dict:
         """The fit as JSON (the robot file's ``fitted``).  ``crept_m``: how far each tendon had crept
@@ -395,7 +405,8 @@ class FitResult:
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves,
                 "prior": self.prior, "groups": list(self.groups), "loss": self.loss, "f_scale_mm": self.f_scale,
-                "stderr_clusters": self.clusters}
+                "stderr_clusters": self.clusters,
+                "correlations": [{"a": a, "b": b, "r": r} for a, b, r in self.correlations]}
 
 
 def _finite(value: float) -> float | None:
@@ -698,6 +709,9 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                                    groups=np.repeat(clusters(train)[scored], 3))  # each residual's cluster
     apart, _ = _covariance(jac @ free, r_best, loss=loss, f_scale=f_scale, groups=None)
     stderrs = standard_errors(clustered), standard_errors(apart)
+    # from the loss's curvature: the sandwich has rank at most the number of patterns, and fewer
+    # patterns than parameters would make every pair of it correlate fully
+    correlated = _correlations(free @ apart @ free.T, layout.names, np.isfinite(stderrs[1]))
     params = []
     for name, g, v, se, se_apart in zip(layout.names, layout.groups, x, *stderrs, strict=True):
         value = math.exp(v) if g in _LOG else v
@@ -715,7 +729,8 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0],
                     prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)},
                     groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale,
-                    load_rounds=tuple(rounds), train_end=float(train.time[-1]), clusters=count)
+                    load_rounds=tuple(rounds), train_end=float(train.time[-1]), clusters=count,
+                    correlations=correlated)
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
 
 
@@ -844,6 +859,19 @@ def _covariance(jac: np.ndarray, r: np.ndarray, *, loss: str, f_scale: float,
     np.add.at(sums, groups, jac[:n] * psi[:n, None])  # each cluster's score s_g
     meat = sums.T @ sums * count / (count - 1) * (n - 1) / max(n - q, 1)
     return bread @ meat @ bread, count
+
+
+def _correlations(cov: np.ndarray, names: Sequence[str], identified: np.ndarray) -> tuple[tuple[str, str, float], ...]:
+    """The pairs of ``names`` (a, b, r) whose estimates correlate by at least :data:`CORRELATION_SHOWN`
+    (either sign) under the covariance ``cov`` ``(p, p)``, among the ``identified`` ``(p,)`` (bool)
+    ones, strongest first."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    shown = []
+    for i, j in itertools.combinations(np.nonzero(identified & (sd > 0))[0], 2):
+        r = float(cov[i, j] / (sd[i] * sd[j]))
+        if abs(r) >= CORRELATION_SHOWN:
+            shown.append((names[i], names[j], r))
+    return tuple(sorted(shown, key=lambda pair: -abs(pair[2])))
 
 
 def _covariance_scale(r: np.ndarray, loss: str, f_scale: float, *, free: int) -> float:
