@@ -845,9 +845,8 @@ def _covariance(jac: np.ndarray, r: np.ndarray, *, loss: str, f_scale: float,
     M-estimator (Cameron & Miller 2015, "A practitioner's guide to cluster-robust inference",
     J. Human Resources 50(2); statsmodels' ``cov_type="cluster"``), A^-1 B A^-1 with
     A = J^T diag(psi') J and B the sum over the G clusters g of s_g s_g^T, s_g = J_g^T psi_g, times
-    G / (G - 1) (n - 1) / (n - q).  Otherwise (or with
-    ``groups=None``) the residuals are taken as independent: :func:`_covariance_scale` (J^T J)^-1,
-    and 0 clusters."""
+    G / (G - 1) (n - 1) / (n - q).  Otherwise (or with ``groups=None``) the residuals are taken as
+    independent: :func:`_covariance_scale` (J^T J)^-1, and 0 clusters."""
     q = jac.shape[1]
     count = 0 if groups is None or len(groups) == 0 else int(np.unique(groups).size)
     if count < 2:
