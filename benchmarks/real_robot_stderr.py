@@ -69,7 +69,7 @@ def main() -> None:
         start = time.perf_counter()
         results[name] = fit(robot, train.take(keep))
         r = results[name]
-        print(f"fit on {name}: {int(keep.sum())} rows, {r.clusters} clusters, {len(r.parameters)} parameters, "
+        print(f"fit on {name}: {int(keep.sum())} rows, {r.stderr_clusters} clusters, {len(r.parameters)} parameters, "
               f"train aligned {r.train.aligned:.2f} mm, {time.perf_counter() - start:.0f} s", flush=True)
     print("\n| parameter | value (all) | stderr | independent | A - B | z | z independent |")
     print("|---|---|---|---|---|---|---|")

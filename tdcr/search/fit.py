@@ -366,7 +366,7 @@ class FitResult:
     under loads ``load_rounds``: the loaded replay's train errors after each round kept (the first
     round fits without the loads, so ``initial`` is the start's replay without them); ``train_end``:
     the time of train's last row (s, the recording's clock), where the written file's creep stands;
-    ``clusters``: over how many of train's :func:`clusters` the standard errors were estimated (0:
+    ``stderr_clusters``: over how many of train's :func:`clusters` the standard errors were estimated (0:
     its residuals taken as independent, with fewer than two); ``correlations``: the pairs of
     parameters (a, b, r) whose estimates correlate by at least :data:`CORRELATION_SHOWN` under the
     covariance of the loss's curvature (``stderr_independent``'s), strongest first (for a logarithm's
@@ -387,7 +387,7 @@ class FitResult:
     f_scale: float = F_SCALE
     load_rounds: tuple[Errors, ...] = ()
     train_end: float | None = None
-    clusters: int = 0
+    stderr_clusters: int = 0
     correlations: tuple[tuple[str, str, float], ...] = ()
 
     def report(self) -> dict:
@@ -405,7 +405,7 @@ class FitResult:
                 "train": self.train.as_dict(), "validate": None if self.validate is None else self.validate.as_dict(),
                 "initial_train": self.initial.as_dict(), "seconds": self.seconds, "solves": self.solves,
                 "prior": self.prior, "groups": list(self.groups), "loss": self.loss, "f_scale_mm": self.f_scale,
-                "stderr_clusters": self.clusters,
+                "stderr_clusters": self.stderr_clusters,
                 "correlations": [{"a": a, "b": b, "r": r} for a, b, r in self.correlations]}
 
 
@@ -729,7 +729,7 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
                     validate_replay=val_replay, initial=initial, seconds=seconds, solves=solves[0],
                     prior={g: float(w) for g, w in zip(layout.groups, width, strict=True) if np.isfinite(w)},
                     groups=tuple(dict.fromkeys(layout.groups)), loss=loss, f_scale=f_scale,
-                    load_rounds=tuple(rounds), train_end=float(train.time[-1]), clusters=count,
+                    load_rounds=tuple(rounds), train_end=float(train.time[-1]), stderr_clusters=count,
                     correlations=correlated)
     return replace(out, robot=replace(fitted, extra=fitted.extra | {"fitted": out.report()}))
 

@@ -820,7 +820,7 @@ def test_the_fits_clusters_are_the_recordings_patterns_or_its_runs_between_pause
     assert clusters(bare).tolist() == [0] * 5 + [1] * 3
     made = replace(rec, measured=replay(robot, rec.commands).points + 1e-4 * np.sin(np.arange(len(rec.time)))[:, None])
     result = fit(robot, made, groups=("marker", "base_position"), max_iterations=2, budget=60)
-    assert result.clusters == len(patterns) and result.report()["stderr_clusters"] == len(patterns)
+    assert result.stderr_clusters == len(patterns) and result.report()["stderr_clusters"] == len(patterns)
     assert all(0 < p.stderr < np.inf and 0 < p.stderr_independent < np.inf for p in result.parameters)
     assert all(p["stderr_independent"] > 0 for p in result.report()["parameters"])
     # a marker offset and the base's position trade where the tip turns little: listed, each pair once
