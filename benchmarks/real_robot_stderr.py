@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 from real_robot import add_recording_arguments  # noqa: E402  (this folder's)
 
 from tdcr.robot.real import RobotFileError, load_robot, read_recording  # noqa: E402
-from tdcr.search.fit import _LOG, CORRELATION_SHOWN, clusters, fit  # noqa: E402
+from tdcr.search.fit import CORRELATION_SHOWN, LOG_SEARCHED, clusters, fit  # noqa: E402
 
 #: The standard errors judged: the fit's Parameter attribute -> its name here.
 KINDS = {"stderr": "clustered", "stderr_independent": "independent"}
@@ -43,8 +43,8 @@ KINDS = {"stderr": "clustered", "stderr_independent": "independent"}
 
 def _searched(p) -> tuple[float, dict[str, float]]:
     """A parameter's value and standard errors in the search's terms (logs, relative errors for
-    :data:`_LOG`)."""
-    if p.group in _LOG:
+    :data:`LOG_SEARCHED`)."""
+    if p.group in LOG_SEARCHED:
         return math.log(p.value), {k: getattr(p, k) / p.value for k in KINDS}
     return p.value, {k: getattr(p, k) for k in KINDS}
 
@@ -82,8 +82,9 @@ def main() -> None:
             row[k] = (va - vb) / spread if math.isfinite(spread) and spread > 0 else math.nan
             if math.isfinite(row[k]):
                 z[k].append(row[k])
-        print(f"| {p.name} | {p.value:.4g} {p.unit} | {p.stderr:.2g} | {p.stderr_independent:.2g} | {va - vb:.3g}"
-              f"{' (log)' if p.group in _LOG else ''} | {row['stderr']:.2f} | {row['stderr_independent']:.2f} |")
+        log = " (log)" if p.group in LOG_SEARCHED else ""
+        print(f"| {p.name} | {p.value:.4g} {p.unit} | {p.stderr:.2g} | {p.stderr_independent:.2g} | {va - vb:.3g}{log}"
+              f" | {row['stderr']:.2f} | {row['stderr_independent']:.2f} |")
     print("\n| standard error | parameters | RMS z (1) | median abs z (0.67) | abs z > 2 (5 %) |")
     print("|---|---|---|---|---|")
     for k, name in KINDS.items():

@@ -93,11 +93,11 @@ _SCALE = {"E": 0.1, "zero": 1e-3, "elasticity": 0.1, "stiffness": 0.1, "friction
           "tendon_offset": 0.05, "angle": 0.1, "tendon_angle": 0.1, "end": 2e-3,
           "marker": 1e-3, "base_position": 1e-3, "base_rotation": 0.01, "time_constant": 0.1}
 #: Searched as logarithms (positive, relative steps).
-_LOG = ("E", "elasticity", "stiffness", "friction", "creep", "offset", "tendon_offset", "time_constant")
+LOG_SEARCHED = ("E", "elasticity", "stiffness", "friction", "creep", "offset", "tendon_offset", "time_constant")
 #: Where a log-searched value starts when the robot file's is 0 or infinite (friction, rigid tendons,
 #: no lag: at 0 s the lag's gradient vanishes).
 _LOG_START = {"friction": 0.05, "stiffness": 1e4, "E": 1e10, "time_constant": 0.2, "creep": 1e-3}
-#: The search's bounds of each group's value (logs for :data:`_LOG`): physical ranges, and the
+#: The search's bounds of each group's value (logs for :data:`LOG_SEARCHED`): physical ranges, and the
 #: admissible ranges of the design fields.
 _BOUNDS = {"E": (math.log(1e9), math.log(1e12)), "zero": (-0.02, 0.02), "stiffness": (math.log(50.0), math.log(1e7)),
            "drive_compliance": (math.log(1e-9), math.log(0.1)), "tendon_EA": (math.log(1.0), math.log(1e9)),
@@ -250,7 +250,7 @@ def _layout(robot: Robot, groups: Sequence[str]) -> _Layout:
 
 
 def _values(robot: Robot, layout: _Layout) -> np.ndarray:
-    """The robot's current values of the layout's parameters (search space: logs for :data:`_LOG`)."""
+    """The robot's current values of the layout's parameters (search space: logs for :data:`LOG_SEARCHED`)."""
     d, m, segs = robot.design, robot.measurement, segments(robot)
     out = []
     for g, i in zip(layout.groups, layout.index, strict=True):
@@ -714,10 +714,10 @@ def fit(robot: Robot, train: Recording, *, validate: Recording | None = None, gr
     correlated = _correlations(free @ apart @ free.T, layout.names, np.isfinite(stderrs[1]))
     params = []
     for name, g, v, se, se_apart in zip(layout.names, layout.groups, x, *stderrs, strict=True):
-        value = math.exp(v) if g in _LOG else v
-        params.append(Parameter(name=name, value=float(value), stderr=float(value * se if g in _LOG else se),
+        value = math.exp(v) if g in LOG_SEARCHED else v
+        params.append(Parameter(name=name, value=float(value), stderr=float(value * se if g in LOG_SEARCHED else se),
                                 unit=_NAME_UNITS.get(name) or _UNITS[g], group=g,
-                                stderr_independent=float(value * se_apart if g in _LOG else se_apart)))
+                                stderr_independent=float(value * se_apart if g in LOG_SEARCHED else se_apart)))
     # under loads the last loaded replay, at these values (the shift's): its own tensions and statuses
     train_replay = _replay_points(fitted, solved(x) if loaded_replay[0] is None else loaded_replay[0], train.time)
     fitted = fitted.after(train_replay.crept[-1])  # as train left it: what a later recording starts from
@@ -743,7 +743,8 @@ def at_start(robot: Robot, result: FitResult, parameters: Sequence[Parameter] | 
     parameters = result.parameters if parameters is None else parameters
     if tuple(p.name for p in parameters) != layout.names:
         raise ValueError(f"parameters: must be {list(layout.names)} in this order (the fit's groups)")
-    x = np.array([math.log(p.value) if g in _LOG else p.value for p, g in zip(parameters, layout.groups, strict=True)])
+    x = np.array([math.log(p.value) if g in LOG_SEARCHED else p.value
+                  for p, g in zip(parameters, layout.groups, strict=True)])
     return _apply(robot, layout, x, robot.design.angles.copy())
 
 
