@@ -2198,7 +2198,8 @@ def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac, m0_star
         tip_step = np.array([k0], dtype=np.int64)
         tip_p, tip_r, tip_x, tip_g = np.empty((1, 3)), np.empty((1, 3, 3)), np.empty((1, 6)), np.empty((1, n_t))
         zero3 = np.zeros(3)
-        _shoot_pass(zero3.copy(), zero3.copy(), edges0, rod, capstan, zero3, tols, False, False,
+        # bool(False), not False: numba would compile another _shoot_pass (and its stages) for a literal
+        _shoot_pass(zero3.copy(), zero3.copy(), edges0, rod, capstan, zero3, tols, bool(False), bool(False),  # noqa: UP018
                     (tip_step, tip_p, tip_r, tip_x, tip_g), jac, np.empty(0))
         tip, half = tip_p[0], 0.5 * length
         y[3] = tip[1] * f_tip[2] - tip[2] * f_tip[1] + m_tip[0] + half * (tip[1] * f_g[2] - tip[2] * f_g[1])
@@ -2270,8 +2271,8 @@ def solve_loaded_design(rod, capstan, load, grid, tols, view, shoot_jac, m0_star
     pos_out[:, :] = pos[:n_out]
     rot_out[:, :, :] = rot[:n_out]
     x_out[:, :] = xo[:n_out]
-    # the path lengths on the final grid: one more pass from the result, recording nothing
-    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, rod, capstan, f_g, tols, False, tols.shortcut,
+    # the path lengths on the final grid: one more pass from the result, recording nothing (bool(): as above)
+    _shoot_pass(y[3:].copy(), y[:3].copy(), edges, rod, capstan, f_g, tols, bool(False), tols.shortcut,  # noqa: UP018
                 (none, pos, rot, xo, gain), jac, displacement_out)
     for i in range(n_t):
         displacement_out[i] = undeformed_length(length, offset[i], pitch[i], end[i]) - displacement_out[i]
